@@ -1,0 +1,39 @@
+# MMM: every target runs inside the project's virtual environment (.venv), created by `make setup`.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+# The CPU build of torch 2.13.0 on the project machines; on a GPU machine the same pin pulls the
+# CUDA build from the registry.
+TORCH_VERSION ?= 2.13.0
+STAMP := $(VENV)/.installed
+DATA ?= data/synthetic
+ARGS ?=
+
+.DEFAULT_GOAL := help
+.PHONY: help setup test test-fast data render-demo demo clean
+
+help: ## list the targets
+	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q "torch==$(TORCH_VERSION)"
+	$(BIN)/python -m pip install -q -e ".[dev,text]"
+	touch $(STAMP)
+
+setup: $(STAMP) ## create .venv and install the package (idempotent)
+
+test: $(STAMP) ## run the test suite (sets up first when needed)
+	$(BIN)/python -m pytest -q
+
+data: $(STAMP) ## generate the synthetic default dataset into $(DATA)
+	$(BIN)/mmm data synth --out $(DATA) $(ARGS)
+
+demo: $(STAMP) ## the main job on the embedded default: synthetic data, then rendered clips in outputs/demo
+	$(BIN)/mmm data synth --out $(DATA)
+	$(BIN)/mmm render-examples --data $(DATA) --out outputs/demo
+
+clean: ## remove generated data and outputs (keeps .venv and the MLflow store)
+	rm -rf data outputs
