@@ -48,10 +48,23 @@ def qrot(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def qbetween(v0: torch.Tensor, v1: torch.Tensor) -> torch.Tensor:
-    """Shortest-arc quaternion rotating v0 onto v1, both (..., 3) (need not be unit)."""
+    """Shortest-arc quaternion rotating v0 onto v1, both (..., 3) (need not be unit).
+
+    For opposite vectors the arc is not unique (and the plain formula is 0/0): those get a half
+    turn about an axis perpendicular to v0, the vertical one for horizontal vectors.
+    """
     v = torch.linalg.cross(v0, v1, dim=-1)
     w = torch.sqrt((v0**2).sum(-1, keepdim=True) * (v1**2).sum(-1, keepdim=True)) + (v0 * v1).sum(-1, keepdim=True)
-    return qnormalize(torch.cat((w, v), dim=-1))
+    q = torch.cat((w, v), dim=-1)
+    scale = (v0.norm(dim=-1) * v1.norm(dim=-1)).clamp_min(torch.finfo(q.dtype).tiny)
+    opposite = q.norm(dim=-1) <= 1e-7 * scale
+    if opposite.any():
+        axis = torch.linalg.cross(v0, v0.new_tensor([1.0, 0.0, 0.0]).expand_as(v0), dim=-1)
+        along_x = axis.norm(dim=-1, keepdim=True) <= 1e-6 * v0.norm(dim=-1, keepdim=True)
+        axis = torch.where(along_x, torch.linalg.cross(v0, v0.new_tensor([0.0, 1.0, 0.0]).expand_as(v0), dim=-1), axis)
+        half_turn = torch.cat((torch.zeros_like(w), axis / axis.norm(dim=-1, keepdim=True)), dim=-1)
+        q = torch.where(opposite.unsqueeze(-1), half_turn, q)
+    return qnormalize(q)
 
 
 def quat_from_axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,101 @@
+"""Configs: YAML files in conf/ composed by a defaults list, overridden from the command line.
+
+conf/<name>.yaml may start with a defaults list naming one file per config group, and groups are
+folders (conf/data/synthetic.yaml is option `synthetic` of group `data`):
+
+    defaults:
+      - data: synthetic
+      - trainer: cpu
+
+Overrides are `group=option` (choose another file of a group) or `dotted.key=value`; the result
+is validated against a dataclass schema when one is given, so a misspelt key is an error.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+
+class ConfigError(ValueError):
+    pass
+
+
+def conf_dir() -> Path:
+    """The conf/ folder: $MMM_CONF_DIR, else the repository's, else ./conf."""
+    if os.environ.get("MMM_CONF_DIR"):
+        return Path(os.environ["MMM_CONF_DIR"])
+    repo_conf = Path(__file__).resolve().parents[2] / "conf"
+    if repo_conf.is_dir():
+        return repo_conf
+    return Path.cwd() / "conf"
+
+
+def _load_yaml(path: Path) -> DictConfig:
+    try:
+        cfg = OmegaConf.load(path)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except Exception as e:  # YAML syntax errors
+        raise ConfigError(f"{path}: cannot parse ({e})") from None
+    if not isinstance(cfg, DictConfig):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return cfg
+
+
+def _options(directory: Path, group: str) -> list[str]:
+    return sorted(p.stem for p in (directory / group).glob("*.yaml"))
+
+
+def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None, directory: Path | None = None) -> DictConfig:
+    """Compose conf/<name>.yaml with its defaults and `overrides`; validate against `schema`."""
+    directory = directory or conf_dir()
+    primary = _load_yaml(directory / f"{name}.yaml")
+    defaults = primary.pop("defaults", [])
+    choices: dict[str, str] = {}
+    for entry in defaults:
+        if not isinstance(entry, DictConfig) or len(entry) != 1:
+            raise ConfigError(f"{directory / name}.yaml: each defaults entry must be one 'group: option', got {entry}")
+        (group, option), = entry.items()
+        choices[str(group)] = str(option)
+
+    dotted = []
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} is not key=value (e.g. trainer.max_steps=500 or model=paper)")
+        key, value = item.split("=", 1)
+        if "." not in key and (directory / key).is_dir():
+            if not (directory / key / f"{value}.yaml").exists():
+                raise ConfigError(f"{key}={value}: no {directory / key / value}.yaml; options: {', '.join(_options(directory, key))}")
+            choices[key] = value
+        else:
+            dotted.append(item)
+
+    cfg = OmegaConf.create({})
+    for group, option in choices.items():
+        group_cfg = _load_yaml(directory / group / f"{option}.yaml")
+        cfg = OmegaConf.merge(cfg, {group: group_cfg})
+    try:
+        cfg = OmegaConf.merge(cfg, primary, OmegaConf.from_dotlist(dotted))
+        if schema is not None:
+            cfg = OmegaConf.merge(OmegaConf.structured(schema), cfg)
+    except OmegaConfBaseException as e:
+        raise ConfigError(f"config {name!r} with overrides {list(overrides)}: {e}") from None
+    OmegaConf.set_struct(cfg, True)
+    return cfg
+
+
+def to_object(cfg: DictConfig) -> Any:
+    """The dataclass instance (schemas) behind a composed config."""
+    return OmegaConf.to_object(cfg)
+
+
+def config_hash(cfg: DictConfig) -> str:
+    """Short stable hash of a resolved config (tags runs and registered models)."""
+    text = OmegaConf.to_yaml(cfg, resolve=True, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]

@@ -1,0 +1,151 @@
+"""LightningDataModules over a dataset folder in the HumanML3D layout, configured by conf/data/*.yaml."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import lightning as L
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
+from torch.utils.data import DataLoader
+
+from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_text_motion
+from mmm.data.humanml3d import DataError, LoadReport, load_clips, load_items, load_stats
+from mmm.motion.skeleton import SKELETONS, Skeleton
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SynthConfig:
+    """Generate the synthetic dataset into `root` when it is missing."""
+
+    num_clips: int = 1500
+    seed: int = 0
+
+
+@dataclass
+class DataConfig:
+    name: str = "synthetic"
+    root: str = "data/synthetic"
+    skeleton: str = "t2m"  # t2m: 22 joints, 263 dims; kit: 21 joints, 251 dims
+    fps: float = 20.0
+    min_length: int = 40  # motions and caption spans shorter than this are left out
+    length_limit: int = 200  # ... and those this long or longer
+    max_length: int = 196  # stage 2 crops to at most this many frames
+    unit_length: int = 4  # the tokenizer's temporal downsampling
+    window: int = 64  # stage 1 training windows
+    batch_size: int = 64
+    num_workers: int = 0
+    on_invalid: str = "error"  # error | skip (skipped clips are counted and logged)
+    synthesize: SynthConfig | None = field(default=None)
+
+    @property
+    def skeleton_def(self) -> Skeleton:
+        if self.skeleton not in SKELETONS:
+            raise ValueError(f"data.skeleton={self.skeleton!r} is unknown; use one of {sorted(SKELETONS)}")
+        return SKELETONS[self.skeleton]
+
+    @property
+    def feature_dim(self) -> int:
+        return self.skeleton_def.feature_dim
+
+
+def _log_report(what: str, report: LoadReport) -> None:
+    text = f"{what}: {report.summary()}"
+    if report.skipped:
+        rank_zero_warn(text)
+    else:
+        rank_zero_info(text)
+
+
+class _DatasetFolder(L.LightningDataModule):
+    def __init__(self, cfg: DataConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.root = Path(cfg.root)
+        self.mean = self.std = None
+        self.reports: dict[str, LoadReport] = {}
+
+    def prepare_data(self) -> None:
+        # Runs on one process per node only; the datasets are built in setup() on every rank.
+        if self.root.exists():
+            return
+        if self.cfg.synthesize is None:
+            raise DataError(self.root, "dataset folder does not exist", "point data.root at a dataset in the HumanML3D layout")
+        from mmm.data.synthetic.generate import generate_dataset
+
+        rank_zero_info(f"{self.root} is missing: generating the synthetic dataset ({self.cfg.synthesize.num_clips} clips, seed {self.cfg.synthesize.seed})")
+        generate_dataset(self.root, num_clips=self.cfg.synthesize.num_clips, seed=self.cfg.synthesize.seed)
+
+    def _stats(self) -> None:
+        if self.mean is None:
+            self.mean, self.std = load_stats(self.root, self.cfg.feature_dim)
+
+    def _loader(self, dataset, shuffle: bool, **kwargs) -> DataLoader:
+        return DataLoader(
+            dataset,
+            batch_size=self.cfg.batch_size,
+            shuffle=shuffle,
+            drop_last=shuffle,
+            num_workers=self.cfg.num_workers,
+            persistent_workers=self.cfg.num_workers > 0,
+            **kwargs,
+        )
+
+
+class TokenizerDataModule(_DatasetFolder):
+    """Stage 1: random `window`-frame windows of normalized features, batches (B, window, D)."""
+
+    def setup(self, stage: str | None = None) -> None:
+        self._stats()
+        self.datasets = {}
+        for split in ("train", "val"):
+            clips, report = load_clips(
+                self.root, split, feature_dim=self.cfg.feature_dim, min_length=self.cfg.window, on_invalid=self.cfg.on_invalid
+            )
+            self.reports[split] = report
+            _log_report(f"{self.cfg.name} {split} clips", report)
+            self.datasets[split] = MotionWindowDataset(list(clips.values()), self.mean, self.std, self.cfg.window)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["train"], shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["val"], shuffle=False)
+
+
+class TextMotionDataModule(_DatasetFolder):
+    """Stage 2 and evaluation: captioned motions, padded batches with lengths."""
+
+    def setup(self, stage: str | None = None) -> None:
+        self._stats()
+        self.datasets = {}
+        for split in ("train", "val", "test"):
+            if split == "test" and stage == "fit":
+                continue
+            items, report = load_items(
+                self.root,
+                split,
+                feature_dim=self.cfg.feature_dim,
+                fps=self.cfg.fps,
+                min_length=self.cfg.min_length,
+                length_limit=self.cfg.length_limit,
+                on_invalid=self.cfg.on_invalid,
+            )
+            self.reports[split] = report
+            _log_report(f"{self.cfg.name} {split} items", report)
+            self.datasets[split] = TextMotionDataset(
+                items, self.mean, self.std, max_length=self.cfg.max_length, unit_length=self.cfg.unit_length,
+                random_crop=split == "train",
+            )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["train"], shuffle=True, collate_fn=collate_text_motion)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["val"], shuffle=False, collate_fn=collate_text_motion)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["test"], shuffle=False, collate_fn=collate_text_motion)

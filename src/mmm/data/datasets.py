@@ -1,0 +1,98 @@
+"""Torch datasets over loaded motions: random windows for the tokenizer, captioned motions for stage 2."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from mmm.data.humanml3d import MotionItem
+
+
+def normalize(features: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    return ((features - mean) / std).astype(np.float32)
+
+
+class MotionWindowDataset(Dataset):
+    """Every window of `window` frames of every motion, normalized: items are (window, D) tensors.
+
+    Indexing enumerates all window positions, so a uniform sampler draws motions in proportion to
+    their number of windows (the reference's length-weighted sampling) with no randomness inside
+    the dataset: reproducible, and a DistributedSampler splits it cleanly across ranks.
+    """
+
+    def __init__(self, motions: list[np.ndarray], mean: np.ndarray, std: np.ndarray, window: int = 64):
+        self.window = window
+        self.motions = [normalize(m, mean, std) for m in motions if m.shape[0] >= window]
+        self.num_too_short = len(motions) - len(self.motions)
+        if not self.motions:
+            raise ValueError(f"no motion is at least {window} frames long (the tokenizer's window)")
+        counts = [m.shape[0] - window + 1 for m in self.motions]
+        self.starts = np.concatenate(([0], np.cumsum(counts)))
+
+    def __len__(self) -> int:
+        return int(self.starts[-1])
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        k = int(np.searchsorted(self.starts, index, side="right")) - 1
+        offset = index - int(self.starts[k])
+        return torch.from_numpy(self.motions[k][offset : offset + self.window])
+
+
+class TextMotionDataset(Dataset):
+    """Captioned motions for stage 2: {"caption", "motion" (T, D) normalized, "length", "name"}.
+
+    As the reference does: a random caption of the item, the length cut to a multiple of
+    `unit_length` (one unit shorter with probability 1/3), at most `max_length`, at a random
+    offset. Randomness comes from torch's global generator, which Lightning seeds per worker.
+    """
+
+    def __init__(
+        self,
+        items: list[MotionItem],
+        mean: np.ndarray,
+        std: np.ndarray,
+        *,
+        max_length: int = 196,
+        unit_length: int = 4,
+        random_crop: bool = True,
+    ):
+        self.items = items
+        self.mean, self.std = mean, std
+        self.max_length, self.unit_length, self.random_crop = max_length, unit_length, random_crop
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def crop_length(self, length: int, shorter: bool) -> int:
+        units = min(length, self.max_length) // self.unit_length - (1 if shorter else 0)
+        return max(units, 1) * self.unit_length
+
+    def __getitem__(self, index: int) -> dict:
+        item = self.items[index]
+        if self.random_crop:
+            caption = item.captions[int(torch.randint(len(item.captions), ()))].text
+            length = self.crop_length(item.length, shorter=bool(torch.randint(3, ()) == 0))
+            offset = int(torch.randint(item.length - length + 1, ()))
+        else:
+            caption = item.captions[0].text
+            length, offset = self.crop_length(item.length, shorter=False), 0
+        motion = normalize(item.features[offset : offset + length], self.mean, self.std)
+        return {"caption": caption, "motion": torch.from_numpy(motion), "length": length, "name": item.name}
+
+
+def collate_text_motion(batch: list[dict]) -> dict:
+    """Pad motions to the longest in the batch: motion (B, T, D), lengths (B,), captions, names."""
+    lengths = torch.tensor([b["length"] for b in batch], dtype=torch.long)
+    dim = batch[0]["motion"].shape[-1]
+    motion = torch.zeros(len(batch), int(lengths.max()), dim)
+    for i, b in enumerate(batch):
+        motion[i, : b["length"]] = b["motion"]
+    return {
+        "motion": motion,
+        "lengths": lengths,
+        "captions": [b["caption"] for b in batch],
+        "names": [b["name"] for b in batch],
+    }

@@ -1,0 +1,314 @@
+"""Reader for the HumanML3D on-disk format (KIT-ML has the same layout).
+
+    <root>/new_joint_vecs/<id>.npy   (T, D) features      <root>/texts/<id>.txt  caption lines
+    <root>/new_joints/<id>.npy       (T, J, 3) joints     <root>/Mean.npy, Std.npy  (D,)
+    <root>/{train,val,test,train_val,all}.txt              one id per line
+
+A caption line is `caption#word/POS word/POS ...#start#end` (seconds; 0/0 or nan = whole clip).
+Motions are kept when min_length <= T < length_limit; a caption with a sub-span becomes an item
+of its own when the span's length obeys the same rule (the reference loader's rules).
+
+Problems with the data raise `DataError` naming the file and the fix, or, with
+on_invalid="skip", are skipped and counted in a `LoadReport` that the caller logs.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mmm.motion.features import reference_std
+
+log = logging.getLogger(__name__)
+
+SPLITS = ("train", "val", "test", "train_val", "all")
+
+
+class DataError(ValueError):
+    """Bad data on disk; the message names the file, the problem and the fix."""
+
+    def __init__(self, path: str | Path, problem: str, fix: str = ""):
+        self.path, self.problem, self.fix = str(path), problem, fix
+        super().__init__(f"{path}: {problem}" + (f"; {fix}" if fix else ""))
+
+
+@dataclass(frozen=True)
+class Caption:
+    text: str
+    tokens: tuple[str, ...]  # "word/POS"
+    start: float  # seconds; 0 and 0 mean the whole clip
+    end: float
+
+    @property
+    def whole_clip(self) -> bool:
+        return self.start == 0.0 and self.end == 0.0
+
+
+@dataclass
+class MotionItem:
+    """One training item: a clip or a captioned sub-span of one."""
+
+    name: str  # the clip id, or "<id>#<first frame>-<end frame>" for a sub-span
+    motion_id: str
+    features: np.ndarray  # (T, D) float32, not normalized
+    captions: list[Caption]
+
+    @property
+    def length(self) -> int:
+        return int(self.features.shape[0])
+
+
+@dataclass
+class LoadReport:
+    """What a load kept and left out, by reason, with a few example files per reason."""
+
+    kept_items: int = 0
+    kept_clips: int = 0
+    skipped: Counter = field(default_factory=Counter)
+    examples: dict[str, list[str]] = field(default_factory=dict)
+
+    def skip(self, reason: str, where: str) -> None:
+        self.skipped[reason] += 1
+        self.examples.setdefault(reason, [])
+        if len(self.examples[reason]) < 3:
+            self.examples[reason].append(where)
+
+    def summary(self) -> str:
+        lines = [f"kept {self.kept_items} items from {self.kept_clips} clips"]
+        for reason, n in sorted(self.skipped.items()):
+            lines.append(f"  left out {n}: {reason} (e.g. {', '.join(self.examples[reason])})")
+        return "\n".join(lines)
+
+
+def mirror_id(motion_id: str) -> str:
+    """The id of the left/right mirrored copy (M<id>) of a clip, or of the original for a mirror."""
+    return motion_id[1:] if motion_id.startswith("M") else "M" + motion_id
+
+
+def parse_caption_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> Caption:
+    """Parse `caption#tokens#start#end`; raises DataError naming file and line."""
+    where = f"{path}:{lineno}"
+    fields = line.rstrip("\r\n").split("#")
+    if not line.strip():
+        raise DataError(where, "empty caption line", "remove it or write 'caption#word/POS ...#0.0#0.0'")
+    if len(fields) != 4:
+        raise DataError(
+            where,
+            f"malformed caption line ({len(fields)} '#'-separated fields, expected 4): {line.strip()[:80]!r}",
+            "write 'caption#word/POS ...#start#end'",
+        )
+    text, tokens, start_s, end_s = fields
+    if not text.strip():
+        raise DataError(where, "empty caption text", "every line needs a caption before the first '#'")
+    try:
+        start = float(start_s) if start_s.strip() else 0.0
+        end = float(end_s) if end_s.strip() else 0.0
+    except ValueError:
+        raise DataError(where, f"start/end {start_s!r}/{end_s!r} are not numbers", "write seconds, or 0.0#0.0 for the whole clip") from None
+    start = 0.0 if math.isnan(start) else start
+    end = 0.0 if math.isnan(end) else end
+    if start < 0 or end < 0 or (end != 0.0 and end <= start):
+        raise DataError(where, f"caption span {start}..{end} s is empty or negative", "use start < end, or 0.0#0.0 for the whole clip")
+    return Caption(text.strip(), tuple(tokens.split()), start, end)
+
+
+def read_captions(path: str | Path) -> list[Caption]:
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise DataError(path, "caption file is missing", "every id in a split needs texts/<id>.txt") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise DataError(path, f"unreadable caption file ({e})", "rewrite it as UTF-8 text") from None
+    if not lines:
+        raise DataError(path, "caption file is empty", "write at least one caption line")
+    return [parse_caption_line(line, path, i + 1) for i, line in enumerate(lines)]
+
+
+def read_split(root: str | Path, split: str) -> list[str]:
+    path = Path(root) / f"{split}.txt"
+    if not path.exists():
+        raise DataError(path, "split file is missing", f"expected {', '.join(s + '.txt' for s in SPLITS)} in {root}")
+    ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    if not ids:
+        raise DataError(path, "split file lists no ids", "write one id per line")
+    return ids
+
+
+def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
+    """Features (T, D) float32 from a .npy file; raises DataError for anything unusable."""
+    path = Path(path)
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise DataError(path, "motion file is missing", "remove the id from the split or restore new_joint_vecs/<id>.npy") from None
+    except (OSError, ValueError, EOFError) as e:
+        raise DataError(path, f"unreadable .npy file ({e})", "regenerate it, or remove it and its id from the splits") from None
+    if arr.ndim != 2 or arr.shape[1] != feature_dim:
+        raise DataError(
+            path,
+            f"wrong feature shape {arr.shape}, expected (T, {feature_dim})",
+            "check that data.feature_dim matches the dataset (263 HumanML3D, 251 KIT-ML)",
+        )
+    if not np.isfinite(arr).all():
+        bad = int((~np.isfinite(arr)).any(axis=1).sum())
+        raise DataError(path, f"NaN/Inf values ({bad} of {arr.shape[0]} frames)", "regenerate the file or remove the id")
+    return arr.astype(np.float32, copy=False)
+
+
+def load_stats(root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarray]:
+    root = Path(root)
+    out = []
+    for name in ("Mean.npy", "Std.npy"):
+        path = root / name
+        if not path.exists():
+            raise DataError(path, "normalization statistics are missing", f"create them with `mmm data stats {root} --write`")
+        arr = np.load(path, allow_pickle=False).astype(np.float32)
+        if arr.shape != (feature_dim,):
+            raise DataError(path, f"shape {arr.shape}, expected ({feature_dim},)", f"recompute with `mmm data stats {root} --write`")
+        if not np.isfinite(arr).all():
+            raise DataError(path, "NaN/Inf values", f"recompute with `mmm data stats {root} --write`")
+        out.append(arr)
+    if (out[1] <= 0).any():
+        raise DataError(root / "Std.npy", "zero or negative entries", f"recompute with `mmm data stats {root} --write`")
+    return out[0], out[1]
+
+
+def compute_stats(root: str | Path, num_joints: int, ids: list[str] | None = None) -> tuple[np.ndarray, np.ndarray, LoadReport]:
+    """Mean and Std (D,) over every feature file (or `ids`), the reference way.
+
+    Files with NaN/Inf are left out (as the reference does) and counted in the report.
+    """
+    root = Path(root)
+    vec_dir = root / "new_joint_vecs"
+    if ids is None:
+        if not vec_dir.is_dir():
+            raise DataError(vec_dir, "folder is missing", f"is {root} a dataset in the HumanML3D layout?")
+        ids = sorted(p.stem for p in vec_dir.glob("*.npy"))
+    report = LoadReport()
+    chunks = []
+    feature_dim = 4 + (num_joints - 1) * 9 + num_joints * 3 + 4
+    for motion_id in ids:
+        path = vec_dir / f"{motion_id}.npy"
+        try:
+            chunks.append(load_motion(path, feature_dim))
+            report.kept_clips += 1
+        except DataError as e:
+            report.skip(e.problem, e.path)
+    if not chunks:
+        raise DataError(vec_dir, "no usable feature files to compute statistics from", report.summary())
+    mean, std = reference_std(np.concatenate(chunks, axis=0).astype(np.float64), num_joints)
+    report.kept_items = report.kept_clips
+    return mean.astype(np.float32), std.astype(np.float32), report
+
+
+def save_array_atomic(path: str | Path, array: np.ndarray) -> None:
+    """np.save to a temporary name in the same folder, then rename: never a half-written file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as f:
+        np.save(f, array)
+    os.replace(tmp, path)
+
+
+def load_items(
+    root: str | Path,
+    split: str,
+    *,
+    feature_dim: int,
+    fps: float,
+    min_length: int,
+    length_limit: int = 200,
+    on_invalid: str = "error",
+    ids: list[str] | None = None,
+) -> tuple[list[MotionItem], LoadReport]:
+    """Items of a split with their captions, by the reference loader's rules.
+
+    on_invalid: "error" raises DataError at the first unusable file or line; "skip" leaves the
+    clip out and counts it. Length-rule exclusions are always counted, never an error.
+    """
+    if on_invalid not in ("error", "skip"):
+        raise ValueError(f"on_invalid must be 'error' or 'skip', got {on_invalid!r}")
+    root = Path(root)
+    ids = read_split(root, split) if ids is None else ids
+    report = LoadReport()
+    items: list[MotionItem] = []
+    for motion_id in ids:
+        try:
+            features = load_motion(root / "new_joint_vecs" / f"{motion_id}.npy", feature_dim)
+            captions = read_captions(root / "texts" / f"{motion_id}.txt")
+        except DataError as e:
+            if on_invalid == "error":
+                raise DataError(e.path, e.problem, f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)") from None
+            report.skip(e.problem.split(" (")[0], e.path)
+            continue
+        T = features.shape[0]
+        if not (min_length <= T < length_limit):
+            report.skip(f"clip length outside [{min_length}, {length_limit}) frames", motion_id)
+            continue
+        whole = [c for c in captions if c.whole_clip]
+        for c in captions:
+            if c.whole_clip:
+                continue
+            a, b = int(c.start * fps), int(c.end * fps)
+            span = features[a:b]
+            if not (min_length <= len(span) < length_limit):
+                report.skip(f"caption sub-span length outside [{min_length}, {length_limit}) frames", f"{motion_id} {c.start}-{c.end}s")
+                continue
+            items.append(MotionItem(f"{motion_id}#{a}-{a + len(span)}", motion_id, span, [c]))
+        if whole:
+            items.append(MotionItem(motion_id, motion_id, features, whole))
+        report.kept_clips += 1
+    report.kept_items = len(items)
+    if not items:
+        raise DataError(root / f"{split}.txt", f"no usable items in split {split!r}", report.summary())
+    return items, report
+
+
+def check_mirror_splits(root: str | Path) -> list[str]:
+    """Ids whose mirrored copy is in a different train/val/test split (a leak between splits)."""
+    where: dict[str, str] = {}
+    for split in ("train", "val", "test"):
+        if (Path(root) / f"{split}.txt").exists():
+            for motion_id in read_split(root, split):
+                where[motion_id] = split
+    return sorted(i for i, s in where.items() if mirror_id(i) in where and where[mirror_id(i)] != s)
+
+
+def load_clips(
+    root: str | Path,
+    split: str,
+    *,
+    feature_dim: int,
+    min_length: int,
+    on_invalid: str = "error",
+) -> tuple[dict[str, np.ndarray], LoadReport]:
+    """Whole clips (id -> (T, D) features) of a split with T >= min_length, captions not read.
+
+    This is what the tokenizer trains on: the reference keeps every clip at least one window long.
+    """
+    root = Path(root)
+    report = LoadReport()
+    clips: dict[str, np.ndarray] = {}
+    for motion_id in read_split(root, split):
+        try:
+            features = load_motion(root / "new_joint_vecs" / f"{motion_id}.npy", feature_dim)
+        except DataError as e:
+            if on_invalid == "error":
+                raise DataError(e.path, e.problem, f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)") from None
+            report.skip(e.problem.split(" (")[0], e.path)
+            continue
+        if features.shape[0] < min_length:
+            report.skip(f"clip shorter than {min_length} frames", motion_id)
+            continue
+        clips[motion_id] = features
+    report.kept_clips = report.kept_items = len(clips)
+    if not clips:
+        raise DataError(root / f"{split}.txt", f"no clip of split {split!r} is at least {min_length} frames long", report.summary())
+    return clips, report
