@@ -1,0 +1,50 @@
+"""The `mmm` command line: conversions and errors (exit code 2, message naming file and shape)."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mmm.cli import main
+
+
+def test_convert_features_to_joints_and_back(reference_dir, tmp_path):
+    features = reference_dir / "humanml3d/new_joint_vecs/012314.npy"
+    joints_out, features_out = tmp_path / "j.npy", tmp_path / "sub/f.npy"
+    assert main(["convert", "features-to-joints", str(features), str(joints_out)]) == 0
+    joints = np.load(joints_out)
+    assert joints.shape == (170, 22, 3) and joints.dtype == np.float32
+    assert np.abs(joints - np.load(reference_dir / "humanml3d/new_joints/012314.npy")).max() < 1e-5
+    assert main(["convert", "joints-to-features", str(joints_out), str(features_out)]) == 0
+    back = np.load(features_out)
+    assert back.shape == (169, 263)
+    assert np.abs(back[:89] - np.load(features)[:89]).max() < 2e-5
+    assert not list(tmp_path.glob("**/.*tmp*"))  # atomic writes leave nothing behind
+
+
+@pytest.mark.parametrize(
+    "direction, array, message",
+    [
+        ("joints-to-features", np.zeros((10, 263), np.float32), r"shape \(10, 263\), expected joints \(T, 22, 3\)"),
+        ("features-to-joints", np.zeros((10, 22, 3), np.float32), r"shape \(10, 22, 3\), expected features \(T, 263\)"),
+        ("features-to-joints", np.full((10, 263), np.nan, np.float32), "NaN/Inf"),
+    ],
+)
+def test_convert_rejects_bad_input(tmp_path, capsys, direction, array, message):
+    src, dst = tmp_path / "in.npy", tmp_path / "out.npy"
+    np.save(src, array)
+    assert main(["convert", direction, str(src), str(dst)]) == 2
+    err = capsys.readouterr().err
+    assert str(src) in err
+    assert __import__("re").search(message, err)
+    assert not dst.exists()
+
+
+def test_missing_input_and_console_entry_point(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "mmm.cli", "convert", "features-to-joints", str(tmp_path / "nope.npy"), str(tmp_path / "o.npy")],
+        capture_output=True, text=True,
+    )
+    assert result.returncode == 2
+    assert "nope.npy: no such file" in result.stderr

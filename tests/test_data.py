@@ -1,0 +1,235 @@
+"""The on-disk reader, its length rules and errors, the datasets and the datamodules."""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+import torch
+
+from mmm.config import ConfigError, compose, conf_dir, to_object
+from mmm.data.datamodule import DataConfig, TextMotionDataModule, TokenizerDataModule
+from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_text_motion
+from mmm.data.humanml3d import (
+    DataError, check_mirror_splits, compute_stats, load_clips, load_items, load_stats, mirror_id, parse_caption_line,
+)
+from mmm.motion.features import reference_std
+
+D = 263
+
+
+def make_features(T, seed):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(T, D)).astype(np.float32) * 0.1 + seed
+
+
+def write_dataset(root, clips, splits, stats=True):
+    """clips: id -> (T or features array, [caption lines]); splits: name -> ids."""
+    (root / "new_joint_vecs").mkdir(parents=True)
+    (root / "texts").mkdir()
+    arrays = {}
+    for i, (motion_id, (motion, lines)) in enumerate(clips.items()):
+        arr = make_features(motion, i) if isinstance(motion, int) else motion
+        arrays[motion_id] = arr
+        np.save(root / "new_joint_vecs" / f"{motion_id}.npy", arr)
+        (root / "texts" / f"{motion_id}.txt").write_text("\n".join(lines) + "\n")
+    for name, ids in splits.items():
+        (root / f"{name}.txt").write_text("\n".join(ids) + "\n")
+    if stats:
+        mean, std = reference_std(np.concatenate(list(arrays.values())), 22)
+        np.save(root / "Mean.npy", mean.astype(np.float32))
+        np.save(root / "Std.npy", std.astype(np.float32))
+    return arrays
+
+
+WHOLE = "a person walks forward#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0"
+
+
+def test_parse_caption_line():
+    c = parse_caption_line("a man jumps#a/DET man/NOUN jump/VERB#1.5#4.0")
+    assert (c.text, c.tokens, c.start, c.end, c.whole_clip) == ("a man jumps", ("a/DET", "man/NOUN", "jump/VERB"), 1.5, 4.0, False)
+    assert parse_caption_line("x#x/NOUN#nan#nan").whole_clip
+    with pytest.raises(DataError, match=r"t\.txt:3: malformed caption line \(2"):
+        parse_caption_line("no tokens#0.0", "t.txt", 3)
+    with pytest.raises(DataError, match="empty caption text"):
+        parse_caption_line("#a/DET#0.0#0.0", "t.txt", 1)
+    with pytest.raises(DataError, match="empty caption line"):
+        parse_caption_line("   ", "t.txt", 2)
+    with pytest.raises(DataError, match="not numbers"):
+        parse_caption_line("x#x/NOUN#a#b", "t.txt", 1)
+    with pytest.raises(DataError, match="empty or negative"):
+        parse_caption_line("x#x/NOUN#3.0#2.0", "t.txt", 1)
+
+
+def test_mirror_id():
+    assert mirror_id("000123") == "M000123" and mirror_id("M000123") == "000123"
+
+
+def test_load_items_length_rules_and_sub_spans(tmp_path):
+    clips = {
+        "000000": (120, [WHOLE, "then jumps#then/ADV jump/VERB#2.0#5.5", "short part#short/ADJ part/NOUN#0.0#1.0"]),
+        "000001": (30, [WHOLE]),  # too short
+        "000002": (210, [WHOLE]),  # too long (>= 200)
+        "000003": (150, ["only a part#only/ADV a/DET part/NOUN#1.0#4.0"]),  # no whole-clip caption
+        "000004": (199, [WHOLE]),  # the longest kept
+    }
+    arrays = write_dataset(tmp_path, clips, {"train": list(clips)})
+    items, report = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
+    names = sorted(i.name for i in items)
+    assert names == ["000000", "000000#40-110", "000003#20-80", "000004"]
+    span = next(i for i in items if i.name == "000000#40-110")
+    assert span.length == 70 and np.array_equal(span.features, arrays["000000"][40:110])
+    assert [c.text for c in span.captions] == ["then jumps"]
+    whole = next(i for i in items if i.name == "000000")
+    assert [c.text for c in whole.captions] == ["a person walks forward"]
+    assert report.kept_clips == 3 and report.kept_items == 4
+    assert report.skipped["clip length outside [40, 200) frames"] == 2
+    assert report.skipped["caption sub-span length outside [40, 200) frames"] == 1
+    assert "left out 2: clip length outside" in report.summary()
+
+
+@pytest.mark.parametrize(
+    "breakage, message",
+    [
+        (lambda r: (r / "new_joint_vecs/000001.npy").unlink(), r"000001\.npy: motion file is missing"),
+        (lambda r: (r / "new_joint_vecs/000001.npy").write_bytes(b"garbage"), r"000001\.npy: unreadable \.npy"),
+        (lambda r: np.save(r / "new_joint_vecs/000001.npy", np.zeros((80, 251), np.float32)), r"000001\.npy: wrong feature shape \(80, 251\), expected \(T, 263\)"),
+        (lambda r: np.save(r / "new_joint_vecs/000001.npy", np.full((80, 263), np.nan, np.float32)), r"000001\.npy: NaN/Inf values \(80 of 80"),
+        (lambda r: (r / "texts/000001.txt").write_text("broken line\n"), r"000001\.txt:1: malformed caption line"),
+        (lambda r: (r / "texts/000001.txt").write_text(WHOLE + "\n#x/NOUN#0.0#0.0\n"), r"000001\.txt:2: empty caption text"),
+        (lambda r: (r / "train.txt").write_text("000000\n000001\n000009\n"), r"000009\.npy: motion file is missing"),
+    ],
+)
+def test_bad_input_is_an_error_naming_the_file_or_a_counted_skip(tmp_path, breakage, message):
+    write_dataset(tmp_path, {"000000": (80, [WHOLE]), "000001": (80, [WHOLE])}, {"train": ["000000", "000001"]})
+    breakage(tmp_path)
+    with pytest.raises(DataError, match=message) as info:
+        load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
+    assert "data.on_invalid=skip" in str(info.value)
+    items, report = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40, on_invalid="skip")
+    kept = ["000000", "000001"] if "000009" in message else ["000000"]
+    assert [i.name for i in items] == kept
+    assert sum(report.skipped.values()) == 1
+    assert len(report.examples) == 1
+
+
+def test_missing_split_and_stats_errors(tmp_path):
+    write_dataset(tmp_path, {"000000": (80, [WHOLE])}, {"train": ["000000"]}, stats=False)
+    with pytest.raises(DataError, match=r"val\.txt: split file is missing"):
+        load_items(tmp_path, "val", feature_dim=D, fps=20, min_length=40)
+    with pytest.raises(DataError, match=r"Mean\.npy: normalization statistics are missing; create them with `mmm data stats"):
+        load_stats(tmp_path, D)
+
+
+def test_compute_stats_the_reference_way_skips_nan_files(tmp_path):
+    arrays = write_dataset(tmp_path, {"000000": (50, [WHOLE]), "000001": (70, [WHOLE])}, {"train": ["000000", "000001"]})
+    np.save(tmp_path / "new_joint_vecs/000002.npy", np.full((60, D), np.nan, np.float32))
+    mean, std, report = compute_stats(tmp_path, 22)
+    stacked = np.concatenate([arrays["000000"], arrays["000001"]]).astype(np.float64)
+    assert np.allclose(mean, stacked.mean(0), atol=1e-6)
+    # Group-averaged std: dims 4..66 share the mean of their per-dim stds.
+    assert np.allclose(std[4:67], stacked.std(0)[4:67].mean(), atol=1e-6)
+    assert std[0] == pytest.approx(stacked.std(0)[0], rel=1e-6)
+    assert report.kept_clips == 2 and sum(report.skipped.values()) == 1
+
+
+def test_reference_stats_are_group_averaged(reference_dir):
+    std = np.load(reference_dir / "humanml3d/Std.npy")
+    for a, b in [(1, 3), (4, 67), (67, 193), (193, 259), (259, 263)]:
+        assert np.allclose(std[a:b], std[a], rtol=1e-6)
+
+
+def test_mirror_split_leaks_are_found(tmp_path):
+    write_dataset(tmp_path, {i: (50, [WHOLE]) for i in ["000000", "M000000", "000001", "M000001"]},
+                  {"train": ["000000", "M000000", "000001"], "test": ["M000001"]})
+    assert check_mirror_splits(tmp_path) == ["000001", "M000001"]
+
+
+def test_window_dataset_enumerates_every_window():
+    motions = [make_features(70, 0), make_features(64, 1), make_features(30, 2)]
+    mean, std = np.zeros(D, np.float32), np.full(D, 2.0, np.float32)
+    ds = MotionWindowDataset(motions, mean, std, window=64)
+    assert ds.num_too_short == 1
+    assert len(ds) == (70 - 64 + 1) + 1
+    assert torch.allclose(ds[0], torch.from_numpy(motions[0][:64] / 2))
+    assert torch.allclose(ds[6], torch.from_numpy(motions[0][6:70] / 2))
+    assert torch.allclose(ds[7], torch.from_numpy(motions[1] / 2))
+    with pytest.raises(IndexError):
+        ds[8]
+
+
+def test_text_motion_dataset_crops_like_the_reference_and_collate_pads(tmp_path):
+    write_dataset(tmp_path, {"000000": (199, [WHOLE, "another#another/DET#0.0#0.0"]), "000001": (45, [WHOLE])}, {"train": ["000000", "000001"]})
+    items, _ = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
+    mean, std = load_stats(tmp_path, D)
+    ds = TextMotionDataset(items, mean, std)
+    torch.manual_seed(0)
+    lengths = {ds[0]["length"] for _ in range(200)}
+    assert lengths == {196, 192}  # 199 -> 196 (a multiple of 4, at most 196) or one unit shorter
+    captions = {ds[0]["caption"] for _ in range(50)}
+    assert captions == {"a person walks forward", "another"}
+    sample = ds[1]
+    assert sample["length"] in (44, 40) and sample["motion"].shape == (sample["length"], D)
+    offset_found = any(np.allclose(sample["motion"].numpy(), (items[1].features[o:o + sample["length"]] - mean) / std, atol=1e-5) for o in range(0, 6))
+    assert offset_found
+    batch = collate_text_motion([ds[0], ds[1]])
+    assert batch["motion"].shape[0] == 2 and batch["motion"].shape[1] == int(batch["lengths"].max())
+    short = int(batch["lengths"][1])
+    assert torch.all(batch["motion"][1, short:] == 0)
+    eval_ds = TextMotionDataset(items, mean, std, random_crop=False)
+    assert eval_ds[0]["length"] == 196 and eval_ds[0]["caption"] == "a person walks forward"
+
+
+@dataclass
+class _DataOnly:
+    data: DataConfig = field(default_factory=DataConfig)
+
+
+@pytest.mark.parametrize("option", sorted(p.stem for p in (conf_dir() / "data").glob("*.yaml")))
+def test_every_data_config_loads(option):
+    cfg = to_object(compose("data_check", [f"data={option}"], schema=_DataOnly)).data
+    assert cfg.name == option
+    assert cfg.feature_dim == (251 if option == "kit" else 263)
+    assert cfg.fps == (12.5 if option == "kit" else 20.0)
+
+
+def test_config_overrides_and_errors():
+    cfg = compose("data_check", ["data.batch_size=7", "data.on_invalid=skip"], schema=_DataOnly)
+    assert cfg.data.batch_size == 7 and cfg.data.on_invalid == "skip"
+    with pytest.raises(ConfigError, match="batchsize"):
+        compose("data_check", ["data.batchsize=7"], schema=_DataOnly)
+    with pytest.raises(ConfigError, match="options: humanml3d, kit, synthetic"):
+        compose("data_check", ["data=nope"], schema=_DataOnly)
+    with pytest.raises(ConfigError, match="not key=value"):
+        compose("data_check", ["data.batch_size"], schema=_DataOnly)
+
+
+def test_datamodules_produce_batches(tmp_path):
+    clips = {f"{i:06d}": (60 + 10 * i, [WHOLE]) for i in range(6)}
+    write_dataset(tmp_path, clips, {"train": list(clips)[:4], "val": list(clips)[4:], "test": list(clips)[4:]})
+    cfg = DataConfig(root=str(tmp_path), batch_size=3)
+    stage1 = TokenizerDataModule(cfg)
+    stage1.prepare_data()
+    stage1.setup("fit")
+    batch = next(iter(stage1.train_dataloader()))
+    assert batch.shape == (3, 64, D)
+    # Clip 000000 (60 frames) is shorter than a window; the others give T - 63 windows each.
+    assert len(stage1.datasets["train"]) == (70 - 63) + (80 - 63) + (90 - 63)
+    stage2 = TextMotionDataModule(cfg)
+    stage2.setup("fit")
+    batch = next(iter(stage2.train_dataloader()))
+    assert batch["motion"].shape[0] == 3 and batch["motion"].shape[2] == D
+    assert all(length % 4 == 0 for length in batch["lengths"].tolist())
+    assert "test" not in stage2.datasets
+
+
+def test_datamodule_refuses_a_missing_folder_without_synthesis(tmp_path):
+    dm = TokenizerDataModule(DataConfig(root=str(tmp_path / "absent"), synthesize=None))
+    with pytest.raises(DataError, match="absent: dataset folder does not exist; point data.root"):
+        dm.prepare_data()
+
+
+def test_load_clips_keeps_long_clips_for_the_tokenizer(tmp_path):
+    write_dataset(tmp_path, {"000000": (250, [WHOLE]), "000001": (50, [WHOLE])}, {"train": ["000000", "000001"]})
+    clips, report = load_clips(tmp_path, "train", feature_dim=D, min_length=64)
+    assert list(clips) == ["000000"] and clips["000000"].shape == (250, D)
+    assert report.skipped["clip shorter than 64 frames"] == 1
