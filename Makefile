@@ -28,12 +28,14 @@ setup: $(STAMP) ## create .venv and install the package (idempotent)
 test: $(STAMP) ## run the test suite (sets up first when needed)
 	$(BIN)/python -m pytest -q
 
-data: $(STAMP) ## generate the synthetic default dataset into $(DATA)
+$(DATA)/all.txt: | $(STAMP)
 	$(BIN)/mmm data synth --out $(DATA) $(ARGS)
 
-demo: $(STAMP) ## the main job on the embedded default: synthetic data, then rendered clips in outputs/demo
-	$(BIN)/mmm data synth --out $(DATA)
-	$(BIN)/mmm render-examples --data $(DATA) --out outputs/demo
+data: $(DATA)/all.txt ## generate the synthetic default dataset into $(DATA) (once; `make clean` removes it)
+
+demo: $(DATA)/all.txt ## the main job on the embedded default: synthetic data, then rendered clips in outputs/demo
+	$(BIN)/mmm data preview $(DATA) --out outputs/demo --count 12
+	@echo "Look at outputs/demo/*.gif and outputs/demo/contact_sheet.png"
 
 clean: ## remove generated data and outputs (keeps .venv and the MLflow store)
 	rm -rf data outputs
