@@ -1,0 +1,124 @@
+"""The motion tokenizer (VQ-VAE): 1-D convolutional encoder, EMA quantizer, decoder.
+
+Motion (B, T, D) -> latents (B, C, T/4) -> code indices (B, T/4) -> motion (B, T, D).
+Sizes come from `TokenizerConfig` (conf/model/tokenizer_*.yaml); `paper` is method.md's table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from mmm.tokenizer.quantizer import EMAQuantizer, QuantizerOutput
+
+
+@dataclass
+class TokenizerConfig:
+    width: int = 512  # W
+    num_codes: int = 8192  # K
+    code_dim: int = 32  # C
+    down_t: int = 2  # temporal downsampling 2**down_t
+    depth: int = 3  # residual blocks per stack
+    dilation_growth: int = 3
+    ema_decay: float = 0.99
+    l2_normalize: bool = False
+
+    @property
+    def downsample(self) -> int:
+        return 2**self.down_t
+
+
+class ResidualBlock(nn.Module):
+    """Pre-activation: x + conv1x1(relu(conv3(relu(x), dilation)))."""
+
+    def __init__(self, width: int, dilation: int):
+        super().__init__()
+        self.conv = nn.Conv1d(width, width, 3, padding=dilation, dilation=dilation)
+        self.proj = nn.Conv1d(width, width, 1)
+        self.act = nn.ReLU()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.proj(self.act(self.conv(self.act(x))))
+
+
+def residual_stack(width: int, depth: int, growth: int) -> nn.Sequential:
+    """`depth` blocks with dilations growth**i applied largest first (9, 3, 1)."""
+    return nn.Sequential(*[ResidualBlock(width, growth**i) for i in reversed(range(depth))])
+
+
+class Encoder(nn.Module):
+    """(B, D, T) -> (B, C, T / 2**down_t)."""
+
+    def __init__(self, in_dim: int, cfg: TokenizerConfig):
+        super().__init__()
+        W = cfg.width
+        layers: list[nn.Module] = [nn.Conv1d(in_dim, W, 3, padding=1), nn.ReLU()]
+        for _ in range(cfg.down_t):
+            layers += [nn.Conv1d(W, W, 4, stride=2, padding=1), residual_stack(W, cfg.depth, cfg.dilation_growth)]
+        layers.append(nn.Conv1d(W, cfg.code_dim, 3, padding=1))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class Decoder(nn.Module):
+    """(B, C, T') -> (B, D, T' * 2**down_t)."""
+
+    def __init__(self, out_dim: int, cfg: TokenizerConfig):
+        super().__init__()
+        W = cfg.width
+        layers: list[nn.Module] = [nn.Conv1d(cfg.code_dim, W, 3, padding=1), nn.ReLU()]
+        for _ in range(cfg.down_t):
+            layers += [
+                residual_stack(W, cfg.depth, cfg.dilation_growth),
+                nn.Upsample(scale_factor=2, mode="nearest"),
+                nn.Conv1d(W, W, 3, padding=1),
+            ]
+        layers += [nn.Conv1d(W, W, 3, padding=1), nn.ReLU(), nn.Conv1d(W, out_dim, 3, padding=1)]
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.net(z)
+
+
+@dataclass
+class TokenizerOutput:
+    reconstruction: torch.Tensor  # (B, T, D)
+    indices: torch.Tensor  # (B, T')
+    commit_loss: torch.Tensor
+    perplexity: torch.Tensor
+
+
+class MotionTokenizer(nn.Module):
+    """Normalized motion features (B, T, D) <-> code indices (B, T / 4)."""
+
+    def __init__(self, feature_dim: int, cfg: TokenizerConfig):
+        super().__init__()
+        self.feature_dim, self.cfg = feature_dim, cfg
+        self.encoder = Encoder(feature_dim, cfg)
+        self.quantizer = EMAQuantizer(cfg.num_codes, cfg.code_dim, cfg.ema_decay, cfg.l2_normalize)
+        self.decoder = Decoder(feature_dim, cfg)
+
+    def forward(self, motion: torch.Tensor) -> TokenizerOutput:
+        z = self.encoder(motion.transpose(1, 2))
+        q: QuantizerOutput = self.quantizer(z)
+        recon = self.decoder(q.quantized).transpose(1, 2)
+        return TokenizerOutput(recon, q.indices, q.commit_loss, q.perplexity)
+
+    @torch.no_grad()
+    def encode(self, motion: torch.Tensor) -> torch.Tensor:
+        """Code indices (B, T // 4) of motion (B, T, D)."""
+        return self.quantizer.quantize(self.encoder(motion.transpose(1, 2)))
+
+    @torch.no_grad()
+    def decode(self, indices: torch.Tensor) -> torch.Tensor:
+        """Motion (B, T' * 4, D) of code indices (B, T')."""
+        return self.decoder(self.quantizer.lookup(indices)).transpose(1, 2)
+
+    @property
+    def codebook(self) -> torch.Tensor:
+        """(K, C) code vectors; stage 2 embeds tokens with them."""
+        return self.quantizer.codebook
