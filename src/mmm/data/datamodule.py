@@ -10,6 +10,8 @@ import lightning as L
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from torch.utils.data import DataLoader
 
+from mmm.data.sampling import ResumableDataLoader
+
 from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_text_motion
 from mmm.data.humanml3d import DataError, LoadReport, load_clips, load_items, load_stats
 from mmm.motion.skeleton import SKELETONS, Skeleton
@@ -61,9 +63,12 @@ def _log_report(what: str, report: LoadReport) -> None:
 
 
 class _DatasetFolder(L.LightningDataModule):
-    def __init__(self, cfg: DataConfig):
+    """Loaders shard across ranks and resume mid-epoch by themselves: train with
+    Trainer(use_distributed_sampler=False)."""
+
+    def __init__(self, cfg: DataConfig, seed: int = 0):
         super().__init__()
-        self.cfg = cfg
+        self.cfg, self.seed = cfg, seed
         self.root = Path(cfg.root)
         self.mean = self.std = None
         self.reports: dict[str, LoadReport] = {}
@@ -84,10 +89,11 @@ class _DatasetFolder(L.LightningDataModule):
             self.mean, self.std = load_stats(self.root, self.cfg.feature_dim)
 
     def _loader(self, dataset, shuffle: bool, **kwargs) -> DataLoader:
-        return DataLoader(
+        return ResumableDataLoader(
             dataset,
             batch_size=self.cfg.batch_size,
             shuffle=shuffle,
+            seed=self.seed,
             drop_last=shuffle,
             num_workers=self.cfg.num_workers,
             persistent_workers=self.cfg.num_workers > 0,
