@@ -8,7 +8,7 @@ import torch
 
 from mmm.config import ConfigError, compose, conf_dir, to_object
 from mmm.data.datamodule import DataConfig, TextMotionDataModule, TokenizerDataModule
-from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_text_motion
+from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_motions
 from mmm.data.humanml3d import (
     DataError, check_mirror_splits, compute_stats, load_clips, load_items, load_stats, mirror_id, parse_caption_line,
 )
@@ -171,7 +171,7 @@ def test_text_motion_dataset_crops_like_the_reference_and_collate_pads(tmp_path)
     assert sample["length"] in (44, 40) and sample["motion"].shape == (sample["length"], D)
     offset_found = any(np.allclose(sample["motion"].numpy(), (items[1].features[o:o + sample["length"]] - mean) / std, atol=1e-5) for o in range(0, 6))
     assert offset_found
-    batch = collate_text_motion([ds[0], ds[1]])
+    batch = collate_motions([ds[0], ds[1]])
     assert batch["motion"].shape[0] == 2 and batch["motion"].shape[1] == int(batch["lengths"].max())
     short = int(batch["lengths"][1])
     assert torch.all(batch["motion"][1, short:] == 0)
@@ -212,6 +212,8 @@ def test_datamodules_produce_batches(tmp_path):
     stage1.setup("fit")
     batch = next(iter(stage1.train_dataloader()))
     assert batch.shape == (3, 64, D)
+    val = next(iter(stage1.val_dataloader()))
+    assert val["lengths"].tolist() == [100, 108] and val["names"] == ["000004", "000005"]  # cut to multiples of 4
     # Clip 000000 (60 frames) is shorter than a window; the others give T - 63 windows each.
     assert len(stage1.datasets["train"]) == (70 - 63) + (80 - 63) + (90 - 63)
     stage2 = TextMotionDataModule(cfg)

@@ -12,7 +12,7 @@ from torch.utils.data import DataLoader
 
 from mmm.data.sampling import ResumableDataLoader
 
-from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_text_motion
+from mmm.data.datasets import MotionClipDataset, MotionWindowDataset, TextMotionDataset, collate_motions
 from mmm.data.humanml3d import DataError, LoadReport, load_clips, load_items, load_stats
 from mmm.motion.skeleton import SKELETONS, Skeleton
 
@@ -102,7 +102,8 @@ class _DatasetFolder(L.LightningDataModule):
 
 
 class TokenizerDataModule(_DatasetFolder):
-    """Stage 1: random `window`-frame windows of normalized features, batches (B, window, D)."""
+    """Stage 1: training batches of `window`-frame windows (B, window, D); validation on whole
+    clips, padded: {"motion" (B, T, D), "lengths" (B,), "names"}."""
 
     def setup(self, stage: str | None = None) -> None:
         self._stats()
@@ -113,13 +114,18 @@ class TokenizerDataModule(_DatasetFolder):
             )
             self.reports[split] = report
             _log_report(f"{self.cfg.name} {split} clips", report)
-            self.datasets[split] = MotionWindowDataset(list(clips.values()), self.mean, self.std, self.cfg.window)
+            if split == "train":
+                self.datasets[split] = MotionWindowDataset(list(clips.values()), self.mean, self.std, self.cfg.window)
+            else:
+                self.datasets[split] = MotionClipDataset(
+                    clips, self.mean, self.std, max_length=self.cfg.max_length, unit_length=self.cfg.unit_length
+                )
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.datasets["train"], shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.datasets["val"], shuffle=False)
+        return self._loader(self.datasets["val"], shuffle=False, collate_fn=collate_motions)
 
 
 class TextMotionDataModule(_DatasetFolder):
@@ -148,10 +154,10 @@ class TextMotionDataModule(_DatasetFolder):
             )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.datasets["train"], shuffle=True, collate_fn=collate_text_motion)
+        return self._loader(self.datasets["train"], shuffle=True, collate_fn=collate_motions)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.datasets["val"], shuffle=False, collate_fn=collate_text_motion)
+        return self._loader(self.datasets["val"], shuffle=False, collate_fn=collate_motions)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader(self.datasets["test"], shuffle=False, collate_fn=collate_text_motion)
+        return self._loader(self.datasets["test"], shuffle=False, collate_fn=collate_motions)

@@ -83,16 +83,38 @@ class TextMotionDataset(Dataset):
         return {"caption": caption, "motion": torch.from_numpy(motion), "length": length, "name": item.name}
 
 
-def collate_text_motion(batch: list[dict]) -> dict:
-    """Pad motions to the longest in the batch: motion (B, T, D), lengths (B,), captions, names."""
+class MotionClipDataset(Dataset):
+    """Whole clips for validation: {"motion" (T, D) normalized, "length", "name"}, T cut to a
+    multiple of `unit_length` and at most `max_length` frames from the start."""
+
+    def __init__(self, clips: dict[str, np.ndarray], mean: np.ndarray, std: np.ndarray, *, max_length: int = 196, unit_length: int = 4):
+        self.names = sorted(clips)
+        self.clips, self.mean, self.std = clips, mean, std
+        self.max_length, self.unit_length = max_length, unit_length
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, index: int) -> dict:
+        name = self.names[index]
+        clip = self.clips[name]
+        length = min(clip.shape[0], self.max_length) // self.unit_length * self.unit_length
+        return {"motion": torch.from_numpy(normalize(clip[:length], self.mean, self.std)), "length": length, "name": name}
+
+
+def collate_motions(batch: list[dict]) -> dict:
+    """Pad motions to the longest in the batch: motion (B, T, D), lengths (B,), and the other
+    keys (caption, name) as lists under their plural names."""
     lengths = torch.tensor([b["length"] for b in batch], dtype=torch.long)
     dim = batch[0]["motion"].shape[-1]
     motion = torch.zeros(len(batch), int(lengths.max()), dim)
     for i, b in enumerate(batch):
         motion[i, : b["length"]] = b["motion"]
-    return {
-        "motion": motion,
-        "lengths": lengths,
-        "captions": [b["caption"] for b in batch],
-        "names": [b["name"] for b in batch],
-    }
+    out = {"motion": motion, "lengths": lengths}
+    for key in batch[0]:
+        if key not in ("motion", "length"):
+            out[key + "s"] = [b[key] for b in batch]
+    return out
+
+
+collate_text_motion = collate_motions

@@ -60,6 +60,7 @@ class EMAQuantizer(nn.Module):
         self.register_buffer("window_usage", torch.zeros(num_codes))  # assignments since the last reset
         self.register_buffer("initialized", torch.tensor(False))
         self._latest_latents: torch.Tensor | None = None  # (N, C) of the last training batch, this rank
+        self.latest_counts: torch.Tensor | None = None  # (K,) assignments of the last training step, all ranks
 
     # -- lookup ---------------------------------------------------------------------------------
     def _flatten(self, z: torch.Tensor) -> torch.Tensor:
@@ -144,6 +145,7 @@ class EMAQuantizer(nn.Module):
         if self.training:
             self._latest_latents = flat.detach()
             counts = self._ema_update(flat.detach(), indices)
+            self.latest_counts = counts
         else:
             counts = torch.bincount(indices, minlength=self.num_codes).float()
         quantized_flat = F.embedding(indices, self.codebook).to(flat.dtype)

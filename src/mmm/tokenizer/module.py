@@ -1,0 +1,159 @@
+"""`TokenizerModule`: stage-1 training of the MotionTokenizer (losses, optimizer, validation)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torchmetrics import MeanMetric
+
+from mmm.motion.features import FeatureLayout, recover_from_ric
+from mmm.motion.skeleton import skeleton_for
+from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 2e-4
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.99])
+    weight_decay: float = 0.0
+    warmup_steps: int = 1000
+    milestones: list[int] = field(default_factory=lambda: [200_000])  # lr *= gamma at each
+    gamma: float = 0.05
+
+
+@dataclass
+class TokenizerLossConfig:
+    position_weight: float = 0.5  # extra SmoothL1 on the root-relative joint positions
+    commit_weight: float = 0.02
+
+
+def warmup_step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
+    """lr multiplier at optimizer step s: linear warm-up, then x gamma at each milestone."""
+
+    def factor(step: int) -> float:
+        warm = min(1.0, (step + 1) / warmup_steps) if warmup_steps > 0 else 1.0
+        return warm * gamma ** sum(step >= m for m in milestones)
+
+    return factor
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of values (B, T, ...) over positions where mask (B, T) is true."""
+    mask = mask.to(values.dtype).view(mask.shape + (1,) * (values.dim() - 2))
+    return (values * mask).sum() / (mask.sum() * values[0, 0].numel()).clamp_min(1.0)
+
+
+class TokenizerModule(L.LightningModule):
+    """Trains a MotionTokenizer on normalized windows (B, T, D); validates on whole clips.
+
+    mean/std: the dataset statistics (D,), kept as buffers so a checkpoint can denormalize.
+    """
+
+    def __init__(
+        self,
+        feature_dim: int,
+        model: TokenizerConfig,
+        optim: OptimConfig,
+        loss: TokenizerLossConfig,
+        mean: np.ndarray | torch.Tensor | None = None,
+        std: np.ndarray | torch.Tensor | None = None,
+    ):
+        super().__init__()
+        self.save_hyperparameters(ignore=["mean", "std"])
+        self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
+        self.tokenizer = MotionTokenizer(feature_dim, model)
+        self.skeleton = skeleton_for(feature_dim)
+        self.layout = FeatureLayout(self.skeleton.num_joints)
+        self.register_buffer("mean", torch.as_tensor(mean if mean is not None else np.zeros(feature_dim), dtype=torch.float32))
+        self.register_buffer("std", torch.as_tensor(std if std is not None else np.ones(feature_dim), dtype=torch.float32))
+        self.val_recon = MeanMetric()
+        self.val_mpjpe = MeanMetric()
+        self.val_mpjpe_local = MeanMetric()
+        self.last_perplexity: float = 0.0
+        self.last_counts: torch.Tensor | None = None
+        self.preview_batch: dict | None = None  # first validation batch with reconstructions
+
+    @property
+    def quantizer(self):
+        return self.tokenizer.quantizer
+
+    def losses(self, recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        pos = self.layout.positions
+        full = F.smooth_l1_loss(recon, target, reduction="none")
+        position = F.smooth_l1_loss(recon[..., pos], target[..., pos], reduction="none")
+        if mask is None:
+            return {"recon": full.mean(), "position": position.mean()}
+        return {"recon": masked_mean(full, mask), "position": masked_mean(position, mask)}
+
+    def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
+        out = self.tokenizer(batch)
+        parts = self.losses(out.reconstruction, batch)
+        loss = parts["recon"] + self.loss_cfg.position_weight * parts["position"] + self.loss_cfg.commit_weight * out.commit_loss
+        self.last_perplexity = float(out.perplexity)
+        K = self.quantizer.num_codes
+        active = self.quantizer.window_active()
+        self.log_dict(
+            {
+                "train/loss": loss,
+                "train/recon": parts["recon"],
+                "train/position": parts["position"],
+                "train/commit": out.commit_loss,
+                "codebook/perplexity": out.perplexity,
+                "codebook/active_in_window": float(active),
+                "codebook/active_fraction": active / K,
+            },
+            prog_bar=False,
+            on_step=True,
+            on_epoch=False,
+        )
+        self.log("loss", loss, prog_bar=True, logger=False)
+        return loss
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.std + self.mean
+
+    def joints(self, x: torch.Tensor) -> torch.Tensor:
+        """Joint positions (B, T, J, 3) in metres of normalized features (B, T, D)."""
+        return recover_from_ric(self.denormalize(x).float(), self.skeleton.num_joints) * self.skeleton.unit_scale
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        motion, lengths = batch["motion"], batch["lengths"]
+        out = self.tokenizer(motion)
+        mask = torch.arange(motion.shape[1], device=motion.device)[None] < lengths[:, None]
+        parts = self.losses(out.reconstruction, motion, mask)
+        joints_gt, joints_rec = self.joints(motion), self.joints(out.reconstruction)
+        error = (joints_gt - joints_rec).norm(dim=-1).mean(-1)  # (B, T)
+        root = lambda j: j - j[..., :1, :]  # noqa: E731
+        error_local = (root(joints_gt) - root(joints_rec)).norm(dim=-1).mean(-1)
+        n = mask.sum()
+        self.val_recon.update(parts["recon"], weight=n)
+        self.val_mpjpe.update(masked_mean(error, mask) * 1000.0, weight=n)
+        self.val_mpjpe_local.update(masked_mean(error_local, mask) * 1000.0, weight=n)
+        if batch_idx == 0:
+            self.preview_batch = {
+                "reference": joints_gt.detach().cpu(), "reconstruction": joints_rec.detach().cpu(),
+                "lengths": lengths.detach().cpu(), "names": batch.get("names"),
+            }
+
+    def on_validation_epoch_end(self) -> None:
+        self.log_dict(
+            {
+                "val/recon": self.val_recon.compute(),
+                "val/mpjpe_mm": self.val_mpjpe.compute(),
+                "val/mpjpe_local_mm": self.val_mpjpe_local.compute(),
+            },
+            prog_bar=True,
+        )
+        self.val_recon.reset()
+        self.val_mpjpe.reset()
+        self.val_mpjpe_local.reset()
+
+    def configure_optimizers(self):
+        cfg = self.optim_cfg
+        optimizer = torch.optim.AdamW(self.parameters(), lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay)
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
