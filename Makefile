@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-fast data render-demo demo clean
+.PHONY: help setup test data demo train-stage1 mlflow-ui clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
@@ -36,6 +36,12 @@ data: $(DATA)/all.txt ## generate the synthetic default dataset into $(DATA) (on
 demo: $(DATA)/all.txt ## the main job on the embedded default: synthetic data, then rendered clips in outputs/demo
 	$(BIN)/mmm data preview $(DATA) --out outputs/demo --count 12
 	@echo "Look at outputs/demo/*.gif and outputs/demo/contact_sheet.png"
+
+train-stage1: $(STAMP) ## train the tokenizer (tiny size on the synthetic data by default); ARGS="key=value ..."
+	$(BIN)/mmm train stage1 $(ARGS)
+
+mlflow-ui: $(STAMP) ## serve the MLflow dashboard for this project's store on http://127.0.0.1:5000
+	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --default-artifact-root $(CURDIR)/mlartifacts --host 127.0.0.1 --port 5000
 
 clean: ## remove generated data and outputs (keeps .venv and the MLflow store)
 	rm -rf data outputs

@@ -120,6 +120,21 @@ def cmd_render(args: argparse.Namespace) -> None:
         print(f"wrote {path}")
 
 
+def cmd_train(args: argparse.Namespace) -> None:
+    if args.stage == "stage1":
+        from mmm.training.stage1 import load_stage1_config, train_stage1
+
+        result = train_stage1(load_stage1_config(args.overrides), resume=args.resume)
+    else:
+        raise CLIError(f"unknown stage {args.stage!r}")
+    if result.run_id is None and not result.best_checkpoint:
+        return  # a non-zero rank of a distributed run
+    print(f"MLflow run: {result.run_id}")
+    print(f"checkpoints: best {result.best_checkpoint}, last {result.last_checkpoint}")
+    shown = {k: v for k, v in sorted(result.metrics.items()) if k.startswith("val/")}
+    print("validation: " + ", ".join(f"{k}={v:.4g}" for k, v in shown.items()))
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mmm", description="MMM: text-to-motion training, generation and tracking")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -159,6 +174,12 @@ def build_parser() -> argparse.ArgumentParser:
     preview.add_argument("--count", type=int, default=6)
     preview.add_argument("--split", default="test")
     preview.set_defaults(func=cmd_data_preview)
+
+    train = sub.add_parser("train", help="train a stage; any config key can be overridden as key=value")
+    train.add_argument("stage", choices=["stage1"])
+    train.add_argument("overrides", nargs="*", help="e.g. trainer.max_steps=500 model=paper data=humanml3d")
+    train.add_argument("--resume", default=None, help="'last' (newest run of this stage) or a checkpoint path")
+    train.set_defaults(func=cmd_train)
 
     render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
     render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import lightning as L
 import numpy as np
@@ -31,6 +31,10 @@ class TokenizerLossConfig:
     commit_weight: float = 0.02
 
 
+def _as(cls, value):
+    return cls(**value) if isinstance(value, dict) else value
+
+
 def warmup_step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
     """lr multiplier at optimizer step s: linear warm-up, then x gamma at each milestone."""
 
@@ -56,14 +60,16 @@ class TokenizerModule(L.LightningModule):
     def __init__(
         self,
         feature_dim: int,
-        model: TokenizerConfig,
-        optim: OptimConfig,
-        loss: TokenizerLossConfig,
+        model: TokenizerConfig | dict,
+        optim: OptimConfig | dict,
+        loss: TokenizerLossConfig | dict,
         mean: np.ndarray | torch.Tensor | None = None,
         std: np.ndarray | torch.Tensor | None = None,
     ):
         super().__init__()
-        self.save_hyperparameters(ignore=["mean", "std"])
+        model, optim, loss = _as(TokenizerConfig, model), _as(OptimConfig, optim), _as(TokenizerLossConfig, loss)
+        # Plain dicts, so checkpoints load with torch.load(weights_only=True).
+        self.save_hyperparameters({"feature_dim": feature_dim, "model": asdict(model), "optim": asdict(optim), "loss": asdict(loss)})
         self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
         self.tokenizer = MotionTokenizer(feature_dim, model)
         self.skeleton = skeleton_for(feature_dim)

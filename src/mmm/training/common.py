@@ -1,0 +1,187 @@
+"""What both stages share: trainer and strategy from config, MLflow tracking, checkpoints, resume."""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import MLFlowLogger
+from lightning.pytorch.strategies import DDPStrategy
+from lightning.pytorch.utilities import rank_zero_only
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainerConfig:
+    accelerator: str = "cpu"  # cpu | gpu | auto
+    devices: Any = 1  # count, list of ids, or "auto"
+    num_nodes: int = 1
+    strategy: str = "auto"  # auto | ddp | ddp_spawn (ddp strategies use the codebook-safe settings)
+    process_group_backend: str | None = None  # gloo on CPU, nccl on GPUs by default
+    precision: str = "32-true"
+    max_steps: int = 2000
+    val_check_interval: int = 500  # optimizer steps between validations
+    limit_val_batches: float = 1.0
+    log_every_n_steps: int = 10
+    gradient_clip_val: float | None = None
+    num_sanity_val_steps: int = 0
+    enable_progress_bar: bool = True
+    deterministic: bool = False
+
+
+@dataclass
+class TrackingConfig:
+    """MLflow: an embedded sqlite store by default; a team points tracking_uri at its server."""
+
+    enabled: bool = True
+    tracking_uri: str = "sqlite:///mlflow.db"
+    artifact_root: str = "mlartifacts"  # for experiments this package creates on a sqlite store
+    experiment: str = "mmm"
+    run_name: str | None = None
+    log_checkpoints: bool = True
+
+
+@dataclass
+class CheckpointConfig:
+    monitor: str = "val/mpjpe_mm"
+    mode: str = "min"
+
+
+def build_strategy(cfg: TrainerConfig):
+    if cfg.strategy in ("ddp", "ddp_spawn"):
+        # The quantizer keeps its buffers identical across ranks itself; broadcasting them
+        # from rank 0 at every forward would only hide a bug and cost a copy.
+        return DDPStrategy(
+            start_method="spawn" if cfg.strategy == "ddp_spawn" else "popen",
+            process_group_backend=cfg.process_group_backend,
+            broadcast_buffers=False,
+            find_unused_parameters=False,
+        )
+    return cfg.strategy
+
+
+def resolve_tracking_uri(uri: str) -> str:
+    """Make a relative sqlite path absolute, so every process and the dashboard agree on it."""
+    prefix = "sqlite:///"
+    if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
+        return prefix + str(Path(uri[len(prefix):]).resolve())
+    return uri
+
+
+def build_logger(cfg: TrackingConfig, run_id: str | None = None) -> MLFlowLogger | None:
+    if not cfg.enabled:
+        return None
+    return MLFlowLogger(
+        experiment_name=cfg.experiment,
+        run_name=cfg.run_name,
+        tracking_uri=resolve_tracking_uri(cfg.tracking_uri),
+        artifact_location=Path(cfg.artifact_root).resolve().as_uri(),
+        run_id=run_id,
+    )
+
+
+def build_trainer(cfg: TrainerConfig, callbacks: list, logger, default_root_dir: str) -> L.Trainer:
+    return L.Trainer(
+        accelerator=cfg.accelerator,
+        devices=cfg.devices,
+        num_nodes=cfg.num_nodes,
+        strategy=build_strategy(cfg),
+        precision=cfg.precision,
+        max_steps=cfg.max_steps,
+        val_check_interval=cfg.val_check_interval,
+        check_val_every_n_epoch=None,  # validate every val_check_interval steps across epochs
+        limit_val_batches=cfg.limit_val_batches,
+        log_every_n_steps=cfg.log_every_n_steps,
+        gradient_clip_val=cfg.gradient_clip_val,
+        num_sanity_val_steps=cfg.num_sanity_val_steps,
+        enable_progress_bar=cfg.enable_progress_bar,
+        deterministic=cfg.deterministic,
+        callbacks=callbacks,
+        logger=logger if logger is not None else False,
+        default_root_dir=default_root_dir,
+        use_distributed_sampler=False,  # our loaders shard by rank and resume themselves
+    )
+
+
+def checkpoint_callback(directory: Path, cfg: CheckpointConfig) -> ModelCheckpoint:
+    return ModelCheckpoint(
+        dirpath=directory,
+        filename="best",
+        monitor=cfg.monitor,
+        mode=cfg.mode,
+        save_last=True,
+        save_top_k=1,
+        auto_insert_metric_name=False,
+    )
+
+
+class TrackRunId(L.Callback):
+    """Stores the MLflow run id in every checkpoint, so a resumed run continues the same run."""
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        for logger in trainer.loggers:
+            if isinstance(logger, MLFlowLogger):
+                checkpoint["mlflow_run_id"] = logger.run_id
+
+
+def read_checkpoint_meta(path: str | Path) -> dict:
+    """The few fields a resume needs, read with weights_only=True (no code runs on load)."""
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    return {"mlflow_run_id": ckpt.get("mlflow_run_id"), "global_step": ckpt.get("global_step"), "hyper_parameters": ckpt.get("hyper_parameters")}
+
+
+def flatten_config(cfg: DictConfig) -> dict[str, str]:
+    """Dotted key -> value string of a resolved config, for MLflow params."""
+    out: dict[str, str] = {}
+
+    def walk(node, prefix: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}.{k}" if prefix else str(k))
+        else:
+            out[prefix] = str(node)[:500]
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return out
+
+
+@rank_zero_only
+def log_config(logger: MLFlowLogger | None, cfg: DictConfig, resumed: bool) -> None:
+    if logger is None:
+        return
+    if not resumed:  # MLflow params are immutable: a resumed run keeps those it was started with
+        logger.log_hyperparams(flatten_config(cfg))
+    logger.experiment.log_text(logger.run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+
+
+@rank_zero_only
+def log_checkpoints(logger: MLFlowLogger | None, checkpoint: ModelCheckpoint) -> dict[str, str]:
+    """Upload best.ckpt and last.ckpt to the run's `checkpoints/` artifacts; returns their paths."""
+    paths = {}
+    if checkpoint.best_model_path:
+        paths["best"] = checkpoint.best_model_path
+    if checkpoint.last_model_path:
+        paths["last"] = checkpoint.last_model_path
+    if logger is not None:
+        for path in paths.values():
+            if os.path.exists(path):
+                logger.experiment.log_artifact(logger.run_id, path, "checkpoints")
+    return paths
+
+
+@dataclass
+class TrainResult:
+    run_id: str | None
+    checkpoint_dir: str
+    best_checkpoint: str | None
+    last_checkpoint: str | None
+    metrics: dict[str, float] = field(default_factory=dict)
+    stopped_early: bool = False

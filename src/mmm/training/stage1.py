@@ -1,0 +1,114 @@
+"""Stage 1: train the motion tokenizer (`mmm train stage1 [key=value ...] [--resume last|PATH]`)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import lightning as L
+from omegaconf import DictConfig
+
+from mmm.callbacks.codebook import CodebookReset, CollapseMonitor
+from mmm.callbacks.previews import CodebookUsagePlot, ReconstructionPreview
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig, TokenizerDataModule
+from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.common import (
+    CheckpointConfig, TrackingConfig, TrackRunId, TrainerConfig, TrainResult, build_logger, build_trainer,
+    checkpoint_callback, log_checkpoints, log_config, read_checkpoint_meta,
+)
+from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ModelConfig:
+    tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
+
+
+@dataclass
+class CollapseConfig:
+    action: str = "warn"  # warn | stop | fail
+    warmup_steps: int = 200
+    window_steps: int = 50
+    min_active_fraction: float = 0.02
+    perplexity_drop: float = 0.2
+    smoothing: float = 0.9
+    patience: int = 3
+
+
+@dataclass
+class Stage1Callbacks:
+    reset_every_n_steps: int = 20  # 0 disables codebook reset
+    collapse: CollapseConfig = field(default_factory=CollapseConfig)
+    preview_clips: int = 3  # validation clips rendered at each validation (0: none)
+    usage_plot: bool = True
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+
+
+@dataclass
+class Stage1Config:
+    seed: int = 0
+    output_dir: str = "outputs/stage1"
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    loss: TokenizerLossConfig = field(default_factory=TokenizerLossConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+    callbacks: Stage1Callbacks = field(default_factory=Stage1Callbacks)
+
+
+def load_stage1_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("train_stage1", list(overrides), schema=Stage1Config)
+
+
+def build_callbacks(cfg: Stage1Config, checkpoint_dir: Path) -> tuple[list[L.Callback], object]:
+    cb = cfg.callbacks
+    checkpoint = checkpoint_callback(checkpoint_dir, cb.checkpoint)
+    callbacks: list[L.Callback] = [CodebookReset(cb.reset_every_n_steps), CollapseMonitor(**asdict(cb.collapse)), checkpoint, TrackRunId()]
+    if cb.preview_clips > 0:
+        callbacks.append(ReconstructionPreview(cb.preview_clips))
+    if cb.usage_plot:
+        callbacks.append(CodebookUsagePlot())
+    return callbacks, checkpoint
+
+
+def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
+    """Train a tokenizer as configured; `resume` = "last" or a checkpoint path continues a run."""
+    cfg: Stage1Config = to_object(cfg_node)
+    L.seed_everything(cfg.seed, workers=True)
+    ckpt_path, run_id = None, None
+    if resume:
+        ckpt_path = find_last_checkpoint(cfg.output_dir) if resume == "last" else Path(resume)
+        run_id = read_checkpoint_meta(ckpt_path)["mlflow_run_id"]
+        run_dir = ckpt_path.parent.parent
+        log.info("resuming %s (MLflow run %s)", ckpt_path, run_id)
+    else:
+        run_dir = run_directory(cfg.output_dir)
+    datamodule = TokenizerDataModule(cfg.data, seed=cfg.seed)
+    datamodule.prepare_data()
+    datamodule.setup("fit")
+    module = TokenizerModule(cfg.data.feature_dim, cfg.model.tokenizer, cfg.optim, cfg.loss, datamodule.mean, datamodule.std)
+    logger = build_logger(cfg.logger, run_id=run_id)
+    if logger is not None:
+        _ = logger.experiment  # create the run now, before any process is spawned
+        log_config(logger, cfg_node, resumed=run_id is not None)
+    callbacks, checkpoint = build_callbacks(cfg, run_dir / "checkpoints")
+    trainer = build_trainer(cfg.trainer, callbacks, logger, str(run_dir))
+    with shared_run_directory(run_dir):
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True)
+    paths = log_checkpoints(logger, checkpoint) if cfg.logger.log_checkpoints else {}
+    paths = paths or {}
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    return TrainResult(
+        run_id=logger.run_id if logger is not None else None,
+        checkpoint_dir=str(run_dir / "checkpoints"),
+        best_checkpoint=paths.get("best") or checkpoint.best_model_path or None,
+        last_checkpoint=paths.get("last") or checkpoint.last_model_path or None,
+        metrics=metrics,
+        stopped_early=trainer.global_step < cfg.trainer.max_steps,
+    )
