@@ -190,9 +190,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _configure_logging(verbose: bool) -> None:
+    """This package's INFO lines and everyone's warnings, once each (Lightning prints its own
+    INFO lines through its own handler)."""
+    fmt = logging.Formatter("%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.WARNING)
+    for handler in logging.getLogger().handlers:
+        handler.setLevel(logging.DEBUG if verbose else logging.WARNING)
+        handler.setFormatter(fmt)
+    ours = logging.getLogger("mmm")
+    ours.setLevel(logging.DEBUG if verbose else logging.INFO)
+    if not ours.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(fmt)
+        ours.addHandler(handler)
+        ours.propagate = False
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    _configure_logging(args.verbose)
     from mmm.config import ConfigError
     from mmm.data.humanml3d import DataError
 

@@ -68,14 +68,18 @@ class TokenizerModule(L.LightningModule):
     ):
         super().__init__()
         model, optim, loss = _as(TokenizerConfig, model), _as(OptimConfig, optim), _as(TokenizerLossConfig, loss)
+        # Tensors before save_hyperparameters, which compares its argument with every init
+        # argument (a numpy array cannot be compared with a dict).
+        mean = torch.as_tensor(mean if mean is not None else np.zeros(feature_dim), dtype=torch.float32)
+        std = torch.as_tensor(std if std is not None else np.ones(feature_dim), dtype=torch.float32)
         # Plain dicts, so checkpoints load with torch.load(weights_only=True).
         self.save_hyperparameters({"feature_dim": feature_dim, "model": asdict(model), "optim": asdict(optim), "loss": asdict(loss)})
         self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
         self.tokenizer = MotionTokenizer(feature_dim, model)
         self.skeleton = skeleton_for(feature_dim)
         self.layout = FeatureLayout(self.skeleton.num_joints)
-        self.register_buffer("mean", torch.as_tensor(mean if mean is not None else np.zeros(feature_dim), dtype=torch.float32))
-        self.register_buffer("std", torch.as_tensor(std if std is not None else np.ones(feature_dim), dtype=torch.float32))
+        self.register_buffer("mean", mean)
+        self.register_buffer("std", std)
         self.val_recon = MeanMetric()
         self.val_mpjpe = MeanMetric()
         self.val_mpjpe_local = MeanMetric()
