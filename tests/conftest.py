@@ -19,3 +19,10 @@ def reference_dir():
     if REFERENCE is None:
         pytest.skip("../shared/reference not available")
     return REFERENCE
+
+
+@pytest.fixture(scope="session")
+def walker_dataset(tmp_path_factory):
+    from helpers import write_walker_dataset
+
+    return write_walker_dataset(tmp_path_factory.mktemp("walkers") / "ds")

@@ -12,33 +12,7 @@ from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_mo
 from mmm.data.humanml3d import (
     DataError, check_mirror_splits, compute_stats, load_clips, load_items, load_stats, mirror_id, parse_caption_line,
 )
-from mmm.motion.features import reference_std
-
-D = 263
-
-
-def make_features(T, seed):
-    rng = np.random.default_rng(seed)
-    return rng.normal(size=(T, D)).astype(np.float32) * 0.1 + seed
-
-
-def write_dataset(root, clips, splits, stats=True):
-    """clips: id -> (T or features array, [caption lines]); splits: name -> ids."""
-    (root / "new_joint_vecs").mkdir(parents=True)
-    (root / "texts").mkdir()
-    arrays = {}
-    for i, (motion_id, (motion, lines)) in enumerate(clips.items()):
-        arr = make_features(motion, i) if isinstance(motion, int) else motion
-        arrays[motion_id] = arr
-        np.save(root / "new_joint_vecs" / f"{motion_id}.npy", arr)
-        (root / "texts" / f"{motion_id}.txt").write_text("\n".join(lines) + "\n")
-    for name, ids in splits.items():
-        (root / f"{name}.txt").write_text("\n".join(ids) + "\n")
-    if stats:
-        mean, std = reference_std(np.concatenate(list(arrays.values())), 22)
-        np.save(root / "Mean.npy", mean.astype(np.float32))
-        np.save(root / "Std.npy", std.astype(np.float32))
-    return arrays
+from helpers import D, make_features, write_dataset
 
 
 WHOLE = "a person walks forward#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0"

@@ -14,6 +14,7 @@ from mmm.motion.quaternion import (
 from mmm.motion.skeleton import KIT_SKELETON, T2M_SKELETON, forward_kinematics, mirror_joints, skeleton_for
 
 from conftest import REFERENCE
+from helpers import turning_walker
 
 
 def random_quats(n, seed=0):
@@ -105,23 +106,6 @@ def test_joints_to_features_reproduces_reference_features():
     assert np.array_equal(ours[:, 259:], features[:169, 259:])  # foot contacts exactly
     # And back to joints: the round trip is exact.
     assert np.abs(recover_from_ric(ours) - joints[:169]).max() < 1e-5
-
-
-def turning_walker(frames=160, turns=1.25):
-    """A rigid T-pose body moving on a circle and turning `turns` full turns: crosses 180 degrees."""
-    t = torch.arange(frames, dtype=torch.float64)
-    heading = 2 * math.pi * turns * t / frames
-    root = torch.stack((torch.sin(heading) * 1.5, 0.95 + 0.03 * torch.sin(t / 3), 1.5 - torch.cos(heading) * 1.5), dim=-1)
-    quats = torch.zeros(frames, 22, 4, dtype=torch.float64)
-    quats[..., 0] = 1.0
-    quats[:, 0] = quat_about_y(heading)
-    # Swing the arms and legs so rotations and velocities are not trivial.
-    swing = quat_from_axis_angle(torch.tensor([1.0, 0, 0], dtype=torch.float64).expand(frames, 3), 0.5 * torch.sin(t / 4))
-    for j in (1, 17):
-        quats[:, j] = swing
-    for j in (2, 16):
-        quats[:, j] = swing * torch.tensor([1.0, -1, -1, -1], dtype=torch.float64)
-    return forward_kinematics(quats, root, T2M_SKELETON, chains_from_root=False)
 
 
 def test_round_trip_on_a_turning_motion_and_the_yaw_flip_quirk():

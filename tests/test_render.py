@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 
 from mmm.motion.skeleton import KIT_SKELETON, T2M_SKELETON, forward_kinematics
-from mmm.render import frames, render_files, render_frames, render_gif, render_mp4
+from mmm.render import EncoderNotFound, frames, render_files, render_frames, render_gif, render_mp4
 from mmm.render import stick
 from mmm.render.stick import COLOR
 
@@ -181,6 +181,8 @@ def test_bad_files_raise_value_error_naming_file_and_shape(tmp_path):
     garbage.write_text("not an array")
     with pytest.raises(ValueError, match="garbage.npy.*cannot be loaded"):
         render_files([garbage], tmp_path / "out.gif")
+    with pytest.raises(ValueError, match=r"out.webp.*\.gif, \.mp4 or \.png"):
+        render_files([good], tmp_path / "out.webp")
     with pytest.raises(ValueError, match="captions"):
         frames([rest_pose(2)], ["a", "b"])
     assert not (tmp_path / "out.gif").exists()
@@ -248,6 +250,6 @@ def test_mp4_without_encoder(tmp_path, monkeypatch, caplog):
     assert sum("MP4 encoder" in r.message for r in caplog.records) == 1
     path = tmp_path / "m.npy"
     np.save(path, rest_pose(3))
-    with pytest.raises(RuntimeError, match="imageio-ffmpeg"):
+    with pytest.raises(EncoderNotFound, match="b.mp4.*imageio-ffmpeg"):
         render_files([path], tmp_path / "b.mp4")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npy"]

@@ -2,6 +2,7 @@
 
 from mmm.render.stick import (
     PALETTE,
+    EncoderNotFound,
     as_joints,
     frames,
     load_motion_file,
@@ -13,6 +14,7 @@ from mmm.render.stick import (
 
 __all__ = [
     "PALETTE",
+    "EncoderNotFound",
     "as_joints",
     "frames",
     "load_motion_file",

@@ -26,13 +26,13 @@ coordinates are millimetres and are scaled to metres (`Skeleton.unit_scale`).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
 import shutil
 import subprocess
 import tempfile
-import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,6 +77,13 @@ _ROLES: tuple[tuple[str, tuple[int, int, int]], ...] = (
     ("done_mark", (190, 40, 40)),
     ("separator", (160, 160, 170)),
     ("start", (60, 160, 80)),
+)
+_TEXT_ROLES = ("text", "muted_text", "done_mark")
+_TEXT_LEVELS = 4  # anti-aliased text: blends of the background and the text colour
+_ROLES = _ROLES + tuple(
+    (f"{role}_{k}", tuple(round(b + (c - b) * k / _TEXT_LEVELS) for b, c in zip(_ROLES[0][1], dict(_ROLES)[role])))
+    for role in _TEXT_ROLES
+    for k in range(1, _TEXT_LEVELS)
 )
 COLOR = {name: i for i, (name, _) in enumerate(_ROLES)}
 PALETTE: dict[str, tuple[int, int, int]] = dict(_ROLES)
@@ -133,6 +140,9 @@ def as_joints(motion, name: str = "motion") -> tuple[np.ndarray, Skeleton]:
     skeleton = skeleton_for(shape[1])
     joints = recover_from_ric(arr) if kind == "features" else arr
     joints = np.asarray(joints, dtype=np.float64) * skeleton.unit_scale
+    if not np.isfinite(joints).all():
+        raise ValueError(f"{name}: features of shape {shape} give NaN/Inf joint positions (overflow in "
+                         "recover_from_ric); render only finite, de-normalized features")
     return joints, skeleton
 
 
@@ -228,6 +238,7 @@ def _make_camera(joints: np.ndarray, fps: float, width: int, height: int, top: i
 # ----------------------------------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=32)
 def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
     try:
         return ImageFont.load_default(size)
@@ -289,12 +300,41 @@ def _header_lines(captions: list[str], style: _Style, width: int | None = None, 
     return [_wrap(c, style.font, w, max_lines) if c.strip() else [] for c in captions]
 
 
-def _draw_header(draw: ImageDraw.ImageDraw, lines: list[str], style: _Style, x0: int = 0, width: int | None = None) -> None:
+_TEXT_LUT = {
+    role: np.array([COLOR["background"]] + [COLOR[f"{role}_{k}"] for k in range(1, _TEXT_LEVELS)] + [COLOR[role]],
+                   dtype=np.uint8)
+    for role in _TEXT_ROLES
+}
+
+
+@functools.lru_cache(maxsize=2048)
+def _text_patch(text: str, font, role: str) -> tuple[Image.Image, Image.Image]:
+    """Anti-aliased text as a palette image and its binary mask (drawn in "L", mapped to blends).
+
+    Palette-mode drawing would render glyphs unhinted-but-aliased and wider than `getlength`.
+    """
+    ascent, descent = font.getmetrics()
+    w, h = int(math.ceil(font.getlength(text))) + 2, ascent + descent + 1
+    grey = Image.new("L", (max(w, 1), h), 0)
+    ImageDraw.Draw(grey).text((0, 0), text, fill=255, font=font)
+    level = (np.asarray(grey).astype(np.int32) * _TEXT_LEVELS + 127) // 255
+    patch = Image.fromarray(_TEXT_LUT[role][level], "P")  # pasted as indices: no palette needed
+    return patch, Image.fromarray(level > 0)
+
+
+def _draw_text(image: Image.Image, xy: tuple[float, float], text: str, font, role: str) -> float:
+    """Paste anti-aliased text at xy (top-left); returns its width in pixels."""
+    patch, mask = _text_patch(text, font, role)
+    image.paste(patch, (int(round(xy[0])), int(round(xy[1]))), mask)
+    return font.getlength(text)
+
+
+def _draw_header(image: Image.Image, lines: list[str], style: _Style, x0: int = 0, width: int | None = None) -> None:
     width = width or style.width
     y = 3
     for line in lines:
         tw = style.font.getlength(line)
-        draw.text((x0 + (width - tw) / 2, y), line, fill=COLOR["text"], font=style.font)
+        _draw_text(image, (x0 + (width - tw) / 2, y), line, style.font, "text")
         y += style.line_h
 
 
@@ -345,10 +385,46 @@ def _flat(pix: np.ndarray) -> list[float]:
     return pix.ravel().tolist()
 
 
+def _clip_segments(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """Liang-Barsky: the parts of segments a->b (N, 2) inside the box [lo, hi]; (a', b', kept)."""
+    d = b - a
+    t0 = np.zeros(len(a))
+    t1 = np.ones(len(a))
+    keep = np.ones(len(a), dtype=bool)
+    for p, q in ((-d, a - lo), (d, hi - a)):
+        for k in range(2):
+            pk, qk = p[:, k], q[:, k]
+            parallel = pk == 0
+            keep &= ~(parallel & (qk < 0))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = np.where(parallel, 0.0, qk / np.where(parallel, 1.0, pk))
+            t0 = np.where(~parallel & (pk < 0), np.maximum(t0, r), t0)
+            t1 = np.where(~parallel & (pk > 0), np.minimum(t1, r), t1)
+    keep &= t0 <= t1
+    return a + t0[:, None] * d, a + t1[:, None] * d, keep
+
+
+def _polyline(draw: ImageDraw.ImageDraw, pix: np.ndarray, fill: int, width: int, joint: str | None = None) -> None:
+    """Draw a pixel polyline (N, 2); points far outside the image (wild motions) are clipped."""
+    w, h = draw.im.size
+    margin = 2.0 * max(w, h)
+    lo, hi = np.array([-margin, -margin]), np.array([w + margin, h + margin])
+    if ((pix >= lo) & (pix <= hi)).all():
+        draw.line(_flat(pix), fill=fill, width=width, joint=joint)
+        return
+    a, b, keep = _clip_segments(pix[:-1], pix[1:], lo, hi)
+    for p, q in zip(a[keep].tolist(), b[keep].tolist()):
+        draw.line((*p, *q), fill=fill, width=width)
+
+
 class _Panel:
     """Everything precomputed for drawing one motion: camera, projected joints, path, chains."""
 
     def __init__(self, joints: np.ndarray, skeleton: Skeleton, fps: float, style: _Style, top: int):
+        with np.errstate(all="ignore"):  # wild (e.g. untrained) motions overflow harmlessly
+            self._setup(joints, skeleton, fps, style, top)
+
+    def _setup(self, joints: np.ndarray, skeleton: Skeleton, fps: float, style: _Style, top: int) -> None:
         self.joints = joints
         self.skeleton = skeleton
         self.T = len(joints)
@@ -388,6 +464,8 @@ class _Panel:
         self.head_cam = cam.to_camera(self.head_center)
         self.head_pix = cam.to_pixels(self.head_cam)
         self.nose_pix = cam.to_pixels(cam.to_camera(nose))
+        nose_off = np.linalg.norm(self.nose_pix - self.head_pix, axis=-1) > style.width  # wild poses
+        self.nose_pix[nose_off] = self.head_pix[nose_off]
 
     # -- layers ---------------------------------------------------------------------------------
 
@@ -424,7 +502,7 @@ class _Panel:
             return
         for seg in seg_cam:
             for run in _polyline_segments(seg):
-                draw.line(_flat(cam.to_pixels(run)), fill=COLOR["grid"], width=1)
+                _polyline(draw, cam.to_pixels(run), COLOR["grid"], 1)
 
     def draw_path(self, draw: ImageDraw.ImageDraw, t: int) -> None:
         if self.T < 2:
@@ -432,12 +510,12 @@ class _Panel:
         cam = self.camera
         path_cam = cam.to_camera(self.root_floor, t)
         for run in _polyline_segments(path_cam):
-            draw.line(_flat(cam.to_pixels(run)), fill=COLOR["path_faint"], width=self.style.path_w)
+            _polyline(draw, cam.to_pixels(run), COLOR["path_faint"], self.style.path_w)
         if t >= 1:
             for run in _polyline_segments(path_cam[: t + 1]):
-                draw.line(_flat(cam.to_pixels(run)), fill=COLOR["path"], width=self.style.path_w + 1)
+                _polyline(draw, cam.to_pixels(run), COLOR["path"], self.style.path_w + 1)
         start = cam.to_pixels(path_cam[0])
-        if path_cam[0, 2] >= NEAR:
+        if path_cam[0, 2] >= NEAR and np.abs(start).max() < 4 * max(self.style.width, self.style.height):
             r = self.style.path_w + 1.5
             draw.ellipse((start[0] - r, start[1] - r, start[0] + r, start[1] + r), fill=COLOR["start"])
 
@@ -445,7 +523,7 @@ class _Panel:
         style = self.style
         shadow = self.shadow_pix[t]
         for chain, _ in self.chains:
-            draw.line(_flat(shadow[chain]), fill=COLOR["shadow"], width=style.limb_w, joint="curve")
+            _polyline(draw, shadow[chain], COLOR["shadow"], style.limb_w, "curve")
         pix = self.pix[t]
         depth = self.cam_joints[t, :, 2]
         items = []  # (depth, kind, data)
@@ -460,9 +538,11 @@ class _Panel:
                     fill = COLOR["done_spine"] if role == "spine" else COLOR["done_limb"]
                 else:
                     fill = COLOR[role]
-                draw.line(_flat(pix[chain]), fill=fill, width=style.limb_w, joint="curve")
+                _polyline(draw, pix[chain], fill, style.limb_w, "curve")
             else:
                 hx, hy = self.head_pix[t]
+                if not (-style.width <= hx <= 2 * style.width and -style.height <= hy <= 2 * style.height):
+                    continue
                 r = style.head_r * self.camera.focal / max(head_depth, NEAR)
                 outline = COLOR["done_spine"] if done else COLOR["spine"]
                 draw.ellipse((hx - r, hy - r, hx + r, hy + r), fill=COLOR["done_head" if done else "head"],
@@ -470,14 +550,13 @@ class _Panel:
                 nx, ny = self.nose_pix[t]
                 draw.line((hx, hy, nx, ny), fill=outline, width=max(1, style.limb_w - 1))
 
-    def draw_counter(self, draw: ImageDraw.ImageDraw, t: int, done: bool) -> None:
+    def draw_counter(self, image: Image.Image, t: int, done: bool) -> None:
         style = self.style
         y = style.height - style.line_h - 2
         text = f"{t + 1}/{self.T}  {t / self.fps:.2f}s"
-        draw.text((4, y), text, fill=COLOR["muted_text"], font=style.small_font)
+        x = 4 + _draw_text(image, (4, y), text, style.small_font, "muted_text")
         if done:
-            x = 4 + style.small_font.getlength(text) + 6
-            draw.text((x, y), "done", fill=COLOR["done_mark"], font=style.small_font)
+            _draw_text(image, (x + 6, y), "done", style.small_font, "done_mark")
 
     def render(self, t: int, header: Image.Image | None) -> Image.Image:
         """The panel at motion frame t (clamped to the last frame: 'done')."""
@@ -491,7 +570,7 @@ class _Panel:
         self.draw_figure(draw, t, done)
         if header is not None:
             im.paste(header, (0, 0))
-        self.draw_counter(draw, t, done)
+        self.draw_counter(im, t, done)
         return im
 
 
@@ -532,7 +611,7 @@ def frames(motions, captions=None, size=(320, 320), *, _names: list[str] | None 
         panels.append(_Panel(joints, skeleton, skeleton.fps, style, top))
         if top:
             header = _new_image(width, top)
-            _draw_header(ImageDraw.Draw(header), cap_lines, style)
+            _draw_header(header, cap_lines, style)
             headers.append(header)
         else:
             headers.append(None)
@@ -662,9 +741,8 @@ def _sheet(loaded, captions, num_frames: int, size) -> Image.Image:
         for c, t in enumerate(idx):
             sheet.paste(panel.render(int(t), None), (c * width, r * height))
         if top:
-            draw.rectangle((0, r * height, row_w - 1, r * height + top - 1), fill=COLOR["background"])
             header = _new_image(row_w, top)
-            _draw_header(ImageDraw.Draw(header), cap_lines, style, width=row_w)
+            _draw_header(header, cap_lines, style, width=row_w)
             sheet.paste(header, (0, r * height))
         for c in range(1, num_frames):
             draw.line((c * width, r * height + top, c * width, (r + 1) * height), fill=COLOR["separator"], width=1)
@@ -704,31 +782,41 @@ def load_motion_file(path) -> np.ndarray:
     return arr
 
 
+class EncoderNotFound(ValueError):
+    """An MP4 was asked for but no ffmpeg executable is installed."""
+
+
 def render_files(paths: Sequence[str | Path], out_path, captions=None, fps: float | None = None) -> list[Path]:
     """Render `.npy` motion files side by side to `out_path`; returns the written paths.
 
-    The output type follows the suffix: `.gif` (default for any other suffix), `.mp4` (raises
-    RuntimeError when no encoder is installed) or `.png` (a `render_frames` contact sheet).
-    fps defaults to the first motion's skeleton fps. Bad input raises ValueError naming the file.
+    The output type follows the suffix: `.gif`, `.mp4` (raises `EncoderNotFound`, a ValueError,
+    when no encoder is installed) or `.png` (a `render_frames` contact sheet). Captions default to
+    the file names; fps to the first motion's skeleton fps. Bad input raises ValueError naming the
+    file, the offending value and the expected shapes.
     """
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [Path(p) for p in paths]
     if not paths:
         raise ValueError("no motion files given: expected one or more .npy paths")
+    out_path = Path(out_path)
+    suffix = out_path.suffix.lower()
+    if suffix not in (".gif", ".mp4", ".png"):
+        raise ValueError(f"{out_path}: unknown output type {suffix or '(no suffix)'!r}; "
+                         "expected a path ending in .gif, .mp4 or .png")
+    if captions is None:
+        captions = [p.stem for p in paths]
     arrays = [load_motion_file(p) for p in paths]
     names = [str(p) for p in paths]
     loaded = [as_joints(a, n) for a, n in zip(arrays, names)]  # validate all before rendering
     if fps is None:
         fps = loaded[0][1].fps
-    out_path = Path(out_path)
-    suffix = out_path.suffix.lower()
     if suffix == ".png":
         return [render_frames(arrays, out_path, captions)]
     if suffix == ".mp4":
         exe = _find_ffmpeg()
         if exe is None:
-            raise RuntimeError(f"cannot write {out_path}: no MP4 encoder found; pip install imageio-ffmpeg "
+            raise EncoderNotFound(f"cannot write {out_path}: no MP4 encoder found; pip install imageio-ffmpeg "
                                "(the 'mp4' extra) or put ffmpeg on PATH, or write a .gif instead")
         return [_save_mp4(frames(arrays, captions, _names=names), out_path, fps, exe)]
     return [_save_gif(frames(arrays, captions, _names=names), out_path, fps)]

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import logging
 import os
+import random
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import MLFlowLogger
@@ -111,25 +113,42 @@ def build_trainer(cfg: TrainerConfig, callbacks: list, logger, default_root_dir:
     )
 
 
-def checkpoint_callback(directory: Path, cfg: CheckpointConfig) -> ModelCheckpoint:
-    return ModelCheckpoint(
-        dirpath=directory,
-        filename="best",
-        monitor=cfg.monitor,
-        mode=cfg.mode,
-        save_last=True,
-        save_top_k=1,
-        auto_insert_metric_name=False,
+def checkpoint_callbacks(directory: Path, cfg: CheckpointConfig) -> tuple[ModelCheckpoint, ModelCheckpoint]:
+    """best.ckpt (by the monitored metric) and last.ckpt (at every validation), overwritten in
+    place when a run resumes (no last-v1.ckpt)."""
+    best = ModelCheckpoint(
+        dirpath=directory, filename="best", monitor=cfg.monitor, mode=cfg.mode, save_top_k=1,
+        auto_insert_metric_name=False, enable_version_counter=False,
     )
+    last = ModelCheckpoint(dirpath=directory, filename="last", monitor=None, save_top_k=1, enable_version_counter=False)
+    return best, last
 
 
-class TrackRunId(L.Callback):
-    """Stores the MLflow run id in every checkpoint, so a resumed run continues the same run."""
+class RunState(L.Callback):
+    """Keeps in every checkpoint what Lightning does not: the MLflow run id (a resumed run goes on
+    logging to the same run) and the random generators' states (it goes on drawing the same
+    numbers), in types that load with weights_only=True."""
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         for logger in trainer.loggers:
             if isinstance(logger, MLFlowLogger):
                 checkpoint["mlflow_run_id"] = logger.run_id
+        np_state = np.random.get_state()
+        checkpoint["rng"] = {
+            "torch": torch.get_rng_state(),
+            "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]), int(np_state[3]), float(np_state[4])],
+            "python": random.getstate(),
+        }
+
+    def on_load_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        rng = checkpoint.get("rng")
+        if rng is None:
+            return
+        torch.set_rng_state(rng["torch"])
+        name, keys, pos, has_gauss, cached = rng["numpy"]
+        np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+        version, state, gauss = rng["python"]
+        random.setstate((version, tuple(state), gauss))
 
 
 def read_checkpoint_meta(path: str | Path) -> dict:
@@ -163,13 +182,9 @@ def log_config(logger: MLFlowLogger | None, cfg: DictConfig, resumed: bool) -> N
 
 
 @rank_zero_only
-def log_checkpoints(logger: MLFlowLogger | None, checkpoint: ModelCheckpoint) -> dict[str, str]:
+def log_checkpoints(logger: MLFlowLogger | None, best: ModelCheckpoint, last: ModelCheckpoint) -> dict[str, str]:
     """Upload best.ckpt and last.ckpt to the run's `checkpoints/` artifacts; returns their paths."""
-    paths = {}
-    if checkpoint.best_model_path:
-        paths["best"] = checkpoint.best_model_path
-    if checkpoint.last_model_path:
-        paths["last"] = checkpoint.last_model_path
+    paths = {name: cb.best_model_path for name, cb in (("best", best), ("last", last)) if cb.best_model_path}
     if logger is not None:
         for path in paths.values():
             if os.path.exists(path):

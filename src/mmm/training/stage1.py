@@ -16,8 +16,8 @@ from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
 from mmm.training.common import (
-    CheckpointConfig, TrackingConfig, TrackRunId, TrainerConfig, TrainResult, build_logger, build_trainer,
-    checkpoint_callback, log_checkpoints, log_config, read_checkpoint_meta,
+    CheckpointConfig, TrackingConfig, RunState, TrainerConfig, TrainResult, build_logger, build_trainer,
+    checkpoint_callbacks, log_checkpoints, log_config, read_checkpoint_meta,
 )
 from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
 
@@ -66,15 +66,15 @@ def load_stage1_config(overrides: list[str] = ()) -> DictConfig:
     return compose("train_stage1", list(overrides), schema=Stage1Config)
 
 
-def build_callbacks(cfg: Stage1Config, checkpoint_dir: Path) -> tuple[list[L.Callback], object]:
+def build_callbacks(cfg: Stage1Config, checkpoint_dir: Path) -> tuple[list[L.Callback], tuple]:
     cb = cfg.callbacks
-    checkpoint = checkpoint_callback(checkpoint_dir, cb.checkpoint)
-    callbacks: list[L.Callback] = [CodebookReset(cb.reset_every_n_steps), CollapseMonitor(**asdict(cb.collapse)), checkpoint, TrackRunId()]
+    checkpoints = checkpoint_callbacks(checkpoint_dir, cb.checkpoint)
+    callbacks: list[L.Callback] = [CodebookReset(cb.reset_every_n_steps), CollapseMonitor(**asdict(cb.collapse)), *checkpoints, RunState()]
     if cb.preview_clips > 0:
         callbacks.append(ReconstructionPreview(cb.preview_clips))
     if cb.usage_plot:
         callbacks.append(CodebookUsagePlot())
-    return callbacks, checkpoint
+    return callbacks, checkpoints
 
 
 def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
@@ -97,18 +97,17 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     if logger is not None:
         _ = logger.experiment  # create the run now, before any process is spawned
         log_config(logger, cfg_node, resumed=run_id is not None)
-    callbacks, checkpoint = build_callbacks(cfg, run_dir / "checkpoints")
+    callbacks, (best, last) = build_callbacks(cfg, run_dir / "checkpoints")
     trainer = build_trainer(cfg.trainer, callbacks, logger, str(run_dir))
     with shared_run_directory(run_dir):
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True)
-    paths = log_checkpoints(logger, checkpoint) if cfg.logger.log_checkpoints else {}
-    paths = paths or {}
+    paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     return TrainResult(
         run_id=logger.run_id if logger is not None else None,
         checkpoint_dir=str(run_dir / "checkpoints"),
-        best_checkpoint=paths.get("best") or checkpoint.best_model_path or None,
-        last_checkpoint=paths.get("last") or checkpoint.last_model_path or None,
+        best_checkpoint=paths.get("best") or best.best_model_path or None,
+        last_checkpoint=paths.get("last") or last.best_model_path or None,
         metrics=metrics,
         stopped_early=trainer.global_step < cfg.trainer.max_steps,
     )

@@ -1,0 +1,60 @@
+"""Stage-1 training on 2 CPU processes over gloo; each rank saves its quantizer state at the end.
+
+Run by tests/test_stage1.py as `python stage1_ddp.py DATA_ROOT OUT_DIR`: Lightning's DDP launcher
+re-runs this script for rank 1. The collapse monitor is made to fire on rank 0 only, so both
+ranks stopping at the same step shows that the stop decision is reduced across ranks.
+"""
+
+import os
+import sys
+
+import lightning as L
+import torch
+
+from mmm.callbacks.codebook import CodebookReset, CollapseMonitor
+from mmm.data.datamodule import DataConfig, TokenizerDataModule
+from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.common import TrainerConfig, build_strategy
+
+
+class SaveRankState(L.Callback):
+    def __init__(self, out_dir):
+        self.out_dir, self.first_batch_sum = out_dir, None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if self.first_batch_sum is None:
+            self.first_batch_sum = float(batch.sum())
+
+    def on_train_end(self, trainer, pl_module):
+        q = pl_module.quantizer
+        reset = next(c for c in trainer.callbacks if isinstance(c, CodebookReset))
+        torch.save(
+            {
+                "codebook": q.codebook.clone(), "ema_sum": q.ema_sum.clone(), "ema_count": q.ema_count.clone(),
+                "window_usage": q.window_usage.clone(), "global_step": trainer.global_step, "total_reset": reset.total_reset,
+                "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
+                "first_batch_sum": self.first_batch_sum,
+            },
+            os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt"),
+        )
+
+
+def main(data_root, out_dir):
+    L.seed_everything(0)
+    rank = int(os.environ.get("LOCAL_RANK", "0"))
+    dm = TokenizerDataModule(DataConfig(root=data_root, batch_size=4, synthesize=None), seed=0)
+    dm.prepare_data()
+    dm.setup("fit")
+    module = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig(), dm.mean, dm.std)
+    monitor = CollapseMonitor(action="stop", warmup_steps=24, window_steps=4, min_active_fraction=2.0 if rank == 0 else -1.0, perplexity_drop=0.0, patience=1)
+    trainer = L.Trainer(
+        accelerator="cpu", devices=2, strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
+        max_steps=40, limit_val_batches=0, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+        use_distributed_sampler=False, callbacks=[CodebookReset(3), monitor, SaveRankState(out_dir)],
+    )
+    trainer.fit(module, datamodule=dm)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2])

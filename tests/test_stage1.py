@@ -1,0 +1,202 @@
+"""Stage 1: quantizer semantics, the module, callbacks, DDP agreement, resume, MLflow tracking."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from mlflow.tracking import MlflowClient
+
+from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
+from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule, warmup_step_schedule
+from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
+from mmm.tokenizer.quantizer import EMAQuantizer
+from mmm.training.stage1 import load_stage1_config, train_stage1
+
+TESTS = Path(__file__).resolve().parent
+
+
+def test_quantizer_initializes_from_latents_and_quantizes_to_nearest():
+    torch.manual_seed(0)
+    q = EMAQuantizer(num_codes=8, code_dim=4, decay=1.0)  # decay 1: the seeded codes stay put
+    z = torch.randn(2, 4, 8)  # 16 latents >= 8 codes
+    out = q(z)
+    assert bool(q.initialized)
+    flat = z.permute(0, 2, 1).reshape(-1, 4)
+    # Every code is one of the latents.
+    assert all(((flat - c).norm(dim=-1).min() < 1e-6) for c in q.codebook.clone())
+    expected = torch.cdist(flat, q.codebook).argmin(-1).view(2, 8)
+    assert torch.equal(out.indices, q.quantize(z))
+    assert out.indices.shape == (2, 8) and out.quantized.shape == (2, 4, 8)
+    q.eval()
+    assert torch.equal(q.quantize(z), expected)
+
+
+def test_ema_update_and_reset_semantics():
+    q = EMAQuantizer(num_codes=4, code_dim=2, decay=0.5)
+    q.codebook.copy_(torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]]))
+    q.ema_sum.copy_(q.codebook)
+    q.ema_count.fill_(1.0)
+    q.initialized.fill_(True)
+    z = torch.tensor([[1.0, 0.0], [0.0, 1.0], [9.0, 0.0]]).t().unsqueeze(0)  # (1, 2, 3): codes 0, 0, 1
+    q.train()
+    out = q(z)
+    assert out.indices.tolist() == [[0, 0, 1]]
+    # count_0 = 0.5*1 + 0.5*2 = 1.5, sum_0 = 0.5*0 + 0.5*(1,1) -> code 0 = (1/3, 1/3)
+    assert torch.allclose(q.codebook[0], torch.tensor([1 / 3, 1 / 3]))
+    assert torch.allclose(q.codebook[1], torch.tensor([9.5, 0.0]))
+    assert torch.allclose(q.codebook[2], torch.tensor([0.0, 10.0]))  # unused: count and sum both halve
+    assert q.window_usage.tolist() == [2.0, 1.0, 0.0, 0.0] and q.window_active() == 2
+    assert torch.equal(q.latest_counts, torch.tensor([2.0, 1.0, 0.0, 0.0]))
+    torch.manual_seed(1)
+    n = q.reset_unused()
+    assert n == 2 and q.window_usage.sum() == 0
+    latents = z[0].t()
+    for k in (2, 3):  # reset codes are latents of the batch, with re-seeded EMA statistics
+        assert min((latents - q.codebook[k]).norm(dim=-1)) < 1e-6
+        assert q.ema_count[k] == 1.0 and torch.equal(q.ema_sum[k], q.codebook[k])
+    kept = q.codebook[2].clone()
+    q(torch.tensor([[1.0, 0.0]]).t().unsqueeze(0))  # nothing assigned to code 2 ...
+    assert torch.allclose(q.codebook[2], kept)  # ... and it survives the update
+
+
+def test_state_lives_in_buffers():
+    q = EMAQuantizer(num_codes=16, code_dim=4)
+    assert {"codebook", "ema_sum", "ema_count", "window_usage", "initialized"} <= set(dict(q.named_buffers()))
+    assert not list(q.parameters())
+
+
+def test_tokenizer_shapes_and_paper_size():
+    tiny = MotionTokenizer(263, TokenizerConfig(width=32, num_codes=64))
+    tiny.train()
+    out = tiny(torch.randn(2, 64, 263))
+    assert out.reconstruction.shape == (2, 64, 263) and out.indices.shape == (2, 16)
+    assert tiny.encode(torch.randn(3, 196, 263)).shape == (3, 49)
+    assert tiny.decode(torch.zeros(3, 49, dtype=torch.long)).shape == (3, 196, 263)
+    paper = MotionTokenizer(263, TokenizerConfig())
+    assert paper.codebook.shape == (8192, 32)
+    assert 17e6 < sum(p.numel() for p in paper.parameters()) < 19e6
+
+
+def test_lr_schedule_warmup_and_decay():
+    f = warmup_step_schedule(1000, [200_000], 0.05)
+    assert f(0) == pytest.approx(1 / 1000) and f(499) == pytest.approx(0.5) and f(999) == 1.0
+    assert f(199_999) == 1.0 and f(200_000) == pytest.approx(0.05)
+
+
+def _fit(module, data, callbacks, steps):
+    trainer = L.Trainer(
+        max_steps=steps, callbacks=callbacks, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+        limit_val_batches=0, accelerator="cpu", enable_model_summary=False,
+    )
+    trainer.fit(module, torch.utils.data.DataLoader(data, batch_size=16, shuffle=True))
+    return trainer
+
+
+class DegenerateEncoder(torch.nn.Module):
+    """Every latent the same: all tokens fall into one code."""
+
+    def forward(self, x):
+        return torch.zeros(x.shape[0], 32, x.shape[2] // 4) + 0.0 * x.mean()
+
+
+def test_collapse_is_detected_and_a_healthy_run_is_not():
+    torch.manual_seed(0)
+    data = torch.randn(256, 64, 263)
+    healthy = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig())
+    monitor = CollapseMonitor(action="fail", warmup_steps=10, window_steps=5, min_active_fraction=0.1)
+    _fit(healthy, data, [CodebookReset(5), monitor], 40)
+    assert monitor.events == [] and monitor.active_fraction > 0.5
+
+    degenerate = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig())
+    degenerate.tokenizer.encoder = DegenerateEncoder()
+    warn = CollapseMonitor(action="warn", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2)
+    with pytest.warns(UserWarning, match="codebook collapse at step"):
+        _fit(degenerate, data, [warn], 30)
+    assert warn.events and warn.events[0].step >= 10 and warn.active_fraction == pytest.approx(1 / 64)
+
+    stop = CollapseMonitor(action="stop", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2)
+    degenerate.tokenizer.quantizer.initialized.fill_(False)
+    with pytest.warns(UserWarning, match="stopping the run"):
+        trainer = _fit(degenerate, data, [stop], 100)
+    assert trainer.global_step < 100 and stop.events[0].action == "stop"
+
+    fail = CollapseMonitor(action="fail", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2)
+    with pytest.raises(CodebookCollapseError, match="active codes 1.56%"):
+        _fit(degenerate, data, [fail], 100)
+
+
+def test_resetting_every_iteration_churns_the_codebook():
+    """Supplementary C: a reset every iteration keeps replacing codes (the paper reports collapse
+    and divergence); every 20 steps leaves a stable codebook."""
+    torch.manual_seed(0)
+    data = torch.randn(256, 64, 263)
+    counts = {}
+    for every in (1, 20):
+        module = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig())
+        reset = CodebookReset(every)
+        _fit(module, data, [reset], 40)
+        counts[every] = reset.total_reset
+    assert counts[1] > 5 * max(counts[20], 1)
+
+
+@pytest.mark.ddp
+def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(TESTS / "ddp_workers/stage1_ddp.py"), str(walker_dataset), str(tmp_path)],
+        capture_output=True, text=True, timeout=180, env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    assert r0["first_batch_sum"] != r1["first_batch_sum"]  # the ranks trained on different data
+    for key in ("codebook", "ema_sum", "ema_count", "window_usage", "weights"):
+        assert torch.equal(r0[key], r1[key]), key
+    assert r0["total_reset"] == r1["total_reset"] > 0
+    # The monitor fired on rank 0 only (its threshold), yet both stopped at the same step.
+    assert r0["global_step"] == r1["global_step"] == 24
+
+
+def _stage1_overrides(root, out, steps, **extra):
+    items = {
+        "data.root": root, "data.synthesize": "null", "data.batch_size": 8, "model.tokenizer.width": 32,
+        "model.tokenizer.num_codes": 64, "trainer.max_steps": steps, "trainer.val_check_interval": 5,
+        "trainer.enable_progress_bar": "false", "optim.warmup_steps": 5, "callbacks.reset_every_n_steps": 3,
+        "callbacks.preview_clips": 2, "output_dir": out / "runs", "logger.tracking_uri": f"sqlite:///{out}/mlflow.db",
+        "logger.artifact_root": out / "artifacts",
+    }
+    items.update(extra)
+    return [f"{k}={v}" for k, v in items.items()]
+
+
+def test_resume_continues_the_run_and_matches_an_uninterrupted_one(walker_dataset, tmp_path):
+    straight = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path / "a", 20)))
+    first = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path / "b", 10)))
+    resumed = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path / "b", 20)), resume="last")
+    assert resumed.run_id == first.run_id and resumed.checkpoint_dir == first.checkpoint_dir
+
+    def state(path):
+        return torch.load(path, map_location="cpu", weights_only=True)  # checkpoints load safely
+
+    a, b = state(straight.last_checkpoint), state(resumed.last_checkpoint)
+    assert a["global_step"] == b["global_step"] == 20
+    for key, value in a["state_dict"].items():
+        assert torch.equal(value, b["state_dict"][key]), key
+    assert a["state_dict"]["tokenizer.quantizer.codebook"].shape == (64, 32)
+
+    client = MlflowClient(f"sqlite:///{tmp_path / 'b'}/mlflow.db")
+    runs = client.search_runs([client.get_experiment_by_name("mmm-stage1").experiment_id])
+    assert len(runs) == 1
+    steps = [m.step for m in client.get_metric_history(first.run_id, "train/loss")]
+    assert max(steps) >= 19 and min(steps) <= 10  # one run holds both halves
+    assert client.get_run(first.run_id).data.params["model.tokenizer.num_codes"] == "64"
+    artifacts = {f.path for f in client.list_artifacts(first.run_id)}
+    assert {"checkpoints", "previews", "codebook", "config.yaml"} <= artifacts
+    previews = [f.path for f in client.list_artifacts(first.run_id, "previews")]
+    assert len(previews) == 4 and all(p.endswith(".gif") for p in previews)  # validations at 5, 10, 15, 20
+    assert {f.path for f in client.list_artifacts(first.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
+    history = client.get_metric_history(first.run_id, "val/mpjpe_mm")
+    assert len(history) == 4 and all(np.isfinite(m.value) for m in history)
