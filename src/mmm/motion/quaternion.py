@@ -38,9 +38,11 @@ def qmul(q: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
 
 def qrot(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Rotate vectors v (..., 3) by quaternions q (..., 4); leading dimensions broadcast."""
-    lead = torch.broadcast_shapes(q.shape[:-1], v.shape[:-1])
-    q = q.expand(lead + (4,))
-    v = v.expand(lead + (3,))
+    if q.shape[:-1] != v.shape[:-1]:
+        # broadcast_tensors is a C++ op; torch.broadcast_shapes is Python and slow per call.
+        lead = torch.broadcast_tensors(q[..., 0], v[..., 0])[0].shape
+        q = q.expand(lead + (4,))
+        v = v.expand(lead + (3,))
     qvec = q[..., 1:]
     uv = torch.linalg.cross(qvec, v, dim=-1)
     uuv = torch.linalg.cross(qvec, uv, dim=-1)

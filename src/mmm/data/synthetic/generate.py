@@ -1,0 +1,368 @@
+"""Write the synthetic dataset in the HumanML3D on-disk layout.
+
+    <out>/new_joint_vecs/<id>.npy  float32 (T, 263)   features (joints_to_features, no retargeting)
+    <out>/new_joints/<id>.npy      float32 (T, 22, 3) recover_from_ric(features)
+    <out>/texts/<id>.txt           caption lines `caption#tokens#start#end`
+    <out>/labels/<id>.json         {"fps": 20, "num_frames": T, "parts": [{action, params, start, end}]}
+    <out>/train.txt val.txt test.txt train_val.txt all.txt, Mean.npy, Std.npy
+
+Ids are 000000, 000001, ... and M<id> for the left/right mirrored copy (same split). Clip i is
+drawn from its own random stream seeded by (seed, i), so a dataset is a pure function of
+(num_clips, seed): the same arguments give byte-identical files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mmm.data.synthetic.actions import FPS, Infeasible, PartSpec, make_pose, pose_to_joints
+from mmm.data.synthetic.adherence import check_motion
+from mmm.data.synthetic.captions import clip_captions, mirror_caption_line, mirror_params
+from mmm.motion.features import FeatureLayout, joints_to_features, recover_from_ric, reference_std
+from mmm.motion.skeleton import T2M_SKELETON
+
+MAX_ROWS = 196
+MIN_ROWS = 40
+COMPOSITE_FRACTION = 1 / 3
+CHUNK = 32  # clips whose first tries share one forward-kinematics call
+SPLITS = {"val": 0.05, "test": 0.15}  # the rest is train
+ACTION_WEIGHTS = {
+    "stand": 1.0, "walk": 3.0, "run": 1.0, "turn": 1.2, "circle": 0.9, "jump": 1.2, "squat": 1.0,
+    "wave": 1.0, "raise_arms": 0.9, "kick": 1.0, "punch": 1.0, "sit": 1.0,
+}
+_ACTIONS = tuple(ACTION_WEIGHTS)
+_P = np.array([ACTION_WEIGHTS[a] for a in _ACTIONS]) / sum(ACTION_WEIGHTS.values())
+
+
+def sample_params(rng: np.random.Generator, action: str) -> dict:
+    """Label parameters of an action, named as in the spec's Labels section."""
+    pick = lambda options: options[int(rng.integers(len(options)))]  # noqa: E731
+    if action == "walk":
+        return {"direction": pick(["forward", "backward", "left", "right"]), "speed": pick(["slow", "normal", "fast"])}
+    if action == "run":
+        return {"direction": "forward"}
+    if action == "turn":
+        return {"side": pick(["left", "right"]), "angle": pick([90, 180])}
+    if action == "circle":
+        return {"side": pick(["clockwise", "counterclockwise"])}
+    if action == "jump":
+        return {"count": int(rng.integers(1, 4)), "mode": pick(["in_place", "forward"])}
+    if action == "squat":
+        return {"count": int(rng.integers(1, 4))}
+    if action in ("wave", "punch"):
+        return {"hand": pick(["left", "right", "both"])}
+    if action == "kick":
+        return {"foot": pick(["left", "right"])}
+    return {}
+
+
+def duration_range(action: str, params: dict, options: dict | None = None) -> tuple[float, float]:
+    """Seconds an action may last (2-6 s, longer minimum where it needs the time)."""
+    options = options or {}
+    if action == "run":
+        return 2.5, 6.0
+    if action == "turn":
+        return (2.0, 4.0) if params["angle"] == 90 else (2.8, 5.0)
+    if action == "circle":
+        return 4.3, 6.0
+    if action == "jump":
+        return {1: (2.0, 4.0), 2: (2.7, 5.5), 3: (3.7, 6.0)}[params["count"]]
+    if action == "squat":
+        return {1: (2.0, 4.0), 2: (3.0, 6.0), 3: (4.2, 6.0)}[params["count"]]
+    if action == "sit":
+        return (3.6, 6.0) if options.get("stand_up") else (3.0, 6.0)
+    if action == "walk" and params["speed"] == "fast":
+        return 2.5, 6.0
+    return 2.0, 6.0
+
+
+def sample_clip_spec(rng: np.random.Generator) -> list[PartSpec]:
+    """One or two parts (about a third of clips chain two different actions)."""
+    composite = rng.random() < COMPOSITE_FRACTION
+    for _ in range(50):
+        actions = [str(rng.choice(_ACTIONS, p=_P)) for _ in range(2 if composite else 1)]
+        if composite and actions[0] == actions[1]:
+            continue
+        params = [sample_params(rng, a) for a in actions]
+        options = []
+        for i, a in enumerate(actions):
+            # A sit that is followed by something must stand up again.
+            options.append({"stand_up": i < len(actions) - 1 or bool(rng.random() < 0.4)} if a == "sit" else {})
+        ranges = [duration_range(a, p, o) for a, p, o in zip(actions, params, options)]
+        budget = MAX_ROWS / FPS
+        if sum(r[0] for r in ranges) > budget:
+            continue
+        frames = []
+        used = 0.0
+        for i, (lo, hi) in enumerate(ranges):
+            rest = sum(r[0] for r in ranges[i + 1:])
+            d = rng.uniform(lo, min(hi, budget - used - rest))
+            rows = int(round(d * FPS))
+            frames.append(rows)
+            used += rows / FPS
+        if sum(frames) > MAX_ROWS or min(frames) < MIN_ROWS:
+            continue
+        return [PartSpec(a, p, f, o or None) for a, p, f, o in zip(actions, params, frames, options)]
+    raise RuntimeError("could not sample a clip specification")
+
+
+@dataclass
+class Clip:
+    """One generated clip and its mirrored copy."""
+
+    features: np.ndarray  # (T, 263) float32
+    joints: np.ndarray  # (T, 22, 3) float32, recovered from the features
+    captions: list[str]
+    label: dict
+    m_features: np.ndarray
+    m_joints: np.ndarray
+    m_captions: list[str]
+    m_label: dict
+    attempts: int
+
+
+_LAYOUT = FeatureLayout(T2M_SKELETON.num_joints)
+_PERM = np.array(T2M_SKELETON.mirror_permutation)
+
+
+def mirror_features(feats: np.ndarray) -> np.ndarray:
+    """Features (T, 263) of the left/right mirrored motion, computed in feature space.
+
+    Every step of joints_to_features is equivariant under the mirror M = diag(-1, 1, 1) with the
+    left/right joints swapped (its left/right-symmetric rest directions, facing vector, Gaussian
+    smoothing, shortest-arc IK), so: yaw velocity and x components change sign, joints are
+    permuted, each joint rotation R becomes M R M (6-D columns (x, -y, -z), (-x, y, z)) and the
+    contact channels swap feet. Equal to joints_to_features(mirror_joints(joints)) to float
+    precision (a test checks it), at a fraction of the cost.
+    """
+    out = feats.copy()
+    L = _LAYOUT
+    out[:, L.root_yaw] *= -1
+    out[:, 1] *= -1
+    pos = feats[:, L.positions].reshape(-1, 21, 3)[:, _PERM[1:] - 1].copy()
+    pos[..., 0] *= -1
+    out[:, L.positions] = pos.reshape(-1, 63)
+    rot = feats[:, L.rotations].reshape(-1, 21, 6)[:, _PERM[1:] - 1] * np.array([1, -1, -1, -1, 1, 1], dtype=feats.dtype)
+    out[:, L.rotations] = rot.reshape(-1, 126)
+    vel = feats[:, L.velocities].reshape(-1, 22, 3)[:, _PERM].copy()
+    vel[..., 0] *= -1
+    out[:, L.velocities] = vel.reshape(-1, 66)
+    out[:, L.contacts] = feats[:, L.contacts][:, [2, 3, 0, 1]]
+    return out
+
+
+def _recover(feats: np.ndarray) -> np.ndarray:
+    return recover_from_ric(torch.from_numpy(feats)).numpy().astype(np.float32)
+
+
+def _attempt(rng: np.random.Generator):
+    """One try at a clip: its specification and pose, or None when it cannot be animated."""
+    specs = sample_clip_spec(rng)
+    try:
+        quats, root, parts = make_pose(specs, rng)
+    except Infeasible:
+        return None
+    return specs, quats, root, parts
+
+
+def _finish(rng: np.random.Generator, specs, world: np.ndarray, parts, attempts: int) -> Clip | None:
+    """Features, captions and labels of a clip, or None when it fails its own labels."""
+    floor = world[..., 1].min()
+    canon = world[:-1].copy()  # the checks are invariant to horizontal placement and facing
+    canon[..., 1] -= floor
+    if not check_motion(canon, parts).passed:
+        return None
+    feats = joints_to_features(torch.from_numpy(world), retarget=False).numpy().astype(np.float32)
+    joints = _recover(feats)
+    m_feats = mirror_features(feats)
+    m_joints = _recover(m_feats)
+    m_parts = [dict(p, params=mirror_params(p["params"])) for p in parts]
+    if not (check_motion(joints, parts).passed and check_motion(m_joints, m_parts).passed):
+        return None
+    stands_up = [bool((s.options or {}).get("stand_up", False)) for s in specs]
+    captions = clip_captions(rng, parts, stands_up)
+    label = {"fps": int(FPS), "num_frames": int(feats.shape[0]), "parts": parts}
+    m_label = {"fps": int(FPS), "num_frames": int(m_feats.shape[0]), "parts": m_parts}
+    return Clip(feats, joints, captions, label, m_feats, m_joints,
+                [mirror_caption_line(c) for c in captions], m_label, attempts=attempts)
+
+
+def _complete(rng: np.random.Generator, first, first_world, attempts: int, index: int, seed: int, max_attempts: int) -> Clip:
+    """Finish a clip from its first try (already posed); retry from the same stream if needed."""
+    clip = _finish(rng, first[0], first_world, first[3], attempts) if first is not None else None
+    while clip is None:
+        attempts += 1
+        if attempts > max_attempts:
+            raise RuntimeError(f"clip {index} (seed {seed}) failed its own labels {max_attempts} times")
+        tried = _attempt(rng)
+        if tried is not None:
+            specs, quats, root, parts = tried
+            clip = _finish(rng, specs, pose_to_joints(quats, root), parts, attempts)
+    return clip
+
+
+def generate_clip(seed: int, index: int, max_attempts: int = 30) -> Clip:
+    """Clip `index` of the dataset with this seed (deterministic); retried until it satisfies its
+    labels (also mirrored, on the joints recovered from the saved features)."""
+    rng = np.random.default_rng([int(seed), int(index)])
+    first = _attempt(rng)
+    world = pose_to_joints(first[1], first[2]) if first is not None else None
+    return _complete(rng, first, world, 1, index, seed, max_attempts)
+
+
+def _generate_chunk(seed: int, indices: range, max_attempts: int = 30) -> list[Clip]:
+    """generate_clip for several indices, with one forward-kinematics call for all first tries."""
+    rngs = [np.random.default_rng([int(seed), int(i)]) for i in indices]
+    firsts = [_attempt(rng) for rng in rngs]
+    posed = [f for f in firsts if f is not None]
+    worlds = iter([])
+    if posed:
+        joints = pose_to_joints(np.concatenate([f[1] for f in posed]), np.concatenate([f[2] for f in posed]))
+        cuts = np.cumsum([f[1].shape[0] for f in posed])[:-1]
+        worlds = iter(np.split(joints, cuts))
+    clips = []
+    for rng, first, index in zip(rngs, firsts, indices):
+        world = next(worlds) if first is not None else None
+        clips.append(_complete(rng, first, world, 1, index, seed, max_attempts))
+    return clips
+
+
+def split_ids(num_clips: int, seed: int) -> dict[str, list[str]]:
+    """Clip ids (without mirrors) per split, 80/5/15 by clip."""
+    order = np.random.default_rng([int(seed), 2**31 - 1]).permutation(num_clips)
+    n_val = int(round(SPLITS["val"] * num_clips))
+    n_test = int(round(SPLITS["test"] * num_clips))
+    if num_clips >= 3:  # tiny datasets still get one clip in each split
+        n_val, n_test = max(n_val, 1), max(n_test, 1)
+    ids = [f"{i:06d}" for i in order]
+    return {"val": sorted(ids[:n_val]), "test": sorted(ids[n_val:n_val + n_test]), "train": sorted(ids[n_val + n_test:])}
+
+
+class _Moments:
+    """Mean and population variance per dimension, merged clip by clip (Chan et al.)."""
+
+    def __init__(self, dim: int):
+        self.n = 0
+        self.mean = np.zeros(dim)
+        self.m2 = np.zeros(dim)
+
+    def add(self, x: np.ndarray) -> None:
+        x = x.astype(np.float64)
+        n_b = x.shape[0]
+        mean_b = x.mean(axis=0)
+        m2_b = ((x - mean_b) ** 2).sum(axis=0)
+        n = self.n + n_b
+        delta = mean_b - self.mean
+        self.mean = self.mean + delta * n_b / n
+        self.m2 = self.m2 + m2_b + delta * delta * self.n * n_b / n
+        self.n = n
+
+    def stats(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and Std the reference way (group-averaged Std), via reference_std."""
+        std = np.sqrt(np.maximum(self.m2 / self.n, 0.0))
+        # Two rows whose mean and population std are exactly these: reference_std then only
+        # applies its group averaging.
+        mean, std = reference_std(np.stack([self.mean + std, self.mean - std]), T2M_SKELETON.num_joints)
+        return mean, std
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder; choose another output folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise FileExistsError(
+            f"{out} already exists and is not empty; pass overwrite=True (mmm data synth --overwrite) "
+            f"to replace it, or choose another output folder")
+
+
+def generate_dataset(out_dir, num_clips: int = 1500, seed: int = 0, progress: bool = True, overwrite: bool = False) -> dict:
+    """Generate `num_clips` clips plus their mirrors into out_dir; returns a summary.
+
+    Written into a temporary sibling folder that replaces out_dir only when complete, so a crash
+    never leaves a half-written dataset. Refuses a non-empty out_dir unless overwrite=True.
+    """
+    if int(num_clips) < 1:
+        raise ValueError(f"num_clips must be >= 1, got {num_clips}")
+    out = Path(out_dir)
+    _prepare_out(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    start = time.perf_counter()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for sub in ("new_joint_vecs", "new_joints", "texts", "labels"):
+            (tmp / sub).mkdir(parents=True)
+        moments = _Moments(T2M_SKELETON.feature_dim)
+        actions: Counter = Counter()
+        composites = attempts = frames = 0
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=int(num_clips), desc="synthesizing clips", unit="clip", disable=not progress)
+        for i, clip in ((i, c) for lo in range(0, int(num_clips), CHUNK)
+                        for i, c in zip(range(lo, min(lo + CHUNK, int(num_clips))),
+                                        _generate_chunk(seed, range(lo, min(lo + CHUNK, int(num_clips)))))):
+            bar.update(1)
+            cid = f"{i:06d}"
+            for motion_id, feats, joints, captions, label in (
+                (cid, clip.features, clip.joints, clip.captions, clip.label),
+                ("M" + cid, clip.m_features, clip.m_joints, clip.m_captions, clip.m_label),
+            ):
+                np.save(tmp / "new_joint_vecs" / f"{motion_id}.npy", feats)
+                np.save(tmp / "new_joints" / f"{motion_id}.npy", joints)
+                (tmp / "texts" / f"{motion_id}.txt").write_text("\n".join(captions) + "\n")
+                (tmp / "labels" / f"{motion_id}.json").write_text(json.dumps(label) + "\n")
+                moments.add(feats)
+            actions.update(p["action"] for p in clip.label["parts"])
+            composites += len(clip.label["parts"]) > 1
+            attempts += clip.attempts - 1
+            frames += clip.features.shape[0]
+        bar.close()
+        mean, std = moments.stats()
+        np.save(tmp / "Mean.npy", mean.astype(np.float32))
+        np.save(tmp / "Std.npy", std.astype(np.float32))
+        splits = split_ids(int(num_clips), seed)
+        with_mirrors = {k: sorted(v + ["M" + i for i in v]) for k, v in splits.items()}
+        with_mirrors["train_val"] = sorted(with_mirrors["train"] + with_mirrors["val"])
+        with_mirrors["all"] = sorted(with_mirrors["train_val"] + with_mirrors["test"])
+        for name, ids in with_mirrors.items():
+            (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in ids))
+        _prepare_out(out, overwrite)
+        if out.exists():
+            trash = out.parent / f".{out.name}.old-{os.getpid()}"
+            os.replace(out, trash)
+            os.replace(tmp, out)
+            shutil.rmtree(trash)
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        torch.set_num_threads(threads)
+    return {
+        "out": str(out),
+        "clips": int(num_clips),
+        "motions": 2 * int(num_clips),
+        "composites": composites,
+        "frames": 2 * frames,
+        "actions": dict(sorted(actions.items())),
+        "splits": {k: len(v) for k, v in with_mirrors.items() if k in ("train", "val", "test")},
+        "retries": attempts,
+        "seconds": round(time.perf_counter() - start, 2),
+    }
+
+
+__all__ = ["Clip", "duration_range", "generate_clip", "generate_dataset", "mirror_features", "sample_clip_spec",
+           "sample_params", "split_ids"]
