@@ -44,7 +44,7 @@ SIDE_JOINTS = {  # side -> (ankle, toe, shoulder, wrist)
 }
 OTHER_SIDE = {"left": "right", "right": "left"}
 
-# Neutral standing pose (shared with the animation in actions.py): the foot bone (ankle -> toe
+# Neutral standing pose (shared with the animation in body.py): the foot bone (ankle -> toe
 # joint) points forward and down by this angle with the toe joint on the floor, and the knees
 # are nearly straight (hip-to-ankle distance = STAND_REACH × leg length).
 NEUTRAL_FOOT_PITCH = math.radians(22.0)
