@@ -15,16 +15,25 @@ def test_shards_cover_the_epoch_and_differ_by_epoch(monkeypatch):
         shards.append(list(s))
         assert len(s) == 6
     assert len(shards[0]) == len(shards[1]) == 6
-    assert set(shards[0]) | set(shards[1]) == set(range(11))  # one index repeated to pad
+    # Tagged with epoch 5: index + 5 * 11; one index repeated to pad.
+    assert {i - 55 for i in shards[0] + shards[1]} == set(range(11))
     monkeypatch.setattr(sampling, "_rank_and_world", lambda: (0, 1))
     a, b = ShardedRandomSampler(50, seed=3), ShardedRandomSampler(50, seed=3)
     b.set_epoch(1)
-    assert sorted(a) == list(range(50)) and list(a) != list(b)
+    assert sorted(a) == list(range(50)) and [i % 50 for i in b] != list(a)
     assert list(ShardedRandomSampler(5, shuffle=False)) == [0, 1, 2, 3, 4]
 
 
+class Numbers(torch.utils.data.Dataset):
+    def __len__(self):
+        return 40
+
+    def __getitem__(self, index):  # indices arrive tagged with the epoch
+        return float(index % 40)
+
+
 def test_loader_resumes_mid_epoch_exactly():
-    data = torch.arange(40).float()
+    data = Numbers()
     full = ResumableDataLoader(data, batch_size=4, shuffle=True, seed=7)
     full.sampler.set_epoch(2)
     expected = [b.tolist() for b in full]

@@ -34,8 +34,7 @@ class MotionWindowDataset(Dataset):
         return int(self.starts[-1])
 
     def __getitem__(self, index: int) -> torch.Tensor:
-        if not 0 <= index < len(self):
-            raise IndexError(index)
+        index %= len(self)  # samplers may tag indices with the epoch
         k = int(np.searchsorted(self.starts, index, side="right")) - 1
         offset = index - int(self.starts[k])
         return torch.from_numpy(self.motions[k][offset : offset + self.window])
@@ -46,7 +45,7 @@ class TextMotionDataset(Dataset):
 
     As the reference does: a random caption of the item, the length cut to a multiple of
     `unit_length` (one unit shorter with probability 1/3), at most `max_length`, at a random
-    offset. Randomness comes from torch's global generator, which Lightning seeds per worker.
+    offset. Sample `index` draws from a generator seeded by (seed, index) (see TokenTextDataset).
     """
 
     def __init__(
@@ -58,10 +57,11 @@ class TextMotionDataset(Dataset):
         max_length: int = 196,
         unit_length: int = 4,
         random_crop: bool = True,
+        seed: int = 0,
     ):
         self.items = items
         self.mean, self.std = mean, std
-        self.max_length, self.unit_length, self.random_crop = max_length, unit_length, random_crop
+        self.max_length, self.unit_length, self.random_crop, self.seed = max_length, unit_length, random_crop, seed
 
     def __len__(self) -> int:
         return len(self.items)
@@ -71,11 +71,12 @@ class TextMotionDataset(Dataset):
         return max(units, 1) * self.unit_length
 
     def __getitem__(self, index: int) -> dict:
-        item = self.items[index]
+        item = self.items[index % len(self.items)]
         if self.random_crop:
-            caption = item.captions[int(torch.randint(len(item.captions), ()))].text
-            length = self.crop_length(item.length, shorter=bool(torch.randint(3, ()) == 0))
-            offset = int(torch.randint(item.length - length + 1, ()))
+            rng = np.random.default_rng((self.seed, index))
+            caption = item.captions[int(rng.integers(len(item.captions)))].text
+            length = self.crop_length(item.length, shorter=bool(rng.random() < 1 / 3))
+            offset = int(rng.integers(item.length - length + 1))
         else:
             caption = item.captions[0].text
             length, offset = self.crop_length(item.length, shorter=False), 0
@@ -96,7 +97,7 @@ class MotionClipDataset(Dataset):
         return len(self.names)
 
     def __getitem__(self, index: int) -> dict:
-        name = self.names[index]
+        name = self.names[index % len(self.names)]
         clip = self.clips[name]
         length = min(clip.shape[0], self.max_length) // self.unit_length * self.unit_length
         return {"motion": torch.from_numpy(normalize(clip[:length], self.mean, self.std)), "length": length, "name": name}
@@ -118,3 +119,59 @@ def collate_motions(batch: list[dict]) -> dict:
 
 
 collate_text_motion = collate_motions
+
+
+class TokenTextDataset(Dataset):
+    """Stage 2: {"tokens" (L,) int64 codes, "caption", "name"} per captioned item.
+
+    An item's codes are its clip's cached tokens over its span [start // 4, end // 4). As the
+    reference does: a random caption of the item and, with probability 1/3, one code dropped at
+    the head or the tail. The randomness of sample `index` comes from a generator seeded by
+    (seed, index), and ShardedRandomSampler tags indices with the epoch, so draws differ per
+    epoch, are the same in any worker, and survive a resume.
+    """
+
+    def __init__(self, items: list[MotionItem], tokens, *, unit_length: int = 4, max_codes: int = 49, seed: int = 0, augment: bool = True):
+        self.items, self.tokens, self.unit_length, self.max_codes, self.seed, self.augment = items, tokens, unit_length, max_codes, seed, augment
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def codes(self, item: MotionItem) -> np.ndarray:
+        first = item.start // self.unit_length
+        return self.tokens[item.motion_id][first : (item.start + item.length) // self.unit_length][: self.max_codes]
+
+    def __getitem__(self, index: int) -> dict:
+        item = self.items[index % len(self.items)]
+        codes = self.codes(item)
+        if self.augment:
+            rng = np.random.default_rng((self.seed, index))
+            caption = item.captions[int(rng.integers(len(item.captions)))].text
+            if len(codes) > 1 and rng.random() < 1 / 3:
+                codes = codes[:-1] if rng.random() < 0.5 else codes[1:]
+        else:
+            caption = item.captions[0].text
+        return {"tokens": torch.from_numpy(np.ascontiguousarray(codes)), "caption": caption, "name": item.name}
+
+
+class TokenBatchCollator:
+    """Pads codes to [codes, END, PAD, ...] of length max_tokens and adds the captions' cached
+    text embeddings: {"tokens" (B, M), "lengths" (B,), "sentence", "words", "word_mask", "captions", "names"}."""
+
+    def __init__(self, caption_cache, num_codes: int, max_tokens: int = 50):
+        self.caption_cache, self.num_codes, self.max_tokens = caption_cache, num_codes, max_tokens
+
+    def __call__(self, batch: list[dict]) -> dict:
+        end, pad = self.num_codes, self.num_codes + 1
+        tokens = torch.full((len(batch), self.max_tokens), pad, dtype=torch.long)
+        lengths = torch.tensor([len(b["tokens"]) for b in batch], dtype=torch.long)
+        for i, b in enumerate(batch):
+            n = len(b["tokens"])
+            tokens[i, :n] = b["tokens"]
+            tokens[i, n] = end
+        captions = [b["caption"] for b in batch]
+        text = self.caption_cache.lookup(captions)
+        return {
+            "tokens": tokens, "lengths": lengths, "sentence": text.sentence, "words": text.words, "word_mask": text.word_mask,
+            "captions": captions, "names": [b["name"] for b in batch],
+        }

@@ -58,6 +58,7 @@ class MotionItem:
     motion_id: str
     features: np.ndarray  # (T, D) float32, not normalized
     captions: list[Caption]
+    start: int = 0  # first frame of the span within the clip
 
     @property
     def length(self) -> int:
@@ -261,7 +262,7 @@ def load_items(
             if not (min_length <= len(span) < length_limit):
                 report.skip(f"caption sub-span length outside [{min_length}, {length_limit}) frames", f"{motion_id} {c.start}-{c.end}s")
                 continue
-            items.append(MotionItem(f"{motion_id}#{a}-{a + len(span)}", motion_id, span, [c]))
+            items.append(MotionItem(f"{motion_id}#{a}-{a + len(span)}", motion_id, span, [c], start=a))
         if whole:
             items.append(MotionItem(motion_id, motion_id, features, whole))
         report.kept_clips += 1

@@ -23,7 +23,11 @@ def _rank_and_world() -> tuple[int, int]:
 
 
 class ShardedRandomSampler(Sampler[int]):
-    """This rank's share of a (seed, epoch)-seeded permutation of range(n) (or range(n) in order)."""
+    """This rank's share of a (seed, epoch)-seeded permutation of range(n) (or range(n) in order).
+
+    Indices are tagged with the epoch (index + epoch * n): a dataset takes `index % len(self)`
+    and may seed its per-sample randomness with the tagged value, so every epoch draws anew.
+    """
 
     def __init__(self, n: int, seed: int = 0, shuffle: bool = True):
         self.n, self.seed, self.shuffle = n, seed, shuffle
@@ -42,7 +46,7 @@ class ShardedRandomSampler(Sampler[int]):
             order = list(range(self.n))
         per_rank = -(-self.n // world)
         order += order[: per_rank * world - self.n]
-        return order[rank::world]
+        return [i + self.epoch * self.n for i in order[rank::world]]
 
     def __iter__(self) -> Iterator[int]:
         indices = self._indices()[self.skip :]

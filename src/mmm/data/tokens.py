@@ -1,0 +1,120 @@
+"""Motion tokens of a dataset under one tokenizer, computed once and cached on disk.
+
+<cache_dir>/<tokenizer identity>-<data fingerprint>/tokens.npz (id -> (T // 4,) codes) and
+meta.json. The folder name carries both fingerprints, so another tokenizer or changed data can
+never reuse stale tokens. A caption with a #start#end span selects codes [start // 4, end // 4).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from mmm.data.humanml3d import DataError, load_motion, read_split
+
+log = logging.getLogger(__name__)
+
+
+class TokenCache:
+    """Read-only view of cached tokens: cache[motion_id] -> (L,) int64 codes."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        self.meta = json.loads((self.folder / "meta.json").read_text())
+        self._tokens: dict[str, np.ndarray] | None = None
+
+    def _load(self) -> dict[str, np.ndarray]:
+        if self._tokens is None:
+            with np.load(self.folder / "tokens.npz") as data:
+                self._tokens = {k: data[k].astype(np.int64) for k in data.files}
+        return self._tokens
+
+    def __getitem__(self, motion_id: str) -> np.ndarray:
+        tokens = self._load()
+        if motion_id not in tokens:
+            raise KeyError(f"{motion_id}: no tokens in {self.folder} (the cache covers the ids of {', '.join(self.meta['splits'])})")
+        return tokens[motion_id]
+
+    def __contains__(self, motion_id: str) -> bool:
+        return motion_id in self._load()
+
+    def __len__(self) -> int:
+        return len(self._load())
+
+    def __getstate__(self):
+        return {"folder": self.folder, "meta": self.meta, "_tokens": None}
+
+
+def token_cache_folder(cache_dir: str | Path, tokenizer_identity: str, data_fingerprint: str) -> Path:
+    return Path(cache_dir) / f"{tokenizer_identity}-{data_fingerprint}"
+
+
+@torch.no_grad()
+def tokenize_dataset(
+    tokenizer,
+    root: str | Path,
+    folder: str | Path,
+    *,
+    splits: tuple[str, ...] = ("train", "val", "test"),
+    batch_size: int = 64,
+    device: str | torch.device = "cpu",
+    meta: dict | None = None,
+    progress: bool = True,
+) -> TokenCache:
+    """Encode every motion of `splits` with `tokenizer` (a TokenizerModule: its own mean/std
+    normalize the features) and write the cache atomically; returns it (reused if present)."""
+    folder = Path(folder)
+    if (folder / "meta.json").exists() and (folder / "tokens.npz").exists():
+        return TokenCache(folder)
+    root = Path(root)
+    feature_dim = tokenizer.tokenizer.feature_dim
+    down = tokenizer.tokenizer.cfg.downsample
+    ids = sorted({i for split in splits if (root / f"{split}.txt").exists() for i in read_split(root, split)})
+    by_length: dict[int, list[tuple[str, np.ndarray]]] = defaultdict(list)
+    too_short = []
+    for motion_id in ids:
+        features = load_motion(root / "new_joint_vecs" / f"{motion_id}.npy", feature_dim)
+        usable = features.shape[0] // down * down
+        if usable == 0:
+            too_short.append(motion_id)
+            continue
+        by_length[usable].append((motion_id, features[:usable]))
+    if not by_length:
+        raise DataError(root, f"no motion of {', '.join(splits)} is at least {down} frames long", "check the dataset")
+    tokenizer = tokenizer.to(device).eval()
+    mean, std = tokenizer.mean.cpu().numpy(), tokenizer.std.cpu().numpy()
+    tokens: dict[str, np.ndarray] = {}
+    bar = tqdm(total=sum(len(v) for v in by_length.values()), desc="tokenizing motions", unit="motion", disable=not progress)
+    # Same-length batches: padding would leak into the last codes through the convolutions.
+    for length, group in sorted(by_length.items()):
+        for start in range(0, len(group), batch_size):
+            chunk = group[start : start + batch_size]
+            x = torch.from_numpy(np.stack([(f - mean) / std for _, f in chunk]).astype(np.float32)).to(device)
+            codes = tokenizer.tokenizer.encode(x).cpu().numpy()
+            for (motion_id, _), c in zip(chunk, codes):
+                tokens[motion_id] = c.astype(np.int16 if tokenizer.quantizer.num_codes <= 32767 else np.int32)
+            bar.update(len(chunk))
+    bar.close()
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = folder.with_name(f".{folder.name}.tmp-{os.getpid()}")
+    tmp.mkdir(parents=True, exist_ok=True)
+    np.savez(tmp / "tokens.npz", **tokens)
+    info = dict(meta or {})
+    info.update({"splits": list(splits), "motions": len(tokens), "left_out_too_short": too_short, "num_codes": tokenizer.quantizer.num_codes, "downsample": down})
+    (tmp / "meta.json").write_text(json.dumps(info, indent=2))
+    if folder.exists():  # another process finished first: keep its identical result
+        import shutil
+
+        shutil.rmtree(tmp)
+    else:
+        os.replace(tmp, folder)
+    if too_short:
+        log.warning("tokenizing %s: left out %d motions shorter than %d frames (e.g. %s)", root, len(too_short), down, ", ".join(too_short[:3]))
+    return TokenCache(folder)

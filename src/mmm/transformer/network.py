@@ -1,0 +1,189 @@
+"""The conditional masked transformer of MMM (stage 2).
+
+Token sequence (B, M): codes in [0, K), then END = K, then PAD = K + 1; MASK = K + 2 marks what
+the model must fill in. Text: a sentence embedding (B, Ds) and word embeddings (B, Lw, Dw) with
+a mask of real words. Output: logits over the K codes at every motion position (B, M, K).
+
+    tokens --(codebook vectors | learned specials)--> C --linear--> E  + sinusoidal positions
+      -> num_cross_layers "local" layers: cross-attention to the projected words (padding masked)
+      -> [projected sentence, tokens] -> self-attention layers (keys after END masked)
+      -> final LayerNorm -> linear E -> K
+
+Two things the released code gets wrong are fixed here: padded word positions are masked in
+cross-attention, and the positional encoding is added once, not twice. Attention is PyTorch's
+scaled_dot_product_attention with boolean masks; no row is ever fully masked (the text token and
+at least one word are always visible), so nothing produces NaN. Dropped text (for classifier-free
+guidance) is a learned null sentence and a single learned null word.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class TransformerConfig:
+    embed_dim: int = 1024  # E
+    num_heads: int = 16
+    num_layers: int = 18  # all layers, the cross-attention ones included
+    num_cross_layers: int = 1
+    mlp_ratio: int = 4
+    dropout: float = 0.1
+    max_tokens: int = 50  # M: 196 frames / 4 + END
+
+    def __post_init__(self):
+        if not 0 <= self.num_cross_layers <= self.num_layers:
+            raise ValueError(f"num_cross_layers={self.num_cross_layers} must be between 0 and num_layers={self.num_layers}")
+        if self.embed_dim % self.num_heads:
+            raise ValueError(f"embed_dim={self.embed_dim} is not divisible by num_heads={self.num_heads}")
+
+
+def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
+    """(length, dim) sine/cosine position codes."""
+    position = torch.arange(length, dtype=torch.float32).unsqueeze(1)
+    freq = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32) * (-math.log(10000.0) / dim))
+    pe = torch.zeros(length, dim)
+    pe[:, 0::2] = torch.sin(position * freq)
+    pe[:, 1::2] = torch.cos(position * freq[: dim // 2])
+    return pe
+
+
+class Attention(nn.Module):
+    """Multi-head attention of queries (B, S, E) over keys/values (B, T, E); key_mask (B, T) True = visible."""
+
+    def __init__(self, dim: int, heads: int, dropout: float):
+        super().__init__()
+        self.heads, self.dropout = heads, dropout
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(dim, 2 * dim)
+        self.out = nn.Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor) -> torch.Tensor:
+        B, S, E = x.shape
+        q = self.q(x).view(B, S, self.heads, -1).transpose(1, 2)
+        k, v = self.kv(context).view(B, context.shape[1], 2, self.heads, -1).permute(2, 0, 3, 1, 4)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=key_mask[:, None, None, :], dropout_p=self.dropout if self.training else 0.0)
+        return self.out(y.transpose(1, 2).reshape(B, S, E))
+
+
+class MLP(nn.Sequential):
+    def __init__(self, dim: int, ratio: int, dropout: float):
+        super().__init__(nn.Linear(dim, ratio * dim), nn.GELU(), nn.Linear(ratio * dim, dim), nn.Dropout(dropout))
+
+
+class SelfAttentionBlock(nn.Module):
+    """Pre-LN: x + attn(ln(x)) over the visible keys; x + mlp(ln(x))."""
+
+    def __init__(self, cfg: TransformerConfig):
+        super().__init__()
+        E = cfg.embed_dim
+        self.ln1, self.ln2 = nn.LayerNorm(E), nn.LayerNorm(E)
+        self.attn = Attention(E, cfg.num_heads, cfg.dropout)
+        self.mlp = MLP(E, cfg.mlp_ratio, cfg.dropout)
+        self.drop = nn.Dropout(cfg.dropout)
+
+    def forward(self, x: torch.Tensor, key_mask: torch.Tensor) -> torch.Tensor:
+        h = self.ln1(x)
+        x = x + self.drop(self.attn(h, h, key_mask))
+        return x + self.mlp(self.ln2(x))
+
+
+class CrossAttentionBlock(nn.Module):
+    """Pre-LN "local" layer: motion tokens attend to the words, then an MLP."""
+
+    def __init__(self, cfg: TransformerConfig):
+        super().__init__()
+        E = cfg.embed_dim
+        self.ln_x, self.ln_words, self.ln2 = nn.LayerNorm(E), nn.LayerNorm(E), nn.LayerNorm(E)
+        self.attn = Attention(E, cfg.num_heads, cfg.dropout)
+        self.mlp = MLP(E, cfg.mlp_ratio, cfg.dropout)
+        self.drop = nn.Dropout(cfg.dropout)
+
+    def forward(self, x: torch.Tensor, words: torch.Tensor, word_mask: torch.Tensor) -> torch.Tensor:
+        x = x + self.drop(self.attn(self.ln_x(x), self.ln_words(words), word_mask))
+        return x + self.mlp(self.ln2(x))
+
+
+class MaskedMotionTransformer(nn.Module):
+    """Predicts motion codes at every position from a partly masked token sequence and text.
+
+    codebook: (K, C) stage-1 code vectors, kept frozen as a buffer.
+    """
+
+    def __init__(self, codebook: torch.Tensor, cfg: TransformerConfig, sentence_dim: int, word_dim: int):
+        super().__init__()
+        self.cfg = cfg
+        K, C = codebook.shape
+        E = cfg.embed_dim
+        self.num_codes = K
+        self.end_id, self.pad_id, self.mask_id = K, K + 1, K + 2
+        self.register_buffer("codebook", codebook.detach().clone().float())
+        self.special = nn.Embedding(3, C)
+        self.token_proj = nn.Linear(C, E)
+        self.register_buffer("positions", sinusoidal_positions(cfg.max_tokens, E), persistent=False)
+        self.sentence_proj = nn.Linear(sentence_dim, E)
+        self.word_proj = nn.Linear(word_dim, E)
+        self.null_sentence = nn.Parameter(torch.zeros(E))
+        self.null_word = nn.Parameter(torch.zeros(E))
+        self.cross_layers = nn.ModuleList(CrossAttentionBlock(cfg) for _ in range(cfg.num_cross_layers))
+        self.layers = nn.ModuleList(SelfAttentionBlock(cfg) for _ in range(cfg.num_layers - cfg.num_cross_layers))
+        self.ln_f = nn.LayerNorm(E)
+        self.head = nn.Linear(E, K)
+        self.apply(self._init)
+
+    @staticmethod
+    def _init(module: nn.Module) -> None:
+        if isinstance(module, nn.Linear):
+            nn.init.normal_(module.weight, std=0.02)
+            nn.init.zeros_(module.bias)
+        elif isinstance(module, nn.Embedding):
+            nn.init.normal_(module.weight, std=0.02)
+        elif isinstance(module, nn.LayerNorm):
+            nn.init.ones_(module.weight)
+            nn.init.zeros_(module.bias)
+
+    def embed_tokens(self, tokens: torch.Tensor) -> torch.Tensor:
+        """(B, M) ids -> (B, M, E): codebook vectors for codes, learned vectors for END/PAD/MASK."""
+        is_code = tokens < self.num_codes
+        codes = F.embedding(tokens.clamp(max=self.num_codes - 1), self.codebook)
+        specials = self.special((tokens - self.num_codes).clamp(min=0))
+        return self.token_proj(torch.where(is_code.unsqueeze(-1), codes, specials))
+
+    def forward(
+        self,
+        tokens: torch.Tensor,
+        sentence: torch.Tensor,
+        words: torch.Tensor,
+        word_mask: torch.Tensor,
+        drop_text: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Logits (B, M, K).
+
+        tokens (B, M) with END after the last code and PAD after END; sentence (B, Ds);
+        words (B, Lw, Dw); word_mask (B, Lw) True at real words; drop_text (B,) True replaces the
+        text by the learned null text (the unconditional branch of classifier-free guidance).
+        """
+        B, M = tokens.shape
+        x = self.embed_tokens(tokens) + self.positions[:M]
+        s = self.sentence_proj(sentence)
+        w = self.word_proj(words)
+        if drop_text is not None and bool(drop_text.any()):
+            s = torch.where(drop_text[:, None], self.null_sentence.expand_as(s), s)
+            null_words = torch.zeros_like(w[:, :1]) + self.null_word
+            w = torch.where(drop_text[:, None, None], torch.cat((null_words, w[:, 1:]), dim=1), w)
+            first_only = torch.zeros_like(word_mask)
+            first_only[:, 0] = True
+            word_mask = torch.where(drop_text[:, None], first_only, word_mask)
+        for layer in self.cross_layers:
+            x = layer(x, w, word_mask)
+        x = torch.cat((s.unsqueeze(1), x), dim=1)
+        # Visible keys: the text token and every position up to and including END.
+        key_mask = torch.cat((torch.ones_like(tokens[:, :1], dtype=torch.bool), tokens != self.pad_id), dim=1)
+        for layer in self.layers:
+            x = layer(x, key_mask)
+        return self.head(self.ln_f(x[:, 1:]))
