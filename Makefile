@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test data demo train-stage1 mlflow-ui clean
+.PHONY: help setup test data demo train-stage1 train-stage2 tokenize mlflow-ui clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
@@ -39,6 +39,12 @@ demo: $(DATA)/all.txt ## the main job on the embedded default: synthetic data, t
 
 train-stage1: $(STAMP) ## train the tokenizer (tiny size on the synthetic data by default); ARGS="key=value ..."
 	$(BIN)/mmm train stage1 $(ARGS)
+
+train-stage2: $(STAMP) ## train the masked transformer on the newest stage-1 result (or ARGS="stage1=RUN_ID|PATH|models:/NAME@ALIAS ...")
+	$(BIN)/mmm train stage2 $(ARGS)
+
+tokenize: $(STAMP) ## tokenize the dataset with a stage-1 model and cache caption embeddings (ARGS as for train-stage2)
+	$(BIN)/mmm tokenize $(ARGS)
 
 mlflow-ui: $(STAMP) ## serve the MLflow dashboard for this project's store on http://127.0.0.1:5000
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --default-artifact-root $(CURDIR)/mlartifacts --host 127.0.0.1 --port 5000

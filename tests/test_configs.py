@@ -1,24 +1,41 @@
-"""Every file of every config group composes into a valid, typed training config."""
+"""Every file of every config group composes into a valid, typed training config of each stage."""
+
+from dataclasses import fields
 
 import pytest
 from omegaconf import OmegaConf
 
 from mmm.config import compose, conf_dir, to_object
 from mmm.training.stage1 import Stage1Config, load_stage1_config
+from mmm.training.stage2 import Stage2Config, load_stage2_config
 
+STAGES = {"train_stage1": (Stage1Config, load_stage1_config), "train_stage2": (Stage2Config, load_stage2_config)}
 GROUPS = sorted(p.name for p in conf_dir().iterdir() if p.is_dir())
-STAGE1_OPTIONS = [(g, p.stem) for g in GROUPS for p in sorted((conf_dir() / g).glob("*.yaml")) if not p.stem.startswith("stage2")]
 
 
-@pytest.mark.parametrize("group, option", STAGE1_OPTIONS)
-def test_stage1_composes_with_every_option(group, option):
-    cfg = load_stage1_config([f"{group}={option}"])
+def cases():
+    for entry, (schema, _) in STAGES.items():
+        stage = entry.split("_")[1]
+        names = {f.name for f in fields(schema)}
+        for group in GROUPS:
+            if group not in names:
+                continue
+            for path in sorted((conf_dir() / group).glob("*.yaml")):
+                if group in ("optim", "callbacks") and not path.stem.startswith(stage):
+                    continue  # each stage has its own optimizer recipes and callbacks
+                yield entry, group, path.stem
+
+
+@pytest.mark.parametrize("entry, group, option", list(cases()))
+def test_every_option_composes(entry, group, option):
+    schema, load = STAGES[entry]
+    cfg = load([f"{group}={option}"])
     chosen = OmegaConf.load(conf_dir() / group / f"{option}.yaml")
-    primary = OmegaConf.load(conf_dir() / "train_stage1.yaml").get(group, {})  # set over the group file
+    primary = OmegaConf.load(conf_dir() / f"{entry}.yaml").get(group, {})  # set over the group file
     for key, value in chosen.items():
         if not OmegaConf.is_dict(value) and key not in primary:
             assert cfg[group][key] == value, f"{group}.{key}"
-    assert isinstance(to_object(cfg), Stage1Config)
+    assert isinstance(to_object(cfg), schema)
 
 
 def test_defaults_are_the_cpu_demo_and_paper_sizes_differ():
@@ -27,8 +44,13 @@ def test_defaults_are_the_cpu_demo_and_paper_sizes_differ():
     assert cfg.model.tokenizer.num_codes == 512
     paper = to_object(load_stage1_config(["model=paper", "optim=stage1_paper", "trainer.max_steps=5"]))
     assert (paper.model.tokenizer.width, paper.model.tokenizer.num_codes, paper.optim.lr, paper.trainer.max_steps) == (512, 8192, 2e-4, 5)
+    s2 = to_object(load_stage2_config(["model=paper", "optim=stage2_paper"]))
+    assert (s2.model.transformer.embed_dim, s2.model.transformer.num_layers, s2.optim.betas, s2.optim.milestones) == (1024, 18, [0.5, 0.9], [150000])
+    assert s2.text.encoder == "minilm" and s2.stage1 is None
 
 
 def test_unknown_group_option_lists_the_choices():
     with pytest.raises(ValueError, match="options: cpu, ddp, ddp_cpu, gpu, multinode"):
         compose("train_stage1", ["trainer=tpu"])
+    with pytest.raises(ValueError, match="num_cross_layers=7 must be between 0 and num_layers=6"):
+        to_object(load_stage2_config(["model.transformer.num_cross_layers=7"]))

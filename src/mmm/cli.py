@@ -126,13 +126,23 @@ def cmd_train(args: argparse.Namespace) -> None:
 
         result = train_stage1(load_stage1_config(args.overrides), resume=args.resume)
     else:
-        raise CLIError(f"unknown stage {args.stage!r}")
+        from mmm.training.stage2 import load_stage2_config, train_stage2
+
+        result = train_stage2(load_stage2_config(args.overrides), resume=args.resume)
     if result.run_id is None and not result.best_checkpoint:
         return  # a non-zero rank of a distributed run
     print(f"MLflow run: {result.run_id}")
     print(f"checkpoints: best {result.best_checkpoint}, last {result.last_checkpoint}")
     shown = {k: v for k, v in sorted(result.metrics.items()) if k.startswith("val/")}
     print("validation: " + ", ".join(f"{k}={v:.4g}" for k, v in shown.items()))
+
+
+def cmd_tokenize(args: argparse.Namespace) -> None:
+    from mmm.training.stage2 import load_stage2_config, prepare_stage2_data
+
+    datamodule = prepare_stage2_data(load_stage2_config(args.overrides))
+    print(f"tokens: {datamodule.tokens.folder} ({len(datamodule.tokens)} motions)")
+    print(f"caption embeddings: {len(datamodule.caption_cache)} captions ({datamodule.text_encoder.identity})")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -176,10 +186,14 @@ def build_parser() -> argparse.ArgumentParser:
     preview.set_defaults(func=cmd_data_preview)
 
     train = sub.add_parser("train", help="train a stage; any config key can be overridden as key=value")
-    train.add_argument("stage", choices=["stage1"])
+    train.add_argument("stage", choices=["stage1", "stage2"])
     train.add_argument("overrides", nargs="*", help="e.g. trainer.max_steps=500 model=paper data=humanml3d")
     train.add_argument("--resume", default=None, help="'last' (newest run of this stage) or a checkpoint path")
     train.set_defaults(func=cmd_train)
+
+    tokenize = sub.add_parser("tokenize", help="tokenize a dataset with a stage-1 model and cache caption embeddings (stage 2's inputs)")
+    tokenize.add_argument("overrides", nargs="*", help="stage 2's config keys, e.g. stage1=RUN_ID data=humanml3d")
+    tokenize.set_defaults(func=cmd_tokenize)
 
     render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
     render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")

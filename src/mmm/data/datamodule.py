@@ -161,3 +161,84 @@ class TextMotionDataModule(_DatasetFolder):
 
     def test_dataloader(self) -> DataLoader:
         return self._loader(self.datasets["test"], shuffle=False, collate_fn=collate_motions)
+
+
+class TokenTextDataModule(_DatasetFolder):
+    """Stage 2: cached motion tokens with cached caption embeddings, batches from TokenBatchCollator.
+
+    prepare_data (one process per node) synthesizes the dataset if configured, tokenizes it with
+    the stage-1 model (cached by tokenizer identity and data fingerprint) and caches the text
+    embeddings of every caption; setup only reads the caches.
+    """
+
+    def __init__(self, cfg: DataConfig, seed: int, tokenizer, tokenizer_identity: str, text_encoder, caption_cache, token_cache_dir: str, max_tokens: int = 50):
+        super().__init__(cfg, seed)
+        self.tokenizer, self.tokenizer_identity = tokenizer, tokenizer_identity
+        self.text_encoder, self.caption_cache = text_encoder, caption_cache
+        self.token_cache_dir, self.max_tokens = token_cache_dir, max_tokens
+        self.tokens = None
+        self.data_fingerprint: str | None = None
+
+    def _items(self, split: str):
+        items, report = load_items(
+            self.root, split, feature_dim=self.cfg.feature_dim, fps=self.cfg.fps, min_length=self.cfg.min_length,
+            length_limit=self.cfg.length_limit, on_invalid=self.cfg.on_invalid,
+        )
+        self.reports[split] = report
+        return items, report
+
+    def _token_folder(self):
+        from mmm.data.tokens import token_cache_folder
+        from mmm.fingerprint import dataset_fingerprint
+
+        self.data_fingerprint = self.data_fingerprint or dataset_fingerprint(self.root)
+        return token_cache_folder(self.token_cache_dir, self.tokenizer_identity, self.data_fingerprint)
+
+    def prepare_data(self) -> None:
+        from mmm.data.tokens import tokenize_dataset
+
+        if getattr(self, "_prepared", False):  # Lightning calls it again inside fit
+            return
+        super().prepare_data()
+        if self.tokenizer.tokenizer.feature_dim != self.cfg.feature_dim:
+            raise DataError(
+                self.root,
+                f"the stage-1 model reads {self.tokenizer.tokenizer.feature_dim}-d features but data {self.cfg.name!r} has {self.cfg.feature_dim}",
+                "use a stage-1 model trained on this dataset (stage1=...)",
+            )
+        self.tokens = tokenize_dataset(
+            self.tokenizer, self.root, self._token_folder(), meta={"tokenizer": self.tokenizer_identity, "data": self.data_fingerprint},
+        )
+        captions = set()
+        for split in ("train", "val", "test"):
+            if (self.root / f"{split}.txt").exists():
+                items, _ = self._items(split)
+                captions.update(c.text for item in items for c in item.captions)
+        counts = self.caption_cache.build(self.text_encoder, sorted(captions))
+        message = f"caption embeddings ({self.text_encoder.identity}): {counts['cached'] + counts['added']} captions, {counts['added']} newly encoded"
+        if counts.get("truncated"):
+            message += f"; {counts['truncated']} captions longer than the encoder's limit were truncated"
+            rank_zero_warn(message)
+        else:
+            rank_zero_info(message)
+        self._prepared = True
+
+    def setup(self, stage: str | None = None) -> None:
+        from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
+        from mmm.data.tokens import TokenCache
+
+        self.tokens = self.tokens or TokenCache(self._token_folder())
+        self.collate = TokenBatchCollator(self.caption_cache, self.tokenizer.quantizer.num_codes, self.max_tokens)
+        self.datasets = {}
+        for split in ("train", "val"):
+            items, report = self._items(split)
+            _log_report(f"{self.cfg.name} {split} items", report)
+            self.datasets[split] = TokenTextDataset(
+                items, self.tokens, unit_length=self.cfg.unit_length, max_codes=self.max_tokens - 1, seed=self.seed, augment=split == "train",
+            )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["train"], shuffle=True, collate_fn=self.collate)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["val"], shuffle=False, collate_fn=self.collate)

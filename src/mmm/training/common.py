@@ -18,7 +18,18 @@ from lightning.pytorch.strategies import DDPStrategy
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
+from mmm.tokenizer.network import TokenizerConfig
+from mmm.transformer.network import TransformerConfig
+
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class ModelConfig:
+    """Sizes of both stages (conf/model/tiny.yaml, paper.yaml): `model=paper` sizes both."""
+
+    tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
+    transformer: TransformerConfig = field(default_factory=TransformerConfig)
 
 
 @dataclass
@@ -179,6 +190,13 @@ def log_config(logger: MLFlowLogger | None, cfg: DictConfig, resumed: bool) -> N
     if not resumed:  # MLflow params are immutable: a resumed run keeps those it was started with
         logger.log_hyperparams(flatten_config(cfg))
     logger.experiment.log_text(logger.run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+
+
+@rank_zero_only
+def tag_run(logger: MLFlowLogger | None, tags: dict[str, object]) -> None:
+    if logger is not None:
+        for key, value in tags.items():
+            logger.experiment.set_tag(logger.run_id, key, "" if value is None else str(value))
 
 
 @rank_zero_only

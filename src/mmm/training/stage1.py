@@ -14,19 +14,13 @@ from mmm.callbacks.previews import CodebookUsagePlot, ReconstructionPreview
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
-from mmm.tokenizer.network import TokenizerConfig
 from mmm.training.common import (
-    CheckpointConfig, TrackingConfig, RunState, TrainerConfig, TrainResult, build_logger, build_trainer,
-    checkpoint_callbacks, log_checkpoints, log_config, read_checkpoint_meta,
+    CheckpointConfig, ModelConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer,
+    checkpoint_callbacks, log_checkpoints, log_config, read_checkpoint_meta, tag_run,
 )
 from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class ModelConfig:
-    tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
 
 
 @dataclass
@@ -97,6 +91,7 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     if logger is not None:
         _ = logger.experiment  # create the run now, before any process is spawned
         log_config(logger, cfg_node, resumed=run_id is not None)
+        tag_run(logger, {"mmm.stage": "stage1", "data.name": cfg.data.name, "data.root": cfg.data.root})
     callbacks, (best, last) = build_callbacks(cfg, run_dir / "checkpoints")
     trainer = build_trainer(cfg.trainer, callbacks, logger, str(run_dir))
     with shared_run_directory(run_dir):

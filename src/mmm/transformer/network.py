@@ -172,13 +172,15 @@ class MaskedMotionTransformer(nn.Module):
         x = self.embed_tokens(tokens) + self.positions[:M]
         s = self.sentence_proj(sentence)
         w = self.word_proj(words)
-        if drop_text is not None and bool(drop_text.any()):
-            s = torch.where(drop_text[:, None], self.null_sentence.expand_as(s), s)
-            null_words = torch.zeros_like(w[:, :1]) + self.null_word
-            w = torch.where(drop_text[:, None, None], torch.cat((null_words, w[:, 1:]), dim=1), w)
-            first_only = torch.zeros_like(word_mask)
-            first_only[:, 0] = True
-            word_mask = torch.where(drop_text[:, None], first_only, word_mask)
+        # Always through torch.where, so the null text takes part in every graph (DDP expects
+        # every parameter to receive a gradient, a zero one included).
+        drop = drop_text if drop_text is not None else torch.zeros(B, dtype=torch.bool, device=tokens.device)
+        s = torch.where(drop[:, None], self.null_sentence.expand_as(s), s)
+        null_words = torch.zeros_like(w[:, :1]) + self.null_word
+        w = torch.where(drop[:, None, None], torch.cat((null_words, w[:, 1:]), dim=1), w)
+        first_only = torch.zeros_like(word_mask)
+        first_only[:, 0] = True
+        word_mask = torch.where(drop[:, None], first_only, word_mask)
         for layer in self.cross_layers:
             x = layer(x, w, word_mask)
         x = torch.cat((s.unsqueeze(1), x), dim=1)

@@ -1,0 +1,141 @@
+"""Stage 2: train the masked transformer on cached tokens (`mmm train stage2 [key=value ...]`).
+
+The stage-1 model comes from `stage1=` (a checkpoint, an MLflow run id, a models:/ URI), or is
+the newest finished stage-1 run when none is named.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import lightning as L
+from omegaconf import DictConfig
+
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig, TokenTextDataModule
+from mmm.tokenizer.load import load_tokenizer
+from mmm.tokenizer.module import OptimConfig
+from mmm.training.common import (
+    CheckpointConfig, ModelConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer,
+    checkpoint_callbacks, log_checkpoints, log_config, read_checkpoint_meta, resolve_tracking_uri, tag_run,
+)
+from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
+from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TextConfig:
+    encoder: str = "minilm"  # minilm (packaged, offline) | clip (local weights and vocab files)
+    clip_weights: str | None = None
+    clip_vocab: str | None = None
+    clip_activation: str = "quick_gelu"  # quick_gelu (OpenAI weights) | gelu (LAION weights)
+    cache_dir: str = "outputs/cache/text"
+
+    def options(self) -> dict:
+        if self.encoder == "clip":
+            return {"weights": self.clip_weights, "vocab": self.clip_vocab, "activation": self.clip_activation}
+        return {}
+
+
+@dataclass
+class Stage2Callbacks:
+    checkpoint: CheckpointConfig = field(default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min"))
+
+
+@dataclass
+class Stage2Config:
+    seed: int = 0
+    output_dir: str = "outputs/stage2"
+    stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
+    stage1_output_dir: str = "outputs/stage1"
+    token_cache_dir: str = "outputs/cache/tokens"
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
+    text: TextConfig = field(default_factory=TextConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+    callbacks: Stage2Callbacks = field(default_factory=Stage2Callbacks)
+
+
+def load_stage2_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("train_stage2", list(overrides), schema=Stage2Config)
+
+
+def build_text(cfg: TextConfig):
+    from mmm.text import CaptionEmbeddingCache, build_text_encoder
+
+    encoder = build_text_encoder(cfg.encoder, **cfg.options())
+    return encoder, CaptionEmbeddingCache(cfg.cache_dir, encoder.identity)
+
+
+def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:
+    hp = read_checkpoint_meta(checkpoint)["hyper_parameters"] or {}
+    if list(hp.get("codebook_shape", codebook_shape)) != list(codebook_shape):
+        raise ValueError(
+            f"{checkpoint}: this transformer was trained on a codebook of shape {hp['codebook_shape']}, but the stage-1 model "
+            f"has {codebook_shape}; resume with the stage-1 model it was trained with (stage1=...)"
+        )
+
+
+def prepare_stage2_data(cfg_node: DictConfig) -> TokenTextDataModule:
+    """Resolve the stage-1 model, tokenize the dataset and cache the caption embeddings."""
+    cfg: Stage2Config = to_object(cfg_node)
+    tokenizer, source = load_tokenizer(cfg.stage1, resolve_tracking_uri(cfg.logger.tracking_uri), cfg.stage1_output_dir)
+    log.info("stage-1 model: %s (identity %s)", source.reference, source.identity)
+    text_encoder, caption_cache = build_text(cfg.text)
+    datamodule = TokenTextDataModule(
+        cfg.data, cfg.seed, tokenizer, source.identity, text_encoder, caption_cache, cfg.token_cache_dir, cfg.model.transformer.max_tokens,
+    )
+    datamodule.source = source
+    datamodule.prepare_data()
+    return datamodule
+
+
+def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
+    cfg: Stage2Config = to_object(cfg_node)
+    L.seed_everything(cfg.seed, workers=True)
+    datamodule = prepare_stage2_data(cfg_node)
+    tokenizer, source, text_encoder = datamodule.tokenizer, datamodule.source, datamodule.text_encoder
+    codebook = tokenizer.tokenizer.codebook.detach().cpu()
+    ckpt_path, run_id = None, None
+    if resume:
+        ckpt_path = find_last_checkpoint(cfg.output_dir) if resume == "last" else Path(resume)
+        check_codebook(ckpt_path, list(codebook.shape))
+        run_id = read_checkpoint_meta(ckpt_path)["mlflow_run_id"]
+        run_dir = ckpt_path.parent.parent
+    else:
+        run_dir = run_directory(cfg.output_dir)
+    stage1 = {"reference": source.reference, "run_id": source.run_id, "identity": source.identity, "checkpoint": source.checkpoint}
+    text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
+    module = MaskedTransformerModule(
+        codebook, cfg.model.transformer, cfg.optim, cfg.corruption, text_encoder.sentence_dim, text_encoder.word_dim, stage1, text,
+    )
+    logger = build_logger(cfg.logger, run_id=run_id)
+    if logger is not None:
+        _ = logger.experiment
+        log_config(logger, cfg_node, resumed=run_id is not None)
+        tag_run(logger, {
+            "mmm.stage": "stage2", "stage1.reference": source.reference, "stage1.run_id": source.run_id,
+            "stage1.identity": source.identity, "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint,
+        })
+    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
+    trainer = build_trainer(cfg.trainer, [best, last, RunState()], logger, str(run_dir))
+    with shared_run_directory(run_dir):
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True)
+    paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    return TrainResult(
+        run_id=logger.run_id if logger is not None else None,
+        checkpoint_dir=str(run_dir / "checkpoints"),
+        best_checkpoint=paths.get("best") or best.best_model_path or None,
+        last_checkpoint=paths.get("last") or last.best_model_path or None,
+        metrics=metrics,
+        stopped_early=trainer.global_step < cfg.trainer.max_steps,
+    )
+

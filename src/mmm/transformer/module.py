@@ -1,0 +1,157 @@
+"""`MaskedTransformerModule`: stage-2 training of the MaskedMotionTransformer on cached tokens."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from torchmetrics import MeanMetric
+
+from mmm.tokenizer.module import OptimConfig, _as, warmup_step_schedule
+from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
+
+
+@dataclass
+class CorruptionConfig:
+    mask_schedule: str = "uniform"  # uniform: ratio ~ U(0.5, 1) (released); cosine: cos(pi/2 * u), u ~ U(0, 1)
+    pkeep: float = 0.5  # real tokens replaced by random codes with probability 1 - pkeep
+    loss_on: str = "all"  # all real positions (released) | masked
+    cond_drop: float = 0.0  # probability of dropping the text (0.1 enables classifier-free guidance)
+
+    def __post_init__(self):
+        if self.mask_schedule not in ("uniform", "cosine"):
+            raise ValueError(f"corruption.mask_schedule must be uniform or cosine, got {self.mask_schedule!r}")
+        if self.loss_on not in ("all", "masked"):
+            raise ValueError(f"corruption.loss_on must be all or masked, got {self.loss_on!r}")
+
+
+@dataclass
+class Corrupted:
+    inputs: torch.Tensor  # (B, M) tokens given to the model
+    masked: torch.Tensor  # (B, M) bool: replaced by MASK
+    replaced: torch.Tensor  # (B, M) bool: replaced by a random code (and not masked)
+    real: torch.Tensor  # (B, M) bool: code positions (before END)
+
+
+def corrupt(tokens: torch.Tensor, lengths: torch.Tensor, num_codes: int, cfg: CorruptionConfig, generator: torch.Generator | None = None) -> Corrupted:
+    """Corrupt (B, M) token sequences as in training: random replacement, then masking.
+
+    Each sequence masks round(r * L) of its L real positions (at least 1), chosen uniformly;
+    END and PAD are never touched.
+    """
+    B, M = tokens.shape
+    device = tokens.device
+    positions = torch.arange(M, device=device)
+    real = positions[None] < lengths[:, None]
+
+    def rand(*shape):
+        return torch.rand(*shape, generator=generator, device=device)
+
+    replace = (rand(B, M) >= cfg.pkeep) & real
+    random_codes = torch.randint(0, num_codes, (B, M), generator=generator, device=device)
+    inputs = torch.where(replace, random_codes, tokens)
+    u = rand(B)
+    ratio = 0.5 + 0.5 * u if cfg.mask_schedule == "uniform" else torch.cos(math.pi / 2 * u)
+    count = torch.round(ratio * lengths).clamp(min=1).minimum(lengths).long()
+    # The `count` real positions with the smallest random scores are masked.
+    scores = torch.where(real, rand(B, M), torch.full((B, M), 2.0, device=device))
+    rank = scores.argsort(dim=1).argsort(dim=1)
+    masked = rank < count[:, None]
+    inputs = torch.where(masked, torch.full_like(inputs, num_codes + 2), inputs)
+    return Corrupted(inputs, masked, replace & ~masked, real)
+
+
+def sequence_mean(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Mean over each sequence's weighted positions, then over the batch (B, M) -> ()."""
+    weight = weight.to(values.dtype)
+    per_sequence = (values * weight).sum(1) / weight.sum(1).clamp_min(1.0)
+    has_any = weight.sum(1) > 0
+    return per_sequence[has_any].mean() if bool(has_any.any()) else values.sum() * 0.0
+
+
+class MaskedTransformerModule(L.LightningModule):
+    """Trains the masked transformer on batches from TokenBatchCollator.
+
+    codebook: (K, C) of the stage-1 model; stage1/text_encoder: identities recorded with the model.
+    """
+
+    def __init__(
+        self,
+        codebook: torch.Tensor,
+        model: TransformerConfig | dict,
+        optim: OptimConfig | dict,
+        corruption: CorruptionConfig | dict,
+        sentence_dim: int,
+        word_dim: int,
+        stage1: dict | None = None,
+        text_encoder: dict | None = None,
+    ):
+        super().__init__()
+        model, optim, corruption = _as(TransformerConfig, model), _as(OptimConfig, optim), _as(CorruptionConfig, corruption)
+        codebook = torch.as_tensor(codebook, dtype=torch.float32)
+        self.save_hyperparameters(
+            {
+                "codebook_shape": list(codebook.shape), "model": asdict(model), "optim": asdict(optim), "corruption": asdict(corruption),
+                "sentence_dim": sentence_dim, "word_dim": word_dim, "stage1": stage1 or {}, "text_encoder": text_encoder or {},
+            }
+        )
+        self.model_cfg, self.optim_cfg, self.corruption_cfg = model, optim, corruption
+        self.transformer = MaskedMotionTransformer(codebook, model, sentence_dim, word_dim)
+        self.num_codes = codebook.shape[0]
+        self.val_loss, self.val_acc_masked, self.val_acc_unmasked = MeanMetric(), MeanMetric(), MeanMetric()
+
+    def forward_batch(self, batch: dict, corrupted: Corrupted, drop_text: torch.Tensor | None = None) -> torch.Tensor:
+        return self.transformer(corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], drop_text)
+
+    def loss(self, logits: torch.Tensor, batch: dict, corrupted: Corrupted) -> tuple[torch.Tensor, torch.Tensor]:
+        targets = batch["tokens"].clamp(max=self.num_codes - 1)  # END/PAD are never targets
+        ce = F.cross_entropy(logits.transpose(1, 2), targets, reduction="none")  # (B, M)
+        weight = corrupted.masked if self.corruption_cfg.loss_on == "masked" else corrupted.real
+        return sequence_mean(ce, weight), logits.argmax(-1) == batch["tokens"]
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        corrupted = corrupt(batch["tokens"], batch["lengths"], self.num_codes, self.corruption_cfg)
+        drop = torch.rand(len(batch["lengths"]), device=self.device) < self.corruption_cfg.cond_drop if self.corruption_cfg.cond_drop > 0 else None
+        logits = self.forward_batch(batch, corrupted, drop)
+        loss, correct = self.loss(logits, batch, corrupted)
+        unmasked = corrupted.real & ~corrupted.masked
+        self.log_dict(
+            {
+                "train/loss": loss,
+                "train/acc_masked": sequence_mean(correct.float(), corrupted.masked),
+                "train/acc_unmasked": sequence_mean(correct.float(), unmasked),
+                "train/mask_fraction": corrupted.masked.sum() / corrupted.real.sum(),
+            },
+            on_step=True, on_epoch=False,
+        )
+        self.log("loss", loss, prog_bar=True, logger=False)
+        return loss
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        # The same corruption at every validation: comparable numbers across a run.
+        generator = torch.Generator(device=batch["tokens"].device).manual_seed(1234 + batch_idx)
+        corrupted = corrupt(batch["tokens"], batch["lengths"], self.num_codes, self.corruption_cfg, generator)
+        logits = self.forward_batch(batch, corrupted)
+        loss, correct = self.loss(logits, batch, corrupted)
+        unmasked = corrupted.real & ~corrupted.masked
+        self.val_loss.update(loss, weight=len(batch["lengths"]))
+        self.val_acc_masked.update(correct[corrupted.masked].float().mean(), weight=corrupted.masked.sum())
+        if bool(unmasked.any()):
+            self.val_acc_unmasked.update(correct[unmasked].float().mean(), weight=unmasked.sum())
+
+    def on_validation_epoch_end(self) -> None:
+        self.log_dict(
+            {"val/loss": self.val_loss.compute(), "val/acc_masked": self.val_acc_masked.compute(), "val/acc_unmasked": self.val_acc_unmasked.compute()},
+            prog_bar=True,
+        )
+        for metric in (self.val_loss, self.val_acc_masked, self.val_acc_unmasked):
+            metric.reset()
+
+    def configure_optimizers(self):
+        cfg = self.optim_cfg
+        optimizer = torch.optim.AdamW(self.transformer.parameters(), lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=True)
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}

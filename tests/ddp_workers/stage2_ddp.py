@@ -1,0 +1,91 @@
+"""Stage-2 training on 2 CPU processes over gloo; each rank saves its weights and validation metrics.
+
+Run by tests/test_stage2.py as `python stage2_ddp.py OUT_DIR`. Random token sequences and random
+text embeddings: the point is that ranks see different batches yet end with the same weights,
+and that validation metrics are reduced across ranks.
+"""
+
+import os
+import sys
+
+import lightning as L
+import torch
+from torch.utils.data import Dataset
+
+from mmm.data.sampling import ResumableDataLoader
+from mmm.tokenizer.module import OptimConfig
+from mmm.training.common import TrainerConfig, build_strategy
+from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
+from mmm.transformer.network import TransformerConfig
+
+K = 32
+
+
+class RandomTokens(Dataset):
+    def __init__(self, n, seed):
+        g = torch.Generator().manual_seed(seed)
+        self.lengths = torch.randint(3, 12, (n,), generator=g)
+        self.codes = torch.randint(0, K, (n, 12), generator=g)
+        self.text = torch.randn(n, 5, 16, generator=g)
+
+    def __len__(self):
+        return len(self.lengths)
+
+    def __getitem__(self, index):
+        i = index % len(self)
+        return i
+
+
+def collate(data):
+    def fn(indices):
+        n = len(indices)
+        tokens = torch.full((n, 13), K + 1)
+        lengths = data.lengths[indices]
+        for row, i in enumerate(indices):
+            tokens[row, : lengths[row]] = data.codes[i, : lengths[row]]
+            tokens[row, lengths[row]] = K
+        words = data.text[indices]
+        return {"tokens": tokens, "lengths": lengths, "sentence": words.mean(1), "words": words, "word_mask": torch.ones(n, 5, dtype=torch.bool)}
+    return fn
+
+
+class SaveRankState(L.Callback):
+    def __init__(self, out_dir):
+        self.out_dir, self.first = out_dir, None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if self.first is None:
+            self.first = batch["tokens"].clone()
+
+    def on_train_end(self, trainer, pl_module):
+        torch.save(
+            {
+                "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
+                "val_loss": float(trainer.callback_metrics["val/loss"]), "val_acc": float(trainer.callback_metrics["val/acc_masked"]),
+                "first_batch": self.first, "step": trainer.global_step,
+            },
+            os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt"),
+        )
+
+
+def main(out_dir):
+    L.seed_everything(0)
+    train, val = RandomTokens(64, 1), RandomTokens(10, 2)  # 10 val items: 5 per rank
+    module = MaskedTransformerModule(
+        torch.randn(K, 8), TransformerConfig(embed_dim=32, num_heads=2, num_layers=2, num_cross_layers=1, dropout=0.0, max_tokens=13),
+        OptimConfig(lr=1e-3, warmup_steps=0), CorruptionConfig(cond_drop=0.2), sentence_dim=16, word_dim=16,
+    )
+    trainer = L.Trainer(
+        accelerator="cpu", devices=2, strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
+        max_steps=15, val_check_interval=15, check_val_every_n_epoch=None, logger=False, enable_checkpointing=False,
+        enable_progress_bar=False, use_distributed_sampler=False, num_sanity_val_steps=0, callbacks=[SaveRankState(out_dir)],
+    )
+    trainer.fit(
+        module,
+        ResumableDataLoader(train, batch_size=4, shuffle=True, seed=0, collate_fn=collate(train), drop_last=True),
+        ResumableDataLoader(val, batch_size=5, shuffle=False, seed=0, collate_fn=collate(val)),
+    )
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

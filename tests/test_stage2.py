@@ -1,0 +1,252 @@
+"""Stage 2: the masked transformer, its corruption and loss, token caching, DDP, end-to-end training."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from mlflow.tracking import MlflowClient
+
+from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
+from mmm.data.humanml3d import Caption, DataError, MotionItem
+from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
+from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
+from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.network import TokenizerConfig
+from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt, sequence_mean
+from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
+
+TESTS = Path(__file__).resolve().parent
+K = 16
+
+
+def tiny_transformer(cross=1, layers=3, dropout=0.0):
+    torch.manual_seed(0)
+    cfg = TransformerConfig(embed_dim=32, num_heads=4, num_layers=layers, num_cross_layers=cross, dropout=dropout, max_tokens=12)
+    return MaskedMotionTransformer(torch.randn(K, 8), cfg, sentence_dim=6, word_dim=5).eval()
+
+
+def batch_of(lengths, M=12, words=4, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    lengths = torch.tensor(lengths)
+    tokens = torch.full((len(lengths), M), K + 1)
+    for i, n in enumerate(lengths.tolist()):
+        tokens[i, :n] = torch.randint(0, K, (n,), generator=g)
+        tokens[i, n] = K
+    word_mask = torch.zeros(len(lengths), words, dtype=torch.bool)
+    word_mask[:, :2] = True
+    return {"tokens": tokens, "lengths": lengths, "sentence": torch.randn(len(lengths), 6, generator=g),
+            "words": torch.randn(len(lengths), words, 5, generator=g), "word_mask": word_mask}
+
+
+def test_transformer_shapes_and_paper_size():
+    m = tiny_transformer()
+    b = batch_of([5, 11, 1])
+    logits = m(b["tokens"], b["sentence"], b["words"], b["word_mask"])
+    assert logits.shape == (3, 12, K) and torch.isfinite(logits).all()
+    assert not any(n == "codebook" for n, _ in m.named_parameters())  # the stage-1 codebook stays frozen
+    with torch.device("meta"):
+        paper = MaskedMotionTransformer(torch.empty(8192, 32), TransformerConfig(), 512, 512)
+    count = sum(p.numel() for p in paper.parameters())
+    assert 225e6 < count < 240e6  # method.md: about 230M
+    with torch.device("meta"):
+        tiny = MaskedMotionTransformer(torch.empty(512, 32), TransformerConfig(embed_dim=192, num_heads=4, num_layers=6), 384, 384)
+    assert sum(p.numel() for p in tiny.parameters()) < 5e6
+
+
+def test_padding_and_masked_words_do_not_leak():
+    m = tiny_transformer()
+    b = batch_of([5, 3])
+    base = m(b["tokens"], b["sentence"], b["words"], b["word_mask"])
+    words = b["words"].clone()
+    words[:, 2:] = 1e3  # masked word positions
+    assert torch.allclose(m(b["tokens"], b["sentence"], words, b["word_mask"]), base, atol=1e-5)
+    # A shorter padded sequence gives the same logits at its real positions.
+    assert torch.allclose(m(b["tokens"][:, :7], b["sentence"], b["words"], b["word_mask"])[:, :6], base[:, :6], atol=1e-5)
+    # Positional encoding is there: shifting the sequence by one changes the logits.
+    shifted = torch.roll(b["tokens"], 1, dims=1)
+    assert (m(shifted, b["sentence"], b["words"], b["word_mask"])[0, 1:6] - base[0, :5]).abs().max() > 1e-3
+
+
+def test_dropped_text_and_zero_cross_layers_are_finite():
+    m = tiny_transformer(cross=0)
+    b = batch_of([4, 4])
+    b["word_mask"][:] = False  # no visible word at all
+    out = m(b["tokens"], b["sentence"], b["words"], b["word_mask"], drop_text=torch.tensor([True, True]))
+    assert torch.isfinite(out).all()
+    m2 = tiny_transformer(cross=2)
+    dropped = m2(b["tokens"], b["sentence"], b["words"], b["word_mask"] | True, drop_text=torch.tensor([True, False]))
+    other_text = m2(b["tokens"], b["sentence"] * 5, b["words"] * 5, b["word_mask"] | True, drop_text=torch.tensor([True, False]))
+    assert torch.allclose(dropped[0], other_text[0], atol=1e-6)  # a dropped text is ignored entirely
+    assert (dropped[1] - other_text[1]).abs().max() > 1e-5  # a kept one is not
+
+
+def test_corruption_follows_the_released_scheme():
+    lengths = torch.tensor([49, 10, 1, 4] * 50)
+    tokens = batch_of(lengths.tolist(), M=50)["tokens"]
+    g = torch.Generator().manual_seed(0)
+    c = corrupt(tokens, lengths, K, CorruptionConfig(), g)
+    real = torch.arange(50)[None] < lengths[:, None]
+    assert torch.equal(c.real, real)
+    assert torch.equal(c.inputs[~real], tokens[~real])  # END and PAD untouched
+    counts = c.masked.sum(1)
+    assert bool((counts >= 1).all()) and bool((counts <= lengths).all())
+    assert bool((c.masked & ~real).sum() == 0)
+    assert bool((c.inputs[c.masked] == K + 2).all())
+    ratio = counts[lengths == 49].float() / 49
+    assert 0.49 <= ratio.min() and ratio.max() <= 1.0 and 0.68 < ratio.mean() < 0.82  # U(0.5, 1): mean 0.75
+    unmasked_real = real & ~c.masked
+    share = c.replaced.sum() / unmasked_real.sum()
+    assert 0.4 < share < 0.6  # 1 - pkeep of the tokens left visible
+    kept = unmasked_real & ~c.replaced
+    assert torch.equal(c.inputs[kept], tokens[kept])
+    none = corrupt(tokens, lengths, K, CorruptionConfig(pkeep=1.0), g)
+    assert not none.replaced.any()
+    cosine = corrupt(tokens, lengths, K, CorruptionConfig(mask_schedule="cosine"), g)
+    assert cosine.masked.sum(1)[lengths == 49].float().mean() / 49 < 0.75  # E[cos(pi u / 2)] = 2/pi
+
+
+def test_sequence_mean_weights_each_sequence_equally():
+    values = torch.tensor([[1.0, 1.0, 1.0, 1.0], [3.0, 0.0, 0.0, 0.0]])
+    weight = torch.tensor([[1, 1, 1, 1], [1, 0, 0, 0]], dtype=torch.bool)
+    assert sequence_mean(values, weight).item() == pytest.approx(2.0)
+
+
+def test_module_losses_and_validation_accuracy():
+    module = MaskedTransformerModule(
+        torch.randn(K, 8), TransformerConfig(embed_dim=32, num_heads=4, num_layers=2, dropout=0.0, max_tokens=12),
+        OptimConfig(warmup_steps=0), CorruptionConfig(loss_on="masked"), 6, 5,
+    )
+    b = batch_of([5, 9])
+    c = corrupt(b["tokens"], b["lengths"], K, module.corruption_cfg, torch.Generator().manual_seed(0))
+    logits = module.forward_batch(b, c)
+    loss, correct = module.loss(logits, b, c)
+    manual = torch.nn.functional.cross_entropy(logits.transpose(1, 2), b["tokens"].clamp(max=K - 1), reduction="none")
+    expected = torch.stack([manual[i][c.masked[i]].mean() for i in range(2)]).mean()
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-6)
+    assert correct.shape == (2, 12)
+
+
+def make_item(name, motion_id, start, length, captions):
+    return MotionItem(name, motion_id, np.zeros((length, 263), np.float32), [Caption(c, (), 0.0, 0.0) for c in captions], start=start)
+
+
+def test_token_text_dataset_spans_augmentation_and_collator():
+    tokens = {"000001": np.arange(30)}
+    items = [make_item("000001", "000001", 0, 120, ["a", "b"]), make_item("000001#40-100", "000001", 40, 60, ["c"])]
+    ds = TokenTextDataset(items, tokens, seed=0)
+    assert np.array_equal(TokenTextDataset(items, tokens, augment=False)[1]["tokens"].numpy(), np.arange(10, 25))
+    lengths = {len(ds[2 * k]["tokens"]) for k in range(60)}
+    assert lengths == {29, 30}  # one code dropped at the head or tail in about a third of draws
+    assert {ds[2 * k]["caption"] for k in range(60)} == {"a", "b"}
+    assert ds[5]["caption"] == ds[5]["caption"]  # a function of the (tagged) index
+
+    class Cache:
+        def lookup(self, captions):
+            from mmm.text import TextEmbedding
+
+            n = len(captions)
+            return TextEmbedding(torch.zeros(n, 6), torch.zeros(n, 3, 5), torch.ones(n, 3, dtype=torch.bool), 0)
+
+    batch = TokenBatchCollator(Cache(), num_codes=64, max_tokens=50)([{"tokens": torch.tensor([1, 2, 3]), "caption": "x", "name": "a"},
+                                                                        {"tokens": torch.tensor([4]), "caption": "y", "name": "b"}])
+    assert batch["tokens"].tolist() == [[1, 2, 3, 64], [4, 64, 65, 65]]
+    assert batch["lengths"].tolist() == [3, 1] and batch["words"].shape == (2, 3, 5)
+
+
+def tiny_tokenizer(feature_dim=263, seed=0):
+    torch.manual_seed(seed)
+    module = TokenizerModule(feature_dim, TokenizerConfig(width=16, num_codes=K, code_dim=8), OptimConfig(), TokenizerLossConfig())
+    module.train()
+    module.tokenizer(torch.randn(4, 64, feature_dim))  # seed the codebook
+    return module.eval()
+
+
+def test_tokens_are_cached_per_tokenizer_and_data(walker_dataset, tmp_path):
+    tok = tiny_tokenizer()
+    identity = tensors_fingerprint(tok.state_dict())
+    fingerprint = dataset_fingerprint(walker_dataset)
+    folder = token_cache_folder(tmp_path, identity, fingerprint)
+    cache = tokenize_dataset(tok, walker_dataset, folder, progress=False)
+    assert len(cache) == 30 and folder.name == f"{identity}-{fingerprint}"
+    features = np.load(walker_dataset / "new_joint_vecs/000003.npy")
+    usable = features.shape[0] // 4 * 4
+    x = torch.from_numpy(((features[:usable] - tok.mean.numpy()) / tok.std.numpy())[None].astype(np.float32))
+    assert np.array_equal(cache["000003"], tok.tokenizer.encode(x)[0].numpy())
+    assert cache["000003"].shape == (usable // 4,)
+    other = tiny_tokenizer(seed=1)
+    assert tensors_fingerprint(other.state_dict()) != identity  # another tokenizer: another folder
+    again = TokenCache(folder)
+    assert np.array_equal(again["000003"], cache["000003"])
+    with pytest.raises(KeyError, match="nope: no tokens"):
+        cache["nope"]
+
+
+def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):
+    from mmm.data.datamodule import DataConfig, TokenTextDataModule
+
+    dm = TokenTextDataModule(DataConfig(root=str(walker_dataset), synthesize=None), 0, tiny_tokenizer(feature_dim=251), "x", None, None, str(tmp_path))
+    with pytest.raises(DataError, match="reads 251-d features but data 'synthetic' has 263"):
+        dm.prepare_data()
+
+
+@pytest.mark.ddp
+def test_ddp_ranks_agree(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(TESTS / "ddp_workers/stage2_ddp.py"), str(tmp_path)],
+        capture_output=True, text=True, timeout=180, env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    assert not torch.equal(r0["first_batch"], r1["first_batch"])  # different data per rank
+    assert torch.equal(r0["weights"], r1["weights"])
+    assert r0["step"] == r1["step"] == 15
+    assert r0["val_loss"] == r1["val_loss"] and r0["val_acc"] == r1["val_acc"]  # reduced across ranks
+
+
+def _train_stage1(root, out):
+    from mmm.training.stage1 import load_stage1_config, train_stage1
+
+    return train_stage1(load_stage1_config([
+        f"data.root={root}", "data.synthesize=null", "data.batch_size=8", "model.tokenizer.width=16", "model.tokenizer.num_codes=32",
+        "trainer.max_steps=4", "trainer.val_check_interval=4", "trainer.enable_progress_bar=false", "callbacks.preview_clips=0",
+        "callbacks.usage_plot=false", f"output_dir={out}/s1", f"logger.tracking_uri=sqlite:///{out}/mlflow.db", f"logger.artifact_root={out}/art",
+    ]))
+
+
+def stage2_overrides(root, out, **extra):
+    items = {
+        "data.root": root, "data.synthesize": "null", "data.batch_size": 8, "model.transformer.embed_dim": 32, "model.transformer.num_heads": 2,
+        "model.transformer.num_layers": 2, "trainer.max_steps": 6, "trainer.log_every_n_steps": 1, "trainer.val_check_interval": 3, "trainer.enable_progress_bar": "false",
+        "output_dir": f"{out}/s2", "stage1_output_dir": f"{out}/s1", "token_cache_dir": f"{out}/tokens", "text.cache_dir": f"{out}/text",
+        "logger.tracking_uri": f"sqlite:///{out}/mlflow.db", "logger.artifact_root": f"{out}/art",
+    }
+    items.update(extra)
+    return [f"{k}={v}" for k, v in items.items()]
+
+
+def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_dataset, tmp_path):
+    from mmm.training.stage2 import load_stage2_config, train_stage2
+
+    first = _train_stage1(walker_dataset, tmp_path)
+    newest = _train_stage1(walker_dataset, tmp_path)
+    result = train_stage2(load_stage2_config(stage2_overrides(walker_dataset, tmp_path)))
+    client = MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    run = client.get_run(result.run_id)
+    assert run.data.tags["stage1.run_id"] == newest.run_id != first.run_id
+    assert run.data.tags["text_encoder"].startswith("minilm-")
+    assert len(run.data.tags["data.fingerprint"]) == 16
+    assert run.data.params["model.transformer.embed_dim"] == "32"
+    assert {"val/loss", "val/acc_masked", "val/acc_unmasked", "train/loss"} <= set(run.data.metrics)
+    assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
+    ckpt = torch.load(result.last_checkpoint, weights_only=True)
+    assert ckpt["hyper_parameters"]["codebook_shape"] == [32, 32]
+    assert ckpt["hyper_parameters"]["stage1"]["run_id"] == newest.run_id
+    # The explicit reference wins, and resuming with a tokenizer of another codebook is refused.
+    from mmm.training.stage2 import check_codebook
+
+    with pytest.raises(ValueError, match=r"codebook of shape \[32, 32\], but the stage-1 model has \[64, 32\]"):
+        check_codebook(Path(result.last_checkpoint), [64, 32])
