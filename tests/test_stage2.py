@@ -250,3 +250,26 @@ def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_da
 
     with pytest.raises(ValueError, match=r"codebook of shape \[32, 32\], but the stage-1 model has \[64, 32\]"):
         check_codebook(Path(result.last_checkpoint), [64, 32])
+
+
+def test_stage1_references_resolve_to_the_same_model(walker_dataset, tmp_path):
+    from mmm.tokenizer.load import ModelNotFound, load_tokenizer, resolve_tokenizer
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    trained = _train_stage1(walker_dataset, tmp_path)
+    client = MlflowClient(uri)
+    client.create_registered_model("mmm-tokenizer")
+    version = client.create_model_version("mmm-tokenizer", source=f"runs:/{trained.run_id}/checkpoints", run_id=trained.run_id)
+    client.set_registered_model_alias("mmm-tokenizer", "champion", version.version)
+    identities = set()
+    for reference in (trained.run_id, f"runs:/{trained.run_id}", "models:/mmm-tokenizer@champion", f"models:/mmm-tokenizer/{version.version}", trained.best_checkpoint, None):
+        module, source = load_tokenizer(reference, uri, f"{tmp_path}/s1")
+        identities.add(source.identity)
+        assert source.checkpoint.endswith("best.ckpt") and module.quantizer.num_codes == 32
+    assert len(identities) == 1
+    with pytest.raises(ModelNotFound, match="models:/mmm-tokenizer@nope: no such registered model version"):
+        resolve_tokenizer("models:/mmm-tokenizer@nope", uri)
+    with pytest.raises(ModelNotFound, match="no-such.ckpt: no such checkpoint file, MLflow run id or models:/ URI"):
+        resolve_tokenizer("no-such.ckpt", uri)
+    with pytest.raises(ModelNotFound, match="run `make train-stage1` first"):
+        resolve_tokenizer(None, f"sqlite:///{tmp_path}/empty.db", f"{tmp_path}/none")
