@@ -1,0 +1,1 @@
+"""Generation and editing with a trained text-to-motion model."""

@@ -1,0 +1,321 @@
+"""`TextToMotion`: a trained stage-1 tokenizer, stage-2 transformer and text encoder, ready to
+generate and edit motion.
+
+    model = TextToMotion.load(None)                 # the newest stage-2 result
+    out = model.generate(["a person walks forward"], frames=[120], sampling=SamplingConfig(), seed=0)
+    out.features[0]   # (120, 263), un-normalized;  out.joints[0]  # (120, 22, 3)
+
+Every edit is one operation: some codes are kept (maximal confidence, never changed), the rest
+are decoded with the text (or without: the unconditional branch). Long sequences generate all
+segments in one batch, then every transition between neighbours in one single-iteration pass,
+and decode the concatenation once.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mmm.fingerprint import tensors_fingerprint
+from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
+from mmm.motion.features import recover_from_ric
+from mmm.resolve import resolve_checkpoint
+from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint
+from mmm.transformer.module import MaskedTransformerModule
+
+STAGE2_EXPERIMENT = "mmm-stage2"
+
+
+@dataclass
+class Generated:
+    """Motions produced by one call, with what it took."""
+
+    texts: list[str | None]
+    features: list[np.ndarray]  # (T, D) each, un-normalized
+    joints: list[np.ndarray]  # (T, J, 3) each
+    codes: list[np.ndarray]  # (L,) each
+    iterations: list[int]  # transformer passes each sample took part in
+    forward_passes: int  # passes of the whole batch
+    seconds: dict[str, float] = field(default_factory=dict)
+    segments: list[tuple[int, int]] | None = None  # long sequences: frame range of each prompt
+    kept_codes: np.ndarray | None = None  # edits: (L,) True where the source's code was kept
+    trace: object | None = None  # DecodeTrace when asked for
+
+
+class TextToMotion:
+    def __init__(self, tokenizer, transformer, text_encoder, identity: dict, length_estimator=None, device: str | torch.device = "cpu"):
+        self.device = torch.device(device)
+        self.tokenizer = tokenizer.to(self.device).eval()
+        self.transformer = transformer.to(self.device).eval()
+        self.text_encoder = text_encoder
+        self.length_estimator = length_estimator
+        self.identity = identity
+        self.unit = tokenizer.tokenizer.cfg.downsample
+        self.feature_dim = tokenizer.tokenizer.feature_dim
+        self.skeleton = tokenizer.skeleton
+        self.fps = self.skeleton.fps
+        self.max_frames = (transformer.cfg.max_tokens - 1) * self.unit
+        self.min_frames = 24 if self.skeleton.name == "kit" else 40
+
+    # -- loading --------------------------------------------------------------------------------
+    @classmethod
+    def load(
+        cls,
+        reference: str | None = None,
+        tracking_uri: str = "sqlite:///mlflow.db",
+        output_dir: str = "outputs/stage2",
+        device: str = "cpu",
+        length_estimator=None,
+    ) -> "TextToMotion":
+        """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS, or the newest stage-2 run."""
+        from mmm.text import build_text_encoder
+        from mmm.training.common import resolve_tracking_uri
+
+        tracking_uri = resolve_tracking_uri(tracking_uri)
+        resolved, checkpoint, run_id = resolve_checkpoint(
+            reference, tracking_uri, STAGE2_EXPERIMENT, output_dir, "text-to-motion model", "make train-stage2", "--model",
+        )
+        ckpt = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        hp = ckpt.get("hyper_parameters") or {}
+        if "codebook_shape" not in hp:
+            raise ValueError(f"{checkpoint}: not a stage-2 (masked transformer) checkpoint")
+        stage1 = hp["stage1"]
+        local = stage1.get("checkpoint")
+        if local and Path(local).exists():
+            tokenizer = load_tokenizer_checkpoint(local)
+            identity = tensors_fingerprint(tokenizer.state_dict())
+        else:
+            tokenizer, source = load_tokenizer(stage1["reference"], tracking_uri)
+            identity = source.identity
+        if identity != stage1["identity"]:
+            raise ValueError(
+                f"{resolved}: its stage-1 model {stage1['reference']} now has weights {identity}, but the transformer was trained "
+                f"on {stage1['identity']}; the tokens would not mean the same codes"
+            )
+        module = MaskedTransformerModule(tokenizer.tokenizer.codebook.detach(), hp["model"], hp["optim"], hp["corruption"], hp["sentence_dim"], hp["word_dim"])
+        module.load_state_dict(ckpt["state_dict"])
+        text = hp["text_encoder"]
+        options = {k: v for k, v in text.items() if k not in ("name", "identity") and v is not None}
+        encoder = build_text_encoder(text["name"], **options)
+        if encoder.identity != text["identity"]:
+            raise ValueError(f"{resolved}: text encoder {encoder.identity} differs from the one it was trained with ({text['identity']})")
+        info = {"reference": resolved, "run_id": run_id, "checkpoint": checkpoint, "stage1": stage1, "text_encoder": text["identity"]}
+        return cls(tokenizer, module.transformer, encoder, info, length_estimator, device)
+
+    # -- pieces ---------------------------------------------------------------------------------
+    def check_frames(self, frames: int, what: str = "length") -> None:
+        if not self.min_frames <= frames <= self.max_frames:
+            raise ValueError(f"{what} {frames} frames is outside {self.min_frames}..{self.max_frames} ({self.min_frames / self.fps:.1f}-{self.max_frames / self.fps:.1f} s at {self.fps:g} fps)")
+
+    def encode_text(self, texts: list[str | None]):
+        """TextEmbedding of the texts (None or "" -> a placeholder; decode those with no_text)."""
+        for i, t in enumerate(texts):
+            if t is not None and not t.strip():
+                raise ValueError(f"text {i} is empty; give a description, or leave it out for an edit without text")
+        return self.text_encoder.encode([t if t else "motion" for t in texts]).to(self.device)
+
+    def estimate_frames(self, texts: list[str]) -> list[int]:
+        if self.length_estimator is None:
+            raise ValueError("no length given and no length estimator loaded: pass --length FRAMES (or train one with `make train-length`)")
+        emb = self.encode_text(texts)
+        codes = self.length_estimator.predict(emb.sentence.to(next(self.length_estimator.parameters()).device))
+        return [int(min(max(c * self.unit, self.min_frames), self.max_frames)) for c in codes.tolist()]
+
+    def normalize(self, features: np.ndarray) -> torch.Tensor:
+        return (torch.as_tensor(features, dtype=torch.float32, device=self.device) - self.tokenizer.mean) / self.tokenizer.std
+
+    @torch.no_grad()
+    def encode_motion(self, features: np.ndarray) -> np.ndarray:
+        """Codes (T // 4,) of un-normalized features (T, D)."""
+        usable = features.shape[0] // self.unit * self.unit
+        return self.tokenizer.tokenizer.encode(self.normalize(features[:usable])[None])[0].cpu().numpy()
+
+    @torch.no_grad()
+    def decode(self, codes: list[np.ndarray]) -> list[np.ndarray]:
+        """Un-normalized features (4L, D) of each code sequence; one decoder call per distinct
+        length (padding would leak into the last frames through the convolutions)."""
+        groups: dict[int, list[int]] = defaultdict(list)
+        for i, c in enumerate(codes):
+            groups[len(c)].append(i)
+        out: list[np.ndarray | None] = [None] * len(codes)
+        for length, members in groups.items():
+            batch = torch.as_tensor(np.stack([codes[i] for i in members]), dtype=torch.long, device=self.device)
+            x = self.tokenizer.tokenizer.decode(batch) * self.tokenizer.std + self.tokenizer.mean
+            for i, f in zip(members, x.cpu().numpy()):
+                out[i] = f
+        return out
+
+    def to_joints(self, features: np.ndarray) -> np.ndarray:
+        return recover_from_ric(features.astype(np.float32), self.skeleton.num_joints)
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize()
+
+    def _finish(self, texts, result: SampleResult, frames: list[int], seconds: dict, started: float) -> Generated:
+        codes = [result.tokens[i, : int(result.lengths[i])].cpu().numpy() for i in range(len(frames))]
+        t0 = time.perf_counter()
+        features = [f[:n] for f, n in zip(self.decode(codes), frames)]
+        self._sync()
+        seconds["decode"] = time.perf_counter() - t0
+        joints = [self.to_joints(f) for f in features]
+        seconds["total"] = time.perf_counter() - started
+        return Generated(list(texts), features, joints, codes, result.iterations.tolist(), result.forward_passes, seconds)
+
+    # -- generation and editing -----------------------------------------------------------------
+    @torch.no_grad()
+    def generate(self, texts: list[str], frames: list[int] | None = None, sampling: SamplingConfig | None = None, seed: int | None = None, trace: bool = False):
+        """One motion per text, `frames` long (estimated when None), all in one batch."""
+        sampling = sampling or SamplingConfig()
+        started = time.perf_counter()
+        frames = list(frames) if frames is not None else self.estimate_frames(texts)
+        if len(frames) != len(texts):
+            raise ValueError(f"{len(texts)} texts but {len(frames)} lengths")
+        for f in frames:
+            self.check_frames(f)
+        text = self.encode_text(texts)
+        self._sync()
+        seconds = {"text": time.perf_counter() - started}
+        generator = torch.Generator(device=self.device).manual_seed(seed) if seed is not None else None
+        t0 = time.perf_counter()
+        lengths = frames_to_codes(torch.tensor(frames), self.unit).to(self.device)
+        result = sample_tokens(self.transformer, text, lengths, sampling, generator=generator, trace=trace)
+        self._sync()
+        seconds["sample"] = time.perf_counter() - t0
+        out = self._finish(texts, result, frames, seconds, started)
+        out.trace = result.trace
+        return out
+
+    def keep_mask(self, code_count: int, keep_frames: list[tuple[int, int]]) -> np.ndarray:
+        """(L,) bool: the codes that touch a kept frame range [a, b)."""
+        mask = np.zeros(code_count, dtype=bool)
+        for a, b in keep_frames:
+            if not 0 <= a < b:
+                raise ValueError(f"keep range {a}:{b} is empty or negative; write START:END with START < END (frames)")
+            mask[a // self.unit : math.ceil(b / self.unit)] = True
+        return mask
+
+    @torch.no_grad()
+    def edit(
+        self,
+        source: np.ndarray,
+        keep_frames: list[tuple[int, int]],
+        text: str | None = None,
+        frames: int | None = None,
+        place: int = 0,
+        sampling: SamplingConfig | None = None,
+        seed: int | None = None,
+        num_samples: int = 1,
+    ) -> Generated:
+        """Keep the source's codes over `keep_frames` (source frames), decode the rest.
+
+        source: un-normalized features (T, D). The output is `frames` long (default: the source's
+        length) with the source starting at frame `place` (a multiple of 4): in-betweening keeps
+        a prefix and a suffix, outpainting keeps a middle and grows before/after, completion keeps
+        a prefix; text None decodes without text.
+        """
+        sampling = sampling or SamplingConfig()
+        started = time.perf_counter()
+        if source.ndim != 2 or source.shape[1] != self.feature_dim:
+            raise ValueError(f"source features have shape {source.shape}, expected (T, {self.feature_dim})")
+        if place % self.unit:
+            raise ValueError(f"place {place} must be a multiple of {self.unit} frames")
+        source_codes = self.encode_motion(source)
+        frames = frames or source_codes.shape[0] * self.unit
+        self.check_frames(frames, "output length")
+        L = int(frames_to_codes(frames, self.unit))
+        offset = place // self.unit
+        for a, b in keep_frames:
+            if b > source.shape[0]:
+                raise ValueError(f"keep range {a}:{b} goes past the source's {source.shape[0]} frames")
+        source_keep = self.keep_mask(len(source_codes), keep_frames)
+        if source_keep.nonzero()[0].max(initial=-1) + offset >= L:
+            raise ValueError(f"the kept source frames do not fit in {frames} output frames with the source placed at frame {place}")
+        keep_tokens = torch.zeros(num_samples, L, dtype=torch.long)
+        keep_mask = torch.zeros(num_samples, L, dtype=torch.bool)
+        span = min(len(source_codes), L - offset)
+        keep_tokens[:, offset : offset + span] = torch.from_numpy(source_codes[:span].astype(np.int64))
+        keep_mask[:, offset : offset + span] = torch.from_numpy(source_keep[:span])
+        if bool(keep_mask.all()):
+            raise ValueError("every code is kept: nothing to generate; keep less of the source or make the output longer")
+        texts = [text] * num_samples
+        emb = self.encode_text(texts)
+        generator = torch.Generator(device=self.device).manual_seed(seed) if seed is not None else None
+        seconds = {"text": time.perf_counter() - started}
+        t0 = time.perf_counter()
+        no_text = torch.full((num_samples,), text is None, dtype=torch.bool)
+        lengths = torch.full((num_samples,), L, dtype=torch.long, device=self.device)
+        result = sample_tokens(self.transformer, emb, lengths, sampling, keep_tokens=keep_tokens.to(self.device),
+                               keep_mask=keep_mask.to(self.device), no_text=no_text.to(self.device), generator=generator)
+        self._sync()
+        seconds["sample"] = time.perf_counter() - t0
+        out = self._finish(texts, result, [frames] * num_samples, seconds, started)
+        out.kept_codes = keep_mask[0].numpy()
+        return out
+
+    @torch.no_grad()
+    def generate_long(
+        self,
+        texts: list[str],
+        frames: list[int] | None = None,
+        sampling: SamplingConfig | None = None,
+        seed: int | None = None,
+        transition_codes: int = 2,
+        context_codes: int = 6,
+    ) -> Generated:
+        """One motion through all prompts: segments in one batch, then every transition between
+        neighbours (`transition_codes` new codes between `context_codes` of each side, without
+        text) in one single-iteration pass, then one decode of the concatenation."""
+        sampling = sampling or SamplingConfig()
+        started = time.perf_counter()
+        segments = self.generate(texts, frames, sampling, seed)
+        seconds = {"segments": time.perf_counter() - started}
+        codes = segments.codes
+        t0 = time.perf_counter()
+        transitions: list[np.ndarray] = []
+        if len(codes) > 1:
+            n = len(codes) - 1
+            left = [c[-context_codes:] for c in codes[:-1]]
+            right = [c[:context_codes] for c in codes[1:]]
+            L = max(len(a) + transition_codes + len(b) for a, b in zip(left, right))
+            keep_tokens = torch.zeros(n, L, dtype=torch.long)
+            keep_mask = torch.zeros(n, L, dtype=torch.bool)
+            lengths = torch.zeros(n, dtype=torch.long)
+            for i, (a, b) in enumerate(zip(left, right)):
+                seq = np.concatenate((a, np.zeros(transition_codes, dtype=a.dtype), b))
+                keep_tokens[i, : len(seq)] = torch.from_numpy(seq.astype(np.int64))
+                keep_mask[i, : len(seq)] = True
+                keep_mask[i, len(a) : len(a) + transition_codes] = False
+                lengths[i] = len(seq)
+            one_pass = SamplingConfig(**{**sampling.__dict__, "max_iterations": 1, "dynamic_iterations": False})
+            generator = torch.Generator(device=self.device).manual_seed(seed + 1) if seed is not None else None
+            emb = self.encode_text([None] * n)
+            result = sample_tokens(self.transformer, emb, lengths.to(self.device), one_pass, keep_tokens=keep_tokens.to(self.device),
+                                   keep_mask=keep_mask.to(self.device), no_text=torch.ones(n, dtype=torch.bool, device=self.device), generator=generator)
+            for i, a in enumerate(left):
+                transitions.append(result.tokens[i, len(a) : len(a) + transition_codes].cpu().numpy())
+        self._sync()
+        seconds["transitions"] = time.perf_counter() - t0
+        pieces, bounds, cursor = [], [], 0
+        for i, c in enumerate(codes):
+            pieces.append(c)
+            bounds.append((cursor * self.unit, (cursor + len(c)) * self.unit))
+            cursor += len(c)
+            if i < len(transitions):
+                pieces.append(transitions[i])
+                cursor += len(transitions[i])
+        sequence = np.concatenate(pieces)
+        t0 = time.perf_counter()
+        features = self.decode([sequence])[0]
+        self._sync()
+        seconds["decode"] = time.perf_counter() - t0
+        joints = self.to_joints(features)
+        seconds["total"] = time.perf_counter() - started
+        passes = segments.forward_passes + (1 if transitions else 0)
+        return Generated([" / ".join(texts)], [features], [joints], [sequence], [passes], passes, seconds, segments=bounds)

@@ -1,0 +1,189 @@
+"""Confidence-based parallel decoding (MMM inference) with per-sample iteration counts.
+
+A sample of L codes starts with its free positions set to MASK (kept positions, for editing, hold
+their codes). Sample b runs T_b = ceil(T_max * L_b / M) iterations (M = the model's 50 token
+positions), so short motions take fewer passes. At iteration t of T_b the model predicts every
+masked position, a code is drawn at each from softmax(logits / temperature) after optional top-k
+(a fraction of the codebook) and top-p filtering, its probability is its confidence; positions
+fixed before (kept or decoded earlier) have infinite confidence; then the n(t) = ceil(gamma(t/T_b)
+* F_b) least confident positions are masked again (F_b = free positions). A sample whose
+iterations are done takes no further forward passes; a batch of mixed lengths costs max_b T_b
+passes. Classifier-free guidance: logits = uncond + s * (cond - uncond), the two branches in one
+batched pass.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+SCHEDULES = {
+    "cosine": lambda x: math.cos(math.pi / 2 * x),
+    "linear": lambda x: 1.0 - x,
+    "square": lambda x: 1.0 - x * x,  # convex; the paper's "square root" row
+}
+
+
+@dataclass
+class SamplingConfig:
+    max_iterations: int = 10  # T_max
+    schedule: str = "cosine"  # cosine | linear | square
+    temperature: float = 1.0  # 0: always the most likely code
+    top_k: float | None = None  # keep this fraction of the codebook's logits (1.0 = all)
+    top_p: float | None = None  # nucleus: the smallest set of codes with this total probability
+    guidance_scale: float = 1.0  # 1: conditional only; > 1 needs a model trained with cond_drop
+    dynamic_iterations: bool = True  # False: every sample runs max_iterations (the released code)
+
+    def __post_init__(self):
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be at least 1, got {self.max_iterations}")
+        if self.top_k is not None and not 0.0 < self.top_k <= 1.0:
+            raise ValueError(f"top_k is a fraction of the codebook in (0, 1], got {self.top_k}")
+        if self.top_p is not None and not 0.0 < self.top_p <= 1.0:
+            raise ValueError(f"top_p must be in (0, 1], got {self.top_p}")
+
+
+@dataclass
+class DecodeTrace:
+    """Per iteration: which samples ran, every position's confidence and what stayed masked."""
+
+    active: list[torch.Tensor] = field(default_factory=list)  # (B,) bool
+    confidence: list[torch.Tensor] = field(default_factory=list)  # (B, M), nan where not predicted
+    masked: list[torch.Tensor] = field(default_factory=list)  # (B, M) bool after re-masking
+    tokens: list[torch.Tensor] = field(default_factory=list)  # (B, M)
+
+
+@dataclass
+class SampleResult:
+    tokens: torch.Tensor  # (B, M): codes, END, PAD
+    lengths: torch.Tensor  # (B,) codes per sample
+    iterations: torch.Tensor  # (B,) forward passes each sample took part in
+    forward_passes: int  # transformer passes for the whole batch (= max of iterations)
+    trace: DecodeTrace | None = None
+
+
+def iteration_counts(code_lengths: torch.Tensor, free: torch.Tensor, cfg: SamplingConfig, max_tokens: int) -> torch.Tensor:
+    """(B,) iterations: ceil(T_max * L / M), at least 1; 0 when nothing is free to decode."""
+    if cfg.dynamic_iterations:
+        counts = torch.ceil(cfg.max_iterations * code_lengths.float() / max_tokens).long().clamp(min=1)
+    else:
+        counts = torch.full_like(code_lengths, cfg.max_iterations)
+    return torch.where(free > 0, counts, torch.zeros_like(counts))
+
+
+def filter_logits(logits: torch.Tensor, top_k: float | None, top_p: float | None) -> torch.Tensor:
+    """Set to -inf the logits outside the top-k fraction and outside the top-p nucleus (..., K)."""
+    K = logits.shape[-1]
+    if top_k is not None and top_k < 1.0:
+        k = max(1, int(round(top_k * K)))
+        kth = logits.topk(k, dim=-1).values[..., -1:]
+        logits = logits.masked_fill(logits < kth, float("-inf"))
+    if top_p is not None and top_p < 1.0:
+        sorted_logits, order = logits.sort(dim=-1, descending=True)
+        cumulative = sorted_logits.softmax(-1).cumsum(-1)
+        drop_sorted = (cumulative - sorted_logits.softmax(-1)) >= top_p  # keeps the first code always
+        drop = torch.zeros_like(drop_sorted).scatter(-1, order, drop_sorted)
+        logits = logits.masked_fill(drop, float("-inf"))
+    return logits
+
+
+@torch.no_grad()
+def sample_tokens(
+    model,
+    text,
+    code_lengths: torch.Tensor,
+    cfg: SamplingConfig,
+    *,
+    keep_tokens: torch.Tensor | None = None,
+    keep_mask: torch.Tensor | None = None,
+    no_text: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+    trace: bool = False,
+) -> SampleResult:
+    """Decode codes for a batch.
+
+    model: a MaskedMotionTransformer (eval). text: TextEmbedding of the batch. code_lengths (B,):
+    codes per sample (ceil(frames / 4)). keep_tokens/keep_mask (B, >= max L): codes that are given
+    and never change (editing). no_text (B,) True: decode without text (the unconditional branch).
+    """
+    device = code_lengths.device
+    B = len(code_lengths)
+    K, M_model = model.num_codes, model.cfg.max_tokens
+    mask_id, end_id, pad_id = model.mask_id, model.end_id, model.pad_id
+    if int(code_lengths.max()) > M_model - 1 or int(code_lengths.min()) < 1:
+        raise ValueError(f"code lengths must be in 1..{M_model - 1}, got {code_lengths.tolist()}")
+    M = int(code_lengths.max()) + 1
+    positions = torch.arange(M, device=device)
+    real = positions[None] < code_lengths[:, None]
+    tokens = torch.full((B, M), pad_id, dtype=torch.long, device=device)
+    tokens[real] = mask_id
+    tokens[positions[None] == code_lengths[:, None]] = end_id
+    fixed = torch.zeros(B, M, dtype=torch.bool, device=device)
+    if keep_mask is not None:
+        n = min(M, keep_mask.shape[1])
+        keep = torch.zeros(B, M, dtype=torch.bool, device=device)
+        keep[:, :n] = keep_mask[:, :n].to(device)
+        keep &= real
+        given = torch.zeros(B, M, dtype=torch.long, device=device)
+        given[:, :n] = keep_tokens[:, :n].to(device)
+        tokens = torch.where(keep, given, tokens)
+        fixed = keep
+    free = (real & ~fixed).sum(1)
+    iterations = iteration_counts(code_lengths, free, cfg, M_model)
+    gamma = SCHEDULES[cfg.schedule]
+    no_text = torch.zeros(B, dtype=torch.bool, device=device) if no_text is None else no_text.to(device)
+    guided = cfg.guidance_scale != 1.0
+    record = DecodeTrace() if trace else None
+    passes = int(iterations.max()) if B else 0
+    for step in range(passes):
+        active = step < iterations
+        idx = active.nonzero().squeeze(1)
+        sub = tokens[idx]
+        sentence, words, word_mask = text.sentence[idx], text.words[idx], text.word_mask[idx]
+        drop = no_text[idx]
+        if guided:
+            both = model(
+                torch.cat((sub, sub)), torch.cat((sentence, sentence)), torch.cat((words, words)), torch.cat((word_mask, word_mask)),
+                torch.cat((drop, torch.ones_like(drop))),
+            )
+            cond, uncond = both.chunk(2)
+            logits = torch.where(drop[:, None, None], cond, uncond + cfg.guidance_scale * (cond - uncond))
+        else:
+            logits = model(sub, sentence, words, word_mask, drop)
+        logits = filter_logits(logits.float(), cfg.top_k, cfg.top_p)
+        if cfg.temperature <= 0:
+            sampled = logits.argmax(-1)
+            probs = logits.softmax(-1)
+        else:
+            probs = (logits / cfg.temperature).softmax(-1)
+            sampled = torch.multinomial(probs.view(-1, K), 1, generator=generator).view(sub.shape)
+        confidence = probs.gather(-1, sampled.unsqueeze(-1)).squeeze(-1)
+        masked = sub == mask_id
+        decoded = torch.where(masked, sampled, sub)
+        confidence = torch.where(masked, confidence, torch.full_like(confidence, float("inf")))
+        # Positions still masked after this iteration: ceil(gamma(t / T_b) * F_b).
+        t = (step + 1) / iterations[idx].float()
+        remain = torch.ceil(torch.tensor([gamma(float(x)) for x in t], device=device) * free[idx].float() - 1e-6).long().clamp(min=0)
+        rank = confidence.argsort(dim=1).argsort(dim=1)
+        remask = rank < remain[:, None]
+        decoded = torch.where(remask, torch.full_like(decoded, mask_id), decoded)
+        tokens[idx] = decoded
+        if record is not None:
+            conf_full = torch.full((B, M), float("nan"), device=device)
+            conf_full[idx] = torch.where(masked, confidence, torch.full_like(confidence, float("nan")))
+            record.active.append(active.cpu())
+            record.confidence.append(conf_full.cpu())
+            record.masked.append((tokens == mask_id).cpu())
+            record.tokens.append(tokens.cpu())
+    return SampleResult(tokens, code_lengths, iterations, passes, record)
+
+
+def frames_to_codes(frames: torch.Tensor | int, unit_length: int = 4) -> torch.Tensor:
+    """Codes for a motion of `frames` frames: ceil(frames / unit_length)."""
+    frames = torch.as_tensor(frames)
+    return torch.div(frames + unit_length - 1, unit_length, rounding_mode="floor")
