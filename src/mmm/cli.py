@@ -145,6 +145,142 @@ def cmd_tokenize(args: argparse.Namespace) -> None:
     print(f"caption embeddings: {len(datamodule.caption_cache)} captions ({datamodule.text_encoder.identity})")
 
 
+def _sampling(args: argparse.Namespace):
+    from mmm.generation.sampler import SamplingConfig
+
+    return SamplingConfig(
+        max_iterations=args.iterations, schedule=args.schedule, temperature=args.temperature, top_k=args.top_k,
+        top_p=args.top_p, guidance_scale=args.guidance,
+    )
+
+
+def _load_model(args: argparse.Namespace):
+    from mmm.generation.model import TextToMotion
+
+    return TextToMotion.load(args.model, tracking_uri=args.tracking_uri, output_dir=args.stage2_dir, device=args.device)
+
+
+def _meta(args, model, out, kind: str, extra: dict) -> dict:
+    from dataclasses import asdict
+
+    return {"kind": kind, "seed": args.seed, "model": model.identity, "sampling": asdict(_sampling(args)),
+            "seconds": {k: round(v, 4) for k, v in out.seconds.items()}, "forward_passes": out.forward_passes, **extra}
+
+
+def _parse_keep(text: str) -> list[tuple[int, int]]:
+    ranges = []
+    for part in text.split(","):
+        try:
+            a, b = (int(x) for x in part.split(":"))
+        except ValueError:
+            raise CLIError(f"--keep {text!r}: write frame ranges as START:END[,START:END], e.g. 0:40,150:196") from None
+        ranges.append((a, b))
+    return ranges
+
+
+def _check_texts(texts: list[str]) -> None:
+    for t in texts:
+        if not t or not t.strip():
+            raise CLIError("--text is empty: describe the motion, e.g. --text 'a person walks forward'")
+
+
+def cmd_generate(args: argparse.Namespace) -> None:
+    from mmm.generation.outputs import write_samples
+
+    _check_texts([args.text])
+    model = _load_model(args)
+    if args.length is not None:
+        model.check_frames(args.length, "--length")
+    out = model.generate([args.text] * args.num_samples, [args.length] * args.num_samples if args.length else None, _sampling(args), args.seed, trace=bool(args.trace))
+    samples = [
+        {"features": f, "joints": j, "caption": args.text,
+         "meta": _meta(args, model, out, "generate", {"prompt": args.text, "length_frames": int(f.shape[0]), "sample": k, "iterations": out.iterations[k]})}
+        for k, (f, j) in enumerate(zip(out.features, out.joints))
+    ]
+    folders = write_samples(args.out, samples, model.skeleton, overwrite=args.overwrite)
+    if args.trace:
+        from mmm.generation.trace import plot_trace
+
+        print(f"wrote {plot_trace(out.trace, Path(args.out) / 'decoding_trace.png', sample=0, title=args.text)}")
+    for folder in folders:
+        print(f"wrote {folder}")
+    print(f"{len(folders)} samples in {out.seconds['total']:.2f} s ({out.forward_passes} transformer passes)")
+
+
+def cmd_edit(args: argparse.Namespace) -> None:
+    from mmm.generation.outputs import write_samples
+    from mmm.motion.features import joints_to_features
+
+    keep = _parse_keep(args.keep)
+    if args.text is not None:
+        _check_texts([args.text])
+    if args.kind == "inbetween" and len(keep) < 2:
+        raise CLIError("inbetween keeps a start and an end of the source: --keep 0:40,150:196 (frames)")
+    if args.kind == "outpaint" and len(keep) != 1:
+        raise CLIError("outpaint keeps one middle range and generates around it: --keep 60:140 [--length N --place P]")
+    if args.kind == "complete" and keep[0][0] != 0:
+        raise CLIError("complete keeps the start of the source and generates the rest: --keep 0:80 [--length N]")
+    source = _load_npy(args.source)
+    if source.ndim == 3 and source.shape[1:] in ((22, 3), (21, 3)):
+        source = joints_to_features(source.astype(np.float32))
+    elif not (source.ndim == 2 and source.shape[1] in (263, 251)):
+        raise CLIError(f"{args.source}: shape {source.shape}, expected features (T, 263) or joints (T, 22, 3)")
+    if not np.isfinite(source).all():
+        raise CLIError(f"{args.source}: contains NaN/Inf values")
+    model = _load_model(args)
+    out = model.edit(source.astype(np.float32), keep, args.text, args.length, args.place, _sampling(args), args.seed, args.num_samples)
+    caption = f"{args.kind}: {args.text or '(no text)'}"
+    extra = {"source": str(args.source), "keep_frames": keep, "place": args.place, "prompt": args.text, "kept_codes": out.kept_codes.astype(int).tolist()}
+    samples = [
+        {"features": f, "joints": j, "caption": caption,
+         "meta": _meta(args, model, out, args.kind, {**extra, "length_frames": int(f.shape[0]), "sample": k})}
+        for k, (f, j) in enumerate(zip(out.features, out.joints))
+    ]
+    for folder in write_samples(args.out, samples, model.skeleton, overwrite=args.overwrite):
+        print(f"wrote {folder}")
+
+
+def cmd_generate_long(args: argparse.Namespace) -> None:
+    from mmm.generation.outputs import write_samples
+    from mmm.generation.prompts import split_paragraph
+
+    if bool(args.text) == bool(args.paragraph):
+        raise CLIError("give the prompts either as --text ... --text ... or as one --paragraph '...'")
+    texts = args.text or split_paragraph(args.paragraph)
+    _check_texts(texts)
+    lengths = [int(x) for x in args.lengths.split(",")] if args.lengths else None
+    if lengths is not None and len(lengths) not in (1, len(texts)):
+        raise CLIError(f"--lengths has {len(lengths)} values for {len(texts)} prompts")
+    if lengths is not None and len(lengths) == 1:
+        lengths = lengths * len(texts)
+    model = _load_model(args)
+    for n in lengths or []:
+        model.check_frames(n, "segment length")
+    out = model.generate_long(texts, lengths, _sampling(args), args.seed, args.transition_codes)
+    meta = _meta(args, model, out, "generate-long", {"prompts": texts, "segments_frames": out.segments, "length_frames": int(out.features[0].shape[0])})
+    caption = " / ".join(texts)
+    for folder in write_samples(args.out, [{"features": out.features[0], "joints": out.joints[0], "caption": caption, "meta": meta}], model.skeleton, overwrite=args.overwrite):
+        print(f"wrote {folder}")
+    print(f"{len(texts)} prompts, {out.features[0].shape[0]} frames ({out.features[0].shape[0] / model.fps:.1f} s) in {out.seconds['total']:.2f} s")
+
+
+def _add_generation_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="output folder: one sub-folder per sample")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--model", default=None, help="stage-2 checkpoint, MLflow run id or models:/NAME@ALIAS (default: the newest stage-2 result)")
+    p.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    p.add_argument("--stage2-dir", default="outputs/stage2", help=argparse.SUPPRESS)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--overwrite", action="store_true", help="replace existing sample folders")
+    g = p.add_argument_group("sampling")
+    g.add_argument("--iterations", type=int, default=10, help="T_max (each sample runs ceil(T_max * L / 50))")
+    g.add_argument("--schedule", choices=["cosine", "linear", "square"], default="cosine")
+    g.add_argument("--temperature", type=float, default=1.0)
+    g.add_argument("--top-k", type=float, default=None, help="fraction of the codebook kept, e.g. 0.9")
+    g.add_argument("--top-p", type=float, default=None)
+    g.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (1: none)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mmm", description="MMM: text-to-motion training, generation and tracking")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -194,6 +330,33 @@ def build_parser() -> argparse.ArgumentParser:
     tokenize = sub.add_parser("tokenize", help="tokenize a dataset with a stage-1 model and cache caption embeddings (stage 2's inputs)")
     tokenize.add_argument("overrides", nargs="*", help="stage 2's config keys, e.g. stage1=RUN_ID data=humanml3d")
     tokenize.set_defaults(func=cmd_tokenize)
+
+    gen = sub.add_parser("generate", help="text to motion")
+    gen.add_argument("--text", required=True)
+    gen.add_argument("--length", type=int, default=None, help="frames (40-196 at 20 fps); estimated from the text when left out")
+    gen.add_argument("--num-samples", type=int, default=1)
+    gen.add_argument("--trace", action="store_true", help="also plot the decoding (confidence and mask per iteration)")
+    _add_generation_options(gen)
+    gen.set_defaults(func=cmd_generate)
+
+    edit = sub.add_parser("edit", help="edit a motion: keep some frames, generate the rest")
+    edit.add_argument("kind", choices=["inbetween", "outpaint", "complete"])
+    edit.add_argument("--source", required=True, help="features (T, 263) or joints (T, 22, 3) .npy")
+    edit.add_argument("--keep", required=True, help="source frames to keep: START:END[,START:END]")
+    edit.add_argument("--text", default=None, help="what the generated part shows (none: without text)")
+    edit.add_argument("--length", type=int, default=None, help="output frames (default: the source's)")
+    edit.add_argument("--place", type=int, default=0, help="output frame where the source starts (a multiple of 4)")
+    edit.add_argument("--num-samples", type=int, default=1)
+    _add_generation_options(edit)
+    edit.set_defaults(func=cmd_edit)
+
+    long = sub.add_parser("generate-long", help="one long motion from several prompts or a paragraph")
+    long.add_argument("--text", action="append", help="one per segment, in order")
+    long.add_argument("--paragraph", default=None, help="split into prompts by a deterministic splitter")
+    long.add_argument("--lengths", default=None, help="frames per segment: one value for all, or one per prompt (comma-separated)")
+    long.add_argument("--transition-codes", type=int, default=2, help="codes generated between neighbouring segments")
+    _add_generation_options(long)
+    long.set_defaults(func=cmd_generate_long)
 
     render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
     render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")
