@@ -66,3 +66,26 @@ def write_walker_dataset(root, num_clips: int = 30):
     n_train, n_val = int(num_clips * 0.8), int(num_clips * 0.1)
     write_dataset(root, clips, {"train": ids[:n_train], "val": ids[n_train:n_train + n_val], "test": ids[n_train + n_val:]})
     return root
+
+
+def train_tiny_stage1(root, out):
+    """A 4-step stage-1 run on `root` (MLflow store and outputs under `out`)."""
+    from mmm.training.stage1 import load_stage1_config, train_stage1
+
+    return train_stage1(load_stage1_config([
+        f"data.root={root}", "data.synthesize=null", "data.batch_size=8", "model.tokenizer.width=16", "model.tokenizer.num_codes=32",
+        "trainer.max_steps=4", "trainer.val_check_interval=4", "trainer.enable_progress_bar=false", "callbacks.preview_clips=0",
+        "callbacks.usage_plot=false", f"output_dir={out}/s1", f"logger.tracking_uri=sqlite:///{out}/mlflow.db", f"logger.artifact_root={out}/art",
+    ]))
+
+
+def stage2_overrides(root, out, **extra):
+    """Overrides for a tiny, short stage-2 run on `root` with everything written under `out`."""
+    items = {
+        "data.root": root, "data.synthesize": "null", "data.batch_size": 8, "model.transformer.embed_dim": 32, "model.transformer.num_heads": 2,
+        "model.transformer.num_layers": 2, "trainer.max_steps": 6, "trainer.log_every_n_steps": 1, "trainer.val_check_interval": 3, "trainer.enable_progress_bar": "false",
+        "output_dir": f"{out}/s2", "stage1_output_dir": f"{out}/s1", "token_cache_dir": f"{out}/tokens", "text.cache_dir": f"{out}/text",
+        "logger.tracking_uri": f"sqlite:///{out}/mlflow.db", "logger.artifact_root": f"{out}/art",
+    }
+    items.update(extra)
+    return [f"{k}={v}" for k, v in items.items()]

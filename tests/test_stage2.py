@@ -19,6 +19,8 @@ from mmm.tokenizer.network import TokenizerConfig
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt, sequence_mean
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
+from helpers import stage2_overrides, train_tiny_stage1
+
 TESTS = Path(__file__).resolve().parent
 K = 16
 
@@ -207,32 +209,11 @@ def test_ddp_ranks_agree(tmp_path):
     assert r0["val_loss"] == r1["val_loss"] and r0["val_acc"] == r1["val_acc"]  # reduced across ranks
 
 
-def _train_stage1(root, out):
-    from mmm.training.stage1 import load_stage1_config, train_stage1
-
-    return train_stage1(load_stage1_config([
-        f"data.root={root}", "data.synthesize=null", "data.batch_size=8", "model.tokenizer.width=16", "model.tokenizer.num_codes=32",
-        "trainer.max_steps=4", "trainer.val_check_interval=4", "trainer.enable_progress_bar=false", "callbacks.preview_clips=0",
-        "callbacks.usage_plot=false", f"output_dir={out}/s1", f"logger.tracking_uri=sqlite:///{out}/mlflow.db", f"logger.artifact_root={out}/art",
-    ]))
-
-
-def stage2_overrides(root, out, **extra):
-    items = {
-        "data.root": root, "data.synthesize": "null", "data.batch_size": 8, "model.transformer.embed_dim": 32, "model.transformer.num_heads": 2,
-        "model.transformer.num_layers": 2, "trainer.max_steps": 6, "trainer.log_every_n_steps": 1, "trainer.val_check_interval": 3, "trainer.enable_progress_bar": "false",
-        "output_dir": f"{out}/s2", "stage1_output_dir": f"{out}/s1", "token_cache_dir": f"{out}/tokens", "text.cache_dir": f"{out}/text",
-        "logger.tracking_uri": f"sqlite:///{out}/mlflow.db", "logger.artifact_root": f"{out}/art",
-    }
-    items.update(extra)
-    return [f"{k}={v}" for k, v in items.items()]
-
-
 def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_dataset, tmp_path):
     from mmm.training.stage2 import load_stage2_config, train_stage2
 
-    first = _train_stage1(walker_dataset, tmp_path)
-    newest = _train_stage1(walker_dataset, tmp_path)
+    first = train_tiny_stage1(walker_dataset, tmp_path)
+    newest = train_tiny_stage1(walker_dataset, tmp_path)
     result = train_stage2(load_stage2_config(stage2_overrides(walker_dataset, tmp_path)))
     client = MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     run = client.get_run(result.run_id)
@@ -256,7 +237,7 @@ def test_stage1_references_resolve_to_the_same_model(walker_dataset, tmp_path):
     from mmm.tokenizer.load import ModelNotFound, load_tokenizer, resolve_tokenizer
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    trained = _train_stage1(walker_dataset, tmp_path)
+    trained = train_tiny_stage1(walker_dataset, tmp_path)
     client = MlflowClient(uri)
     client.create_registered_model("mmm-tokenizer")
     version = client.create_model_version("mmm-tokenizer", source=f"runs:/{trained.run_id}/checkpoints", run_id=trained.run_id)

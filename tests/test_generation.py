@@ -1,0 +1,256 @@
+"""Generation and editing: decoding passes, kept codes, seeds, long sequences, the CLI and its errors."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from mmm.cli import main
+from mmm.export.bvh import read_bvh
+from mmm.generation.model import TextToMotion
+from mmm.generation.prompts import split_paragraph
+from mmm.motion.skeleton import T2M_SKELETON
+from mmm.generation.sampler import SamplingConfig, filter_logits, frames_to_codes, iteration_counts, sample_tokens
+from mmm.text import TextEmbedding
+from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.network import TokenizerConfig
+from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
+
+from helpers import stage2_overrides, train_tiny_stage1
+
+K = 32
+
+
+class FakeText(torch.nn.Module):
+    """Deterministic embeddings from the characters of the text (no model to load)."""
+
+    name, identity, sentence_dim, word_dim, max_words = "fake", "fake-0", 6, 5, 8
+
+    def encode(self, texts):
+        words = torch.zeros(len(texts), 4, 5)
+        for i, t in enumerate(texts):
+            g = torch.Generator().manual_seed(sum(map(ord, t)))
+            words[i] = torch.randn(4, 5, generator=g)
+        return TextEmbedding(words.mean(1).repeat(1, 2)[:, :6], words, torch.ones(len(texts), 4, dtype=torch.bool), 0)
+
+
+class CountingTransformer(torch.nn.Module):
+    """Wraps a transformer and records the batch of every forward pass."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner, self.calls = inner, []
+        self.num_codes, self.cfg = inner.num_codes, inner.cfg
+        self.mask_id, self.end_id, self.pad_id = inner.mask_id, inner.end_id, inner.pad_id
+
+    def forward(self, tokens, *args):
+        self.calls.append(tokens.clone())
+        return self.inner(tokens, *args)
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    tok = TokenizerModule(263, TokenizerConfig(width=16, num_codes=K, code_dim=8), OptimConfig(), TokenizerLossConfig())
+    tok.train()
+    tok.tokenizer(torch.randn(8, 64, 263))
+    transformer = MaskedMotionTransformer(tok.tokenizer.codebook.detach(), TransformerConfig(embed_dim=32, num_heads=4, num_layers=2, dropout=0.0), 6, 5)
+    return TextToMotion(tok.eval(), transformer.eval(), FakeText(), {"reference": "test"})
+
+
+def test_schedules_iterations_and_filters():
+    cfg = SamplingConfig()
+    lengths = torch.tensor([49, 30, 10, 1])
+    assert iteration_counts(lengths, lengths, cfg, 50).tolist() == [10, 6, 2, 1]  # ceil(10 L / 50)
+    assert iteration_counts(lengths, torch.tensor([5, 0, 3, 1]), cfg, 50).tolist() == [10, 0, 2, 1]  # nothing free: no pass
+    assert iteration_counts(lengths, lengths, SamplingConfig(dynamic_iterations=False), 50).tolist() == [10] * 4
+    assert frames_to_codes(torch.tensor([40, 41, 196, 195])).tolist() == [10, 11, 49, 49]
+    logits = torch.log(torch.tensor([[0.5, 0.3, 0.15, 0.05]]))
+    assert torch.isinf(filter_logits(logits, 0.5, None)).tolist() == [[False, False, True, True]]
+    assert torch.isinf(filter_logits(logits, None, 0.7)).tolist() == [[False, False, True, True]]  # 0.5 + 0.3 >= 0.7
+    assert torch.isinf(filter_logits(logits, None, 0.4)).tolist() == [[False, True, True, True]]  # always the top code
+    with pytest.raises(ValueError, match="schedule must be one of"):
+        SamplingConfig(schedule="sqrt")
+
+
+def test_forward_passes_follow_each_samples_own_count(model):
+    counter = CountingTransformer(model.transformer)
+    frames = [196, 120, 40, 81]
+    codes = frames_to_codes(torch.tensor(frames))
+    text = model.encode_text(["a", "b", "c", "d"])
+    result = sample_tokens(counter, text, codes, SamplingConfig(), generator=torch.Generator().manual_seed(0))
+    expected = [math.ceil(10 * int(c) / 50) for c in codes]
+    assert result.iterations.tolist() == expected == [10, 6, 2, 5]
+    assert result.forward_passes == len(counter.calls) == max(expected)
+    # Pass t holds exactly the samples that still have iterations left; finished ones are never re-predicted.
+    assert [len(call) for call in counter.calls] == [sum(e > t for e in expected) for t in range(max(expected))]
+    assert (result.tokens[torch.arange(4), codes] == model.transformer.end_id).all()
+    for i, c in enumerate(codes.tolist()):
+        assert bool((result.tokens[i, :c] < K).all())  # every position decoded to a code
+    # Lengths that are not multiples of 4 work and are cut back to their frames.
+    out = model.generate(["a", "b"], frames=[81, 43], seed=0)
+    assert [f.shape for f in out.features] == [(81, 263), (43, 263)] and out.joints[0].shape == (81, 22, 3)
+
+
+def test_a_seed_gives_identical_output(model):
+    a = model.generate(["walk", "jump"], frames=[80, 120], seed=7)
+    b = model.generate(["walk", "jump"], frames=[80, 120], seed=7)
+    c = model.generate(["walk", "jump"], frames=[80, 120], seed=8)
+    assert all(np.array_equal(x, y) for x, y in zip(a.codes, b.codes))
+    assert all(np.array_equal(x, y) for x, y in zip(a.features, b.features))
+    assert not all(np.array_equal(x, y) for x, y in zip(a.codes, c.codes))
+    guided = model.generate(["walk"], frames=[80], sampling=SamplingConfig(guidance_scale=2.0, top_k=0.5, top_p=0.9, temperature=0.7), seed=7)
+    assert guided.forward_passes == 4 and np.isfinite(guided.features[0]).all()  # 20 codes; CFG doubles the batch, not the passes
+
+
+@pytest.mark.parametrize(
+    "keep, text, frames, place",
+    [
+        ([(0, 40), (120, 160)], "a person jumps", None, 0),  # in-betweening
+        ([(40, 120)], "a person waves", None, 0),  # outpainting both sides
+        ([(0, 160)], None, 196, 32),  # outpainting: the whole source placed in a longer motion, no text
+        ([(0, 80)], "then sits", 196, 0),  # completion with text
+        ([(0, 80)], None, None, 0),  # completion without text
+    ],
+)
+def test_kept_codes_never_change(model, keep, text, frames, place):
+    source = model.generate(["source"], frames=[160], seed=1).features[0]
+    source_codes = model.encode_motion(source)
+    for seed in range(3):
+        out = model.edit(source, keep, text, frames=frames, place=place, seed=seed, num_samples=2)
+        kept = out.kept_codes
+        offset = place // 4
+        idx = np.flatnonzero(kept)
+        assert len(idx) > 0 and not kept.all()
+        for codes in out.codes:
+            assert np.array_equal(codes[idx], source_codes[idx - offset])
+        assert out.features[0].shape[0] == (frames or 160)
+
+
+def test_keep_mask_and_edit_errors(model):
+    assert model.keep_mask(10, [(0, 5), (33, 40)]).astype(int).tolist() == [1, 1, 0, 0, 0, 0, 0, 0, 1, 1]
+    source = model.generate(["s"], frames=[80], seed=0).features[0]
+    with pytest.raises(ValueError, match="nothing to generate"):
+        model.edit(source, [(0, 80)])
+    with pytest.raises(ValueError, match="goes past the source's 80 frames"):
+        model.edit(source, [(0, 100)])
+    with pytest.raises(ValueError, match=r"shape \(80, 22\)"):
+        model.edit(np.zeros((80, 22)), [(0, 40)])
+    with pytest.raises(ValueError, match="outside 40..196"):
+        model.generate(["x"], frames=[30])
+    with pytest.raises(ValueError, match="text 0 is empty"):
+        model.generate([" "], frames=[80])
+
+
+def test_long_sequence_in_one_decode(model):
+    counter = CountingTransformer(model.transformer)
+    model.transformer, inner = counter, model.transformer
+    try:
+        out = model.generate_long(["walk", "jump", "wave"], frames=[80, 120, 40], seed=0, transition_codes=2)
+    finally:
+        model.transformer = inner
+    # Segments: one batch of passes (the longest takes ceil(10 * 30 / 50) = 6); transitions: one pass for both.
+    assert len(counter.calls) == 6 + 1 and len(counter.calls[-1]) == 2
+    assert out.segments == [(0, 80), (88, 208), (216, 256)]
+    assert out.features[0].shape == (256, 263)
+    seg = model.generate(["walk", "jump", "wave"], frames=[80, 120, 40], seed=0)
+    assert np.array_equal(out.codes[0][:20], seg.codes[0]) and np.array_equal(out.codes[0][22:52], seg.codes[1])
+
+
+def test_paragraph_splitter():
+    assert split_paragraph("A person walks forward, then turns left. After that they jump twice and finally sit down.") == [
+        "a person walks forward", "a person turns left", "a person jumps twice", "a person sits down"]
+    assert split_paragraph("The man runs; he waves with the right hand") == ["the man runs", "the man waves with the right hand"]
+    with pytest.raises(ValueError, match="no action found"):
+        split_paragraph(" . ; ")
+
+
+def test_trace_plot(model, tmp_path):
+    from mmm.generation.trace import plot_trace
+
+    out = model.generate(["walk"], frames=[120], seed=0, trace=True)
+    assert len(out.trace.masked) == 6 and out.trace.masked[-1].sum() == 0
+    assert [int(m[0].sum()) for m in out.trace.masked] == [math.ceil(math.cos(math.pi / 2 * t / 6) * 30 - 1e-6) for t in range(1, 7)]
+    png = plot_trace(out.trace, tmp_path / "t.png", title="walk")
+    assert png.stat().st_size > 5000
+
+
+@pytest.fixture(scope="module")
+def trained(walker_dataset, tmp_path_factory):
+    from mmm.training.stage2 import load_stage2_config, train_stage2
+
+    out = tmp_path_factory.mktemp("trained")
+    train_tiny_stage1(walker_dataset, out)
+    result = train_stage2(load_stage2_config(stage2_overrides(walker_dataset, out, **{"trainer.max_steps": 4, "trainer.val_check_interval": 4})))
+    return {"out": out, "checkpoint": result.best_checkpoint, "uri": f"sqlite:///{out}/mlflow.db", "walker": walker_dataset}
+
+
+def test_cli_generate_writes_complete_sample_folders(trained, tmp_path, capsys):
+    dest = tmp_path / "gen"
+    code = main(["generate", "--text", "a person walks forward", "--length", "83", "--num-samples", "2", "--seed", "4",
+                 "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(dest), "--trace"])
+    assert code == 0, capsys.readouterr().err
+    for k in (0, 1):
+        folder = dest / str(k)
+        assert {"features.npy", "joints.npy", "motion.gif", "motion.bvh", "meta.json"} <= {p.name for p in folder.iterdir()}
+        features, joints = np.load(folder / "features.npy"), np.load(folder / "joints.npy")
+        assert features.shape == (83, 263) and joints.shape == (83, 22, 3)
+        meta = json.loads((folder / "meta.json").read_text())
+        assert meta["prompt"] == "a person walks forward" and meta["length_frames"] == 83 and meta["seed"] == 4
+        assert meta["model"]["checkpoint"] == trained["checkpoint"] and meta["model"]["text_encoder"].startswith("minilm-")
+        assert meta["iterations"] == 5 and set(meta["seconds"]) >= {"text", "sample", "decode", "total"}
+        bvh = read_bvh(folder / "motion.bvh")
+        assert bvh.num_frames == 83
+        # The BVH encodes the joints with rigid bones: within the deviation it reports.
+        error = np.abs(bvh.positions(list(T2M_SKELETON.joint_names)) - joints).max()
+        assert error <= meta["bvh_max_deviation_m"] + 1e-3
+    assert (dest / "decoding_trace.png").exists()
+    # Same seed, same motion.
+    again = tmp_path / "again"
+    main(["generate", "--text", "a person walks forward", "--length", "83", "--num-samples", "2", "--seed", "4",
+          "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(again)])
+    assert np.array_equal(np.load(dest / "1/features.npy"), np.load(again / "1/features.npy"))
+
+
+def test_cli_edit_and_long(trained, tmp_path, capsys):
+    from mmm.motion.features import recover_from_ric
+
+    source = tmp_path / "source_joints.npy"  # joints (T, 22, 3) work as a source
+    np.save(source, recover_from_ric(np.load(trained["walker"] / "new_joint_vecs/000005.npy")))
+    dest = tmp_path / "edit"
+    assert main(["edit", "inbetween", "--source", str(source), "--keep", "0:40,80:100", "--text", "a person jumps",
+                 "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(dest)]) == 0, capsys.readouterr().err
+    meta = json.loads((dest / "0/meta.json").read_text())
+    assert meta["kind"] == "inbetween" and meta["keep_frames"] == [[0, 40], [80, 100]]
+    assert sum(meta["kept_codes"]) == 10 + 5  # codes 0-9 and 20-24
+    long = tmp_path / "long"
+    assert main(["generate-long", "--paragraph", "A person walks forward, then jumps and finally waves.", "--lengths", "60",
+                 "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(long)]) == 0
+    meta = json.loads((long / "0/meta.json").read_text())
+    assert meta["prompts"] == ["a person walks forward", "a person jumps", "a person waves"]
+    assert np.load(long / "0/features.npy").shape == (60 * 3 + 2 * 8, 263)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["generate", "--text", "  ", "--length", "80"], "--text is empty"),
+        (["generate", "--text", "walk", "--length", "30"], "--length 30 frames is outside 40..196"),
+        (["generate", "--text", "walk", "--length", "80", "--model", "models:/mmm-text2motion@nope"], "models:/mmm-text2motion@nope: no such registered model"),
+        (["edit", "complete", "--source", "BADSOURCE", "--keep", "0:40"], "shape (10, 7), expected features (T, 263) or joints (T, 22, 3)"),
+        (["edit", "inbetween", "--source", "BADSOURCE", "--keep", "0:40"], "inbetween keeps a start and an end"),
+        (["generate-long", "--lengths", "80"], "give the prompts either as --text"),
+    ],
+)
+def test_cli_bad_input_exits_2_and_writes_nothing(trained, tmp_path, capsys, argv, message):
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.zeros((10, 7), np.float32))
+    argv = [str(bad) if a == "BADSOURCE" else a for a in argv]
+    if "--model" not in argv:
+        argv += ["--model", trained["checkpoint"]]
+    dest = tmp_path / "out"
+    assert main(argv + ["--tracking-uri", trained["uri"], "--out", str(dest)]) == 2
+    assert message in capsys.readouterr().err
+    assert not dest.exists()
