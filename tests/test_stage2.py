@@ -223,6 +223,8 @@ def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_da
     assert run.data.params["model.transformer.embed_dim"] == "32"
     assert {"val/loss", "val/acc_masked", "val/acc_unmasked", "train/loss"} <= set(run.data.metrics)
     assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
+    previews = sorted(f.path for f in client.list_artifacts(result.run_id, "previews"))
+    assert previews == ["previews/generation_step0000003.gif", "previews/generation_step0000006.gif"]
     ckpt = torch.load(result.last_checkpoint, weights_only=True)
     assert ckpt["hyper_parameters"]["codebook_shape"] == [32, 32]
     assert ckpt["hyper_parameters"]["stage1"]["run_id"] == newest.run_id

@@ -80,3 +80,42 @@ class CodebookUsagePlot(L.Callback):
             path = usage_histogram_png(counts, Path(tmp) / f"usage_step{trainer.global_step:07d}.png", f"step {trainer.global_step}")
             for lg in loggers:
                 lg.experiment.log_artifact(lg.run_id, str(path), "codebook")
+
+
+class GenerationPreview(L.Callback):
+    """At each validation of stage 2, a few validation captions generated at their reference's
+    length, beside the reference (decoded from its own codes), logged as
+    `previews/generation_step<step>.gif` (rank 0)."""
+
+    def __init__(self, tokenizer, text_encoder, num_captions: int = 3, seed: int = 0, size: int = 240):
+        self.tokenizer, self.text_encoder = tokenizer, text_encoder
+        self.num_captions, self.seed, self.size = num_captions, seed, size
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        batch = getattr(pl_module, "preview_batch", None)
+        if not trainer.is_global_zero or batch is None or trainer.sanity_checking or self.num_captions <= 0:
+            return
+        loggers = _mlflow_loggers(trainer)
+        if not loggers:
+            return
+        from mmm.generation.model import TextToMotion
+        from mmm.render import render_gif
+
+        training = pl_module.transformer.training
+        model = TextToMotion(self.tokenizer, pl_module.transformer, self.text_encoder, {}, device=pl_module.device)
+        try:
+            n = min(self.num_captions, len(batch["captions"]))
+            codes = [batch["tokens"][i, : int(batch["lengths"][i])].numpy() for i in range(n)]
+            frames = [min(max(len(c) * model.unit, model.min_frames), model.max_frames) for c in codes]
+            generated = model.generate(list(batch["captions"][:n]), frames, seed=self.seed)
+            references = [model.to_joints(f) for f in model.decode(codes)]
+        finally:
+            pl_module.transformer.train(training)
+        motions, captions = [], []
+        for i in range(n):
+            motions += [references[i], generated.joints[i]]
+            captions += [f"reference: {batch['captions'][i]}", f"generated: {batch['captions'][i]}"]
+        with tempfile.TemporaryDirectory() as tmp:
+            path = render_gif(motions, Path(tmp) / f"generation_step{trainer.global_step:07d}.gif", captions=captions, size=(self.size, self.size))
+            for lg in loggers:
+                lg.experiment.log_artifact(lg.run_id, str(path), "previews")

@@ -13,6 +13,7 @@ from pathlib import Path
 import lightning as L
 from omegaconf import DictConfig
 
+from mmm.callbacks.previews import GenerationPreview
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig, TokenTextDataModule
 from mmm.tokenizer.load import load_tokenizer
@@ -44,6 +45,7 @@ class TextConfig:
 @dataclass
 class Stage2Callbacks:
     checkpoint: CheckpointConfig = field(default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min"))
+    preview_captions: int = 3  # validation captions generated and rendered at each validation (0: none)
 
 
 @dataclass
@@ -125,7 +127,10 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
             "stage1.identity": source.identity, "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint,
         })
     best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
-    trainer = build_trainer(cfg.trainer, [best, last, RunState()], logger, str(run_dir))
+    callbacks = [best, last, RunState()]
+    if cfg.callbacks.preview_captions > 0:
+        callbacks.append(GenerationPreview(tokenizer, text_encoder, cfg.callbacks.preview_captions, cfg.seed))
+    trainer = build_trainer(cfg.trainer, callbacks, logger, str(run_dir))
     with shared_run_directory(run_dir):
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True)
     paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}

@@ -102,6 +102,7 @@ class MaskedTransformerModule(L.LightningModule):
         self.transformer = MaskedMotionTransformer(codebook, model, sentence_dim, word_dim)
         self.num_codes = codebook.shape[0]
         self.val_loss, self.val_acc_masked, self.val_acc_unmasked = MeanMetric(), MeanMetric(), MeanMetric()
+        self.preview_batch: dict | None = None  # first validation batch, for generation previews
 
     def forward_batch(self, batch: dict, corrupted: Corrupted, drop_text: torch.Tensor | None = None) -> torch.Tensor:
         return self.transformer(corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], drop_text)
@@ -141,6 +142,8 @@ class MaskedTransformerModule(L.LightningModule):
         self.val_acc_masked.update(correct[corrupted.masked].float().mean(), weight=corrupted.masked.sum())
         if bool(unmasked.any()):
             self.val_acc_unmasked.update(correct[unmasked].float().mean(), weight=unmasked.sum())
+        if batch_idx == 0:
+            self.preview_batch = {k: (v.detach().cpu() if torch.is_tensor(v) else v) for k, v in batch.items()}
 
     def on_validation_epoch_end(self) -> None:
         self.log_dict(
