@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test data demo train-stage1 train-stage2 tokenize mlflow-ui clean
+.PHONY: help setup test data demo train-stage1 train-stage2 tokenize bench-train bench-generate mlflow-ui clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
@@ -45,6 +45,12 @@ train-stage2: $(STAMP) ## train the masked transformer on the newest stage-1 res
 
 tokenize: $(STAMP) ## tokenize the dataset with a stage-1 model and cache caption embeddings (ARGS as for train-stage2)
 	$(BIN)/mmm tokenize $(ARGS)
+
+bench-train: $(STAMP) ## training speed and peak memory of both stages (outputs/bench/train_speed.json)
+	$(BIN)/python benchmarks/train_speed.py $(ARGS)
+
+bench-generate: $(STAMP) ## time per sentence against length, AITS and a 10.9-minute motion (outputs/bench/generation_speed.json)
+	$(BIN)/python benchmarks/generation_speed.py $(ARGS)
 
 mlflow-ui: $(STAMP) ## serve the MLflow dashboard for this project's store on http://127.0.0.1:5000
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --default-artifact-root $(CURDIR)/mlartifacts --host 127.0.0.1 --port 5000
