@@ -53,4 +53,4 @@ def test_unknown_group_option_lists_the_choices():
     with pytest.raises(ValueError, match="options: cpu, ddp, ddp_cpu, gpu, multinode"):
         compose("train_stage1", ["trainer=tpu"])
     with pytest.raises(ValueError, match="num_cross_layers=7 must be between 0 and num_layers=6"):
-        to_object(load_stage2_config(["model.transformer.num_cross_layers=7"]))
+        to_object(load_stage2_config(["model.transformer.num_layers=6", "model.transformer.num_cross_layers=7"]))

@@ -254,3 +254,21 @@ def test_cli_bad_input_exits_2_and_writes_nothing(trained, tmp_path, capsys, arg
     assert main(argv + ["--tracking-uri", trained["uri"], "--out", str(dest)]) == 2
     assert message in capsys.readouterr().err
     assert not dest.exists()
+
+
+def test_cli_estimates_the_length_when_none_is_given(trained, tmp_path, capsys):
+    from mmm.training.length import load_length_config, train_length
+
+    out = trained["out"]
+    common = ["--model", trained["checkpoint"], "--tracking-uri", trained["uri"]]
+    assert main(["generate", "--text", "a person jumps", *common, "--length-model", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "a")]) == 2
+    assert "pass --length FRAMES, or train one with `make train-length`" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    result = train_length(load_length_config([
+        f"data.root={trained['walker']}", "data.synthesize=null", "trainer.max_steps=20", "trainer.val_check_interval=10",
+        "trainer.enable_progress_bar=false", f"output_dir={out}/length", f"stage1_output_dir={out}/s1", f"token_cache_dir={out}/tokens",
+        f"text.cache_dir={out}/text", f"logger.tracking_uri={trained['uri']}", f"logger.artifact_root={out}/art",
+    ]))
+    assert main(["generate", "--text", "a person jumps", *common, "--length-model", result.best_checkpoint, "--out", str(tmp_path / "b")]) == 0
+    meta = json.loads((tmp_path / "b/0/meta.json").read_text())
+    assert meta["length_frames"] % 4 == 0 and 40 <= meta["length_frames"] <= 196

@@ -125,6 +125,12 @@ def cmd_train(args: argparse.Namespace) -> None:
         from mmm.training.stage1 import load_stage1_config, train_stage1
 
         result = train_stage1(load_stage1_config(args.overrides), resume=args.resume)
+    elif args.stage == "length":
+        if args.resume:
+            raise CLIError("--resume is not supported for the length estimator (it trains in seconds)")
+        from mmm.training.length import load_length_config, train_length
+
+        result = train_length(load_length_config(args.overrides))
     else:
         from mmm.training.stage2 import load_stage2_config, train_stage2
 
@@ -157,7 +163,7 @@ def _sampling(args: argparse.Namespace):
 def _load_model(args: argparse.Namespace):
     from mmm.generation.model import TextToMotion
 
-    return TextToMotion.load(args.model, tracking_uri=args.tracking_uri, output_dir=args.stage2_dir, device=args.device)
+    return TextToMotion.load(args.model, tracking_uri=args.tracking_uri, output_dir=args.stage2_dir, device=args.device, length_model=args.length_model)
 
 
 def _meta(args, model, out, kind: str, extra: dict) -> dict:
@@ -269,6 +275,7 @@ def _add_generation_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--model", default=None, help="stage-2 checkpoint, MLflow run id or models:/NAME@ALIAS (default: the newest stage-2 result)")
     p.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    p.add_argument("--length-model", default=None, help="length estimator used when no length is given (default: the newest `make train-length` result)")
     p.add_argument("--stage2-dir", default="outputs/stage2", help=argparse.SUPPRESS)
     p.add_argument("--device", default="cpu")
     p.add_argument("--overwrite", action="store_true", help="replace existing sample folders")
@@ -322,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
     preview.set_defaults(func=cmd_data_preview)
 
     train = sub.add_parser("train", help="train a stage; any config key can be overridden as key=value")
-    train.add_argument("stage", choices=["stage1", "stage2"])
+    train.add_argument("stage", choices=["stage1", "stage2", "length"])
     train.add_argument("overrides", nargs="*", help="e.g. trainer.max_steps=500 model=paper data=humanml3d")
     train.add_argument("--resume", default=None, help="'last' (newest run of this stage) or a checkpoint path")
     train.set_defaults(func=cmd_train)

@@ -30,6 +30,7 @@ from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint
 from mmm.transformer.module import MaskedTransformerModule
 
 STAGE2_EXPERIMENT = "mmm-stage2"
+LENGTH_EXPERIMENT = "mmm-length"
 
 
 @dataclass
@@ -49,8 +50,9 @@ class Generated:
 
 
 class TextToMotion:
-    def __init__(self, tokenizer, transformer, text_encoder, identity: dict, length_estimator=None, device: str | torch.device = "cpu"):
+    def __init__(self, tokenizer, transformer, text_encoder, identity: dict, length_estimator=None, device: str | torch.device = "cpu", length_source: tuple | None = None):
         self.device = torch.device(device)
+        self._length_source = length_source  # (reference, tracking uri): loaded on first use
         self.tokenizer = tokenizer.to(self.device).eval()
         self.transformer = transformer.to(self.device).eval()
         self.text_encoder = text_encoder
@@ -71,9 +73,13 @@ class TextToMotion:
         tracking_uri: str = "sqlite:///mlflow.db",
         output_dir: str = "outputs/stage2",
         device: str = "cpu",
-        length_estimator=None,
+        length_model: str | None = None,
     ) -> "TextToMotion":
-        """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS, or the newest stage-2 run."""
+        """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS, or the newest stage-2 run.
+
+        length_model: the length estimator used when no length is given (a reference like the
+        model's; default: the newest `make train-length` result), loaded only when needed.
+        """
         from mmm.text import build_text_encoder
         from mmm.training.common import resolve_tracking_uri
 
@@ -106,7 +112,7 @@ class TextToMotion:
         if encoder.identity != text["identity"]:
             raise ValueError(f"{resolved}: text encoder {encoder.identity} differs from the one it was trained with ({text['identity']})")
         info = {"reference": resolved, "run_id": run_id, "checkpoint": checkpoint, "stage1": stage1, "text_encoder": text["identity"]}
-        return cls(tokenizer, module.transformer, encoder, info, length_estimator, device)
+        return cls(tokenizer, module.transformer, encoder, info, None, device, length_source=(length_model, tracking_uri))
 
     # -- pieces ---------------------------------------------------------------------------------
     def check_frames(self, frames: int, what: str = "length") -> None:
@@ -120,12 +126,31 @@ class TextToMotion:
                 raise ValueError(f"text {i} is empty; give a description, or leave it out for an edit without text")
         return self.text_encoder.encode([t if t else "motion" for t in texts]).to(self.device)
 
+    def _load_length_estimator(self):
+        from mmm.generation.length import load_length_estimator
+        from mmm.resolve import ModelNotFound
+
+        reference, tracking_uri = self._length_source
+        self._length_source = None
+        try:
+            _, checkpoint, _ = resolve_checkpoint(reference, tracking_uri, LENGTH_EXPERIMENT, "outputs/length", "length estimator", "make train-length", "--length-model")
+        except ModelNotFound as e:
+            raise ValueError(f"no length given and no length estimator: pass --length FRAMES, or train one with `make train-length` ({e})") from None
+        estimator = load_length_estimator(checkpoint)
+        trained_with = (estimator.text_encoder or {}).get("identity")
+        if trained_with != self.text_encoder.identity:
+            raise ValueError(f"{checkpoint}: the length estimator was trained on text encoder {trained_with}, this model uses {self.text_encoder.identity}; pass --length FRAMES or --length-model")
+        self.length_estimator = estimator.to(self.device).eval()
+
     def estimate_frames(self, texts: list[str]) -> list[int]:
+        """Lengths (frames) from the text: the median of the estimator's distribution."""
+        if self.length_estimator is None and self._length_source is not None:
+            self._load_length_estimator()
         if self.length_estimator is None:
             raise ValueError("no length given and no length estimator loaded: pass --length FRAMES (or train one with `make train-length`)")
         emb = self.encode_text(texts)
-        codes = self.length_estimator.predict(emb.sentence.to(next(self.length_estimator.parameters()).device))
-        return [int(min(max(c * self.unit, self.min_frames), self.max_frames)) for c in codes.tolist()]
+        codes = self.length_estimator.predict(emb.sentence, mode="median", min_codes=self.min_frames // self.unit)
+        return [int(min(c * self.unit, self.max_frames)) for c in codes.tolist()]
 
     def normalize(self, features: np.ndarray) -> torch.Tensor:
         return (torch.as_tensor(features, dtype=torch.float32, device=self.device) - self.tokenizer.mean) / self.tokenizer.std

@@ -1,0 +1,176 @@
+"""Train the length estimator (`train_length(cfg)`; conf/train_length.yaml).
+
+It reads what stage 2 reads: the dataset's items tokenized by a stage-1 model (`stage1=`: a
+checkpoint, an MLflow run id, a models:/ URI; the newest finished stage-1 run when none is named)
+and the cached caption embeddings of the configured text encoder, both through
+`prepare_stage2_data`. Every caption of an item gives one pair (sentence embedding, the item's
+token count). The run is tracked like the stages: resolved config, per-step loss, validation
+metrics, best/last checkpoints as artifacts, tags naming the text encoder, the data and the
+stage-1 model; it also logs, as `baseline/*`, what always predicting the training set's most
+frequent count (and, for the error in frames, its median count) scores on validation.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import Dataset
+
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig
+from mmm.data.sampling import ResumableDataLoader
+from mmm.generation.length import LengthEstimatorModule, LengthModelConfig, length_metrics
+from mmm.tokenizer.module import OptimConfig
+from mmm.training.common import (
+    CheckpointConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer, checkpoint_callbacks,
+    log_checkpoints, log_config, tag_run,
+)
+from mmm.training.runs import run_directory, shared_run_directory
+from mmm.training.stage2 import Stage2Config, TextConfig, prepare_stage2_data
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LengthCallbacks:
+    checkpoint: CheckpointConfig = field(default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min"))
+
+
+@dataclass
+class LengthConfig:
+    seed: int = 0
+    output_dir: str = "outputs/length"
+    stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
+    stage1_output_dir: str = "outputs/stage1"
+    token_cache_dir: str = "outputs/cache/tokens"
+    data: DataConfig = field(default_factory=DataConfig)
+    text: TextConfig = field(default_factory=TextConfig)
+    model: LengthModelConfig = field(default_factory=LengthModelConfig)
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=20, milestones=[1_000_000]))
+    label_smoothing: float = 0.0
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment="mmm-length"))
+    callbacks: LengthCallbacks = field(default_factory=LengthCallbacks)
+
+
+def load_length_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("train_length", list(overrides), schema=LengthConfig)
+
+
+def stage2_view(cfg_node: DictConfig) -> DictConfig:
+    """The stage-2 config that names the same data, stage-1 model, text encoder and store, with
+    sequences of max_codes tokens plus END: what `prepare_stage2_data` reads."""
+    cfg: LengthConfig = to_object(cfg_node)
+    node = OmegaConf.structured(Stage2Config)
+    shared = {key: OmegaConf.to_container(cfg_node[key], resolve=True) for key in ("data", "text", "logger")}
+    return OmegaConf.merge(node, {
+        "seed": cfg.seed, "stage1": cfg.stage1, "stage1_output_dir": cfg.stage1_output_dir, "token_cache_dir": cfg.token_cache_dir,
+        **shared, "model": {"transformer": {"max_tokens": cfg.model.max_codes + 1}},
+    })
+
+
+class LengthPairs(Dataset):
+    """(sentence embedding, token count) pairs held in memory: {"sentence" (Ds,), "codes" ()}."""
+
+    def __init__(self, sentences: torch.Tensor, codes: torch.Tensor):
+        self.sentences, self.codes = sentences.float(), codes.long()
+
+    def __len__(self) -> int:
+        return len(self.codes)
+
+    def __getitem__(self, index: int) -> dict:
+        index = index % len(self.codes)  # ShardedRandomSampler tags indices with the epoch
+        return {"sentence": self.sentences[index], "codes": self.codes[index]}
+
+
+def build_length_pairs(datamodule, split: str, max_codes: int, chunk: int = 512) -> LengthPairs:
+    """Every caption of every item of `split` with the item's token count (items without a code are
+    left out); the sentence embeddings come from the datamodule's caption cache."""
+    from mmm.data.datasets import TokenTextDataset
+
+    items, _ = datamodule._items(split)
+    codes_of = TokenTextDataset(items, datamodule.tokens, unit_length=datamodule.cfg.unit_length, max_codes=max_codes, augment=False)
+    captions, counts = [], []
+    for item in items:
+        n = len(codes_of.codes(item))
+        if n == 0:
+            continue
+        for caption in item.captions:
+            captions.append(caption.text)
+            counts.append(n)
+    if not captions:
+        raise ValueError(f"{datamodule.root}: no {split} item has a token; the length estimator has nothing to learn from")
+    sentences = torch.cat([datamodule.caption_cache.lookup(captions[i : i + chunk]).sentence for i in range(0, len(captions), chunk)])
+    return LengthPairs(sentences, torch.tensor(counts, dtype=torch.long))
+
+
+def constant_baseline(train: LengthPairs, val: LengthPairs, unit_length: int) -> dict[str, float]:
+    """Validation scores of always predicting the most frequent training count (and its value), and
+    the error of always predicting the median training count (the best constant for that error)."""
+    mode = Counter(train.codes.tolist()).most_common(1)[0][0]
+    median = int(train.codes.median())
+    hits = length_metrics(torch.full_like(val.codes, mode), val.codes, unit_length)
+    median_error = length_metrics(torch.full_like(val.codes, median), val.codes, unit_length)["mae_frames"]
+    return {
+        "baseline/mode_codes": float(mode), **{f"baseline/{k}": float(v.mean()) for k, v in hits.items()},
+        "baseline/median_codes": float(median), "baseline/median_mae_frames": float(median_error.mean()),
+    }
+
+
+def train_length(cfg_node: DictConfig) -> TrainResult:
+    cfg: LengthConfig = to_object(cfg_node)
+    started = time.perf_counter()
+    L.seed_everything(cfg.seed, workers=True)
+    datamodule = prepare_stage2_data(stage2_view(cfg_node))
+    if datamodule.tokens is None:  # prepare_data opens the token cache; setup() would also build stage-2 datasets
+        from mmm.data.tokens import TokenCache
+
+        datamodule.tokens = TokenCache(datamodule._token_folder())
+    source, text_encoder = datamodule.source, datamodule.text_encoder
+    train, val = (build_length_pairs(datamodule, split, cfg.model.max_codes) for split in ("train", "val"))
+    baseline = constant_baseline(train, val, cfg.model.unit_length)
+    log.info("length pairs: %d train, %d val; the most frequent length scores %s", len(train), len(val), baseline)
+
+    stage1 = {"reference": source.reference, "run_id": source.run_id, "identity": source.identity, "checkpoint": source.checkpoint}
+    text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
+    module = LengthEstimatorModule(text_encoder.sentence_dim, cfg.model, cfg.optim, cfg.label_smoothing, text, stage1)
+    run_dir = run_directory(cfg.output_dir)
+    logger = build_logger(cfg.logger)
+    if logger is not None:
+        _ = logger.experiment
+        log_config(logger, cfg_node, resumed=False)
+        tag_run(logger, {
+            "mmm.stage": "length", "stage1.reference": source.reference, "stage1.run_id": source.run_id,
+            "stage1.identity": source.identity, "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint,
+            "length.train_pairs": len(train), "length.val_pairs": len(val),
+        })
+        logger.log_metrics(baseline, step=0)
+    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
+    trainer = build_trainer(cfg.trainer, [best, last, RunState()], logger, str(run_dir))
+    loaders = {
+        "train_dataloaders": ResumableDataLoader(train, cfg.data.batch_size, shuffle=True, seed=cfg.seed, drop_last=len(train) > cfg.data.batch_size),
+        "val_dataloaders": ResumableDataLoader(val, cfg.data.batch_size, shuffle=False, seed=cfg.seed),
+    }
+    fit_started = time.perf_counter()
+    with shared_run_directory(run_dir):
+        trainer.fit(module, **loaders)
+    fit_seconds = time.perf_counter() - fit_started
+    paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}
+    timing = {"time/fit_s": fit_seconds, "time/total_s": time.perf_counter() - started}
+    if logger is not None and trainer.is_global_zero:
+        logger.log_metrics(timing, step=trainer.global_step)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    return TrainResult(
+        run_id=logger.run_id if logger is not None else None,
+        checkpoint_dir=str(run_dir / "checkpoints"),
+        best_checkpoint=paths.get("best") or best.best_model_path or None,
+        last_checkpoint=paths.get("last") or last.best_model_path or None,
+        metrics={**metrics, **baseline, **timing},
+        stopped_early=trainer.global_step < cfg.trainer.max_steps,
+    )
