@@ -33,9 +33,17 @@ $(DATA)/all.txt: | $(STAMP)
 
 data: $(DATA)/all.txt ## generate the synthetic default dataset into $(DATA) (once; `make clean` removes it)
 
-demo: $(DATA)/all.txt ## the main job on the embedded default: synthetic data, then rendered clips in outputs/demo
-	$(BIN)/mmm data preview $(DATA) --out outputs/demo --count 12
-	@echo "Look at outputs/demo/*.gif and outputs/demo/contact_sheet.png"
+DEMO_PROMPTS := "a person walks forward slowly" "someone jumps twice" "a person waves with the right hand" "the person squats down two times"
+
+demo: $(DATA)/all.txt ## the main job on the embedded default: data, both stages (tiny), length estimator, generated clips in outputs/demo
+	$(BIN)/mmm data preview $(DATA) --out outputs/demo/dataset --count 12
+	$(BIN)/mmm train stage1 trainer.enable_progress_bar=false
+	$(BIN)/mmm train stage2 trainer.enable_progress_bar=false
+	$(BIN)/mmm train length trainer.enable_progress_bar=false
+	@i=0; for prompt in $(DEMO_PROMPTS); do \
+		$(BIN)/mmm generate --text "$$prompt" --num-samples 2 --seed 0 --overwrite --out outputs/demo/generated/$$i || exit 1; i=$$((i+1)); \
+	done
+	@echo "Look at: outputs/demo/dataset/contact_sheet.png, outputs/demo/generated/*/*/motion.gif, and the runs in the MLflow dashboard (make mlflow-ui)"
 
 train-stage1: $(STAMP) ## train the tokenizer (tiny size on the synthetic data by default); ARGS="key=value ..."
 	$(BIN)/mmm train stage1 $(ARGS)
