@@ -1,0 +1,1 @@
+"""Evaluation: text-motion evaluators, metrics and speed measurements."""

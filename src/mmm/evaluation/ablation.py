@@ -1,0 +1,188 @@
+"""The supplementary's ablation tables as runnable sweeps (`mmm ablate KIND [key=value ...]`).
+
+    reset         Table 8   codebook reset every N steps            (trains stage 1 and stage 2 per value)
+    cross-layers  Table 9   cross-attention layers of the total      (trains stage 2 per value)
+    schedule      Table 10  mask schedule x iterations               (inference only)
+    temperature   Table 11  sampling temperature                     (inference only)
+    topk          Table 12  top-k as a fraction of the codebook      (inference only)
+    topp          Table 13  top-p                                    (inference only)
+
+Each sweep is a parent MLflow run (experiment `mmm-ablations`) with one nested run per setting
+holding the protocol's figures; training runs of a setting go to their stage's experiment, tagged
+with the parent. The table (markdown and CSV, the paper's columns) and a plot are written to
+`<output_dir>/<kind>/` and logged to the parent run. The grids in conf/ablate.yaml are reduced
+for a CPU; the paper's grids are in the comments there.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig
+from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.generation.sampler import SamplingConfig
+from mmm.training.common import TrackingConfig, resolve_tracking_uri
+
+log = logging.getLogger(__name__)
+
+KINDS = {
+    "reset": (8, "codebook reset every N iterations"),
+    "cross-layers": (9, "cross-attention layers"),
+    "schedule": (10, "mask schedule and iterations"),
+    "temperature": (11, "temperature"),
+    "topk": (12, "top-k (fraction of the codebook)"),
+    "topp": (13, "top-p"),
+}
+
+
+@dataclass
+class Grids:
+    reset: list[int] = field(default_factory=lambda: [1, 20, 80])
+    cross_layers: list[int] = field(default_factory=lambda: [0, 1, 2, 4])
+    schedules: list[str] = field(default_factory=lambda: ["cosine", "linear", "square"])
+    iterations: list[int] = field(default_factory=lambda: [5, 10, 15])
+    temperature: list[float] = field(default_factory=lambda: [0.5, 1.0, 1.2, 1.5])
+    topk: list[float] = field(default_factory=lambda: [0.1, 0.5, 0.9, 1.0])
+    topp: list[float] = field(default_factory=lambda: [0.1, 0.5, 0.9, 1.0])
+
+
+@dataclass
+class AblationConfig:
+    output_dir: str = "outputs/ablations"
+    text2motion: str | None = None  # the model the inference sweeps use (default: the newest stage-2 result)
+    stage1: str | None = None  # the tokenizer the cross-layers sweep trains on (default: the newest)
+    evaluator: str | None = None  # see mmm.evaluation.evaluators.load_evaluator
+    stage1_overrides: list[str] = field(default_factory=list)  # applied to the training runs of a sweep
+    stage2_overrides: list[str] = field(default_factory=list)
+    device: str = "cpu"
+    grids: Grids = field(default_factory=Grids)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+
+
+def load_ablation_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("ablate", list(overrides), schema=AblationConfig)
+
+
+def settings(kind: str, grids: Grids) -> list[tuple[str, dict]]:
+    """(row label, what changes) for each setting of a sweep."""
+    if kind == "reset":
+        return [(f"reset every {n}", {"stage1": [f"callbacks.reset_every_n_steps={n}"]}) for n in grids.reset]
+    if kind == "cross-layers":
+        return [(f"{n} cross-attention layers", {"stage2": [f"model.transformer.num_cross_layers={n}"]}) for n in grids.cross_layers]
+    if kind == "schedule":
+        return [(f"{s}, {t} iterations", {"sampling": {"schedule": s, "max_iterations": t}}) for s in grids.schedules for t in grids.iterations]
+    if kind == "temperature":
+        return [(f"temperature {t:g}", {"sampling": {"temperature": t}}) for t in grids.temperature]
+    if kind == "topk":
+        return [(f"top-k {round(k * 100)}%", {"sampling": {"top_k": k}}) for k in grids.topk]
+    if kind == "topp":
+        return [(f"top-p {p:g}", {"sampling": {"top_p": p}}) for p in grids.topp]
+    raise ValueError(f"unknown ablation {kind!r}; choose one of {', '.join(KINDS)}")
+
+
+def _train_models(change: dict, cfg: AblationConfig, parent_run_id: str):
+    """Train what a training sweep's setting changes; returns the stage-2 checkpoint."""
+    from mmm.training.stage1 import load_stage1_config, train_stage1
+    from mmm.training.stage2 import load_stage2_config, train_stage2
+
+    tracking = [f"logger.tracking_uri={cfg.logger.tracking_uri}", f"logger.artifact_root={cfg.logger.artifact_root}", "trainer.enable_progress_bar=false"]
+    stage1 = cfg.stage1
+    if "stage1" in change:
+        result = train_stage1(load_stage1_config([*tracking, *cfg.stage1_overrides, *change["stage1"], f"logger.run_name=ablation-{parent_run_id[:8]}"]))
+        stage1 = result.best_checkpoint
+    stage1_option = [f"stage1={stage1}"] if stage1 else []
+    result = train_stage2(load_stage2_config([*tracking, *cfg.stage2_overrides, *stage1_option, *change.get("stage2", []), f"logger.run_name=ablation-{parent_run_id[:8]}"]))
+    return result.best_checkpoint
+
+
+def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
+    """Run a sweep; returns {"rows": {label: results}, "table": markdown, "files": [...]}."""
+    import mlflow
+
+    from mmm.data.humanml3d import load_items, load_stats
+    from mmm.evaluation.evaluators import load_evaluator
+    from mmm.generation.model import TextToMotion
+
+    cfg: AblationConfig = to_object(cfg_node)
+    table_no, title = KINDS[kind] if kind in KINDS else (None, None)
+    rows_spec = settings(kind, cfg.grids)
+    tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
+    mlflow.set_tracking_uri(tracking_uri)
+    experiment = mlflow.get_experiment_by_name("mmm-ablations")
+    experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment("mmm-ablations", artifact_location=Path(cfg.logger.artifact_root).resolve().as_uri())
+    items, _ = load_items(cfg.data.root, "test", feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
+                          length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
+    mean, std = load_stats(cfg.data.root, cfg.data.feature_dim)
+    evaluator = load_evaluator(cfg.evaluator, tracking_uri, device=cfg.device)
+    out_dir = Path(cfg.output_dir) / kind
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows: dict[str, dict] = {}
+    with mlflow.start_run(experiment_id=experiment_id, run_name=f"ablation-{kind}") as parent:
+        mlflow.set_tags({"mmm.ablation": kind, "paper.table": str(table_no), "evaluator": evaluator.identity})
+        mlflow.log_params({"kind": kind, "settings": json.dumps([label for label, _ in rows_spec])[:500], "replications": cfg.protocol.replications})
+        shared_model = None
+        for label, change in rows_spec:
+            with mlflow.start_run(experiment_id=experiment_id, run_name=label, nested=True):
+                if "sampling" in change:
+                    shared_model = shared_model or TextToMotion.load(cfg.text2motion, tracking_uri, device=cfg.device)
+                    model = shared_model
+                    sampling = SamplingConfig(**{**asdict(cfg.protocol.sampling), **change["sampling"]})
+                else:
+                    checkpoint = _train_models(change, cfg, parent.info.run_id)
+                    model = TextToMotion.load(checkpoint, tracking_uri, device=cfg.device)
+                    sampling = cfg.protocol.sampling
+                protocol = ProtocolConfig(**{**asdict(cfg.protocol), "sampling": sampling})
+                result = evaluate_text_to_motion(model, evaluator, items, mean, std, protocol)
+                rows[label] = result["generated"]
+                mlflow.log_params({"setting": label, **{f"change.{k}": str(v)[:200] for k, v in change.items()}, "model": model.identity.get("reference")})
+                mlflow.log_metrics({m: v[0] for m, v in result["generated"].items() if not math.isnan(v[0])})
+                mlflow.log_metrics({f"{m}_ci": v[1] for m, v in result["generated"].items() if not math.isnan(v[0])})
+        table = results_table(rows, f"Table {table_no} ({title}), {cfg.protocol.replications} replications")
+        files = write_outputs(rows, table, out_dir, title)
+        for path in files:
+            mlflow.log_artifact(str(path))
+    return {"rows": rows, "table": table, "files": [str(p) for p in files]}
+
+
+def write_outputs(rows: dict[str, dict], table: str, out_dir: Path, title: str) -> list[Path]:
+    md = out_dir / "table.md"
+    md.write_text(table + "\n")
+    path = out_dir / "table.csv"
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["setting", *[f"{m}{suffix}" for m in METRICS for suffix in ("", "_ci")]])
+        for label, row in rows.items():
+            writer.writerow([label, *[f"{row[m][i]:.5f}" if m in row else "" for m in METRICS for i in (0, 1)]])
+    return [md, path, plot_rows(rows, out_dir / "plot.png", title)]
+
+
+def plot_rows(rows: dict[str, dict], path: Path, title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(rows)
+    shown = [("top1", "R-Precision top-1"), ("fid", "FID"), ("matching_score", "MM-Dist"), ("multimodality", "MultiModality")]
+    fig, axes = plt.subplots(1, len(shown), figsize=(3.2 * len(shown), 3.2), dpi=110)
+    for ax, (metric, name) in zip(axes, shown):
+        means = [rows[lb][metric][0] for lb in labels]
+        errs = [rows[lb][metric][1] for lb in labels]
+        ax.errorbar(range(len(labels)), means, yerr=errs, marker="o", capsize=3)
+        ax.set_xticks(range(len(labels)), labels, rotation=60, ha="right", fontsize=7)
+        ax.set_title(name, fontsize=9)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

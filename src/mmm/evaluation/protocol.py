@@ -1,0 +1,161 @@
+"""The standard text-to-motion evaluation protocol (evaluation.md), for any embedding evaluator.
+
+Per replication (20 by default): the test split shuffled into batches of 32 (drop_last), one
+random caption per item, the length cut to a multiple of 4 (one unit shorter with probability
+1/3), a motion generated at that length for the caption; then R-Precision top-1/2/3 and MM-Dist
+(each text against the motion of its batch), FID (generated against real embeddings) and
+Diversity. MultiModality: the first `mm_texts` items, each generated `mm_generations` times.
+Each figure is reported as mean ± 1.96·std/sqrt(n) (population std) over the replications, for
+the generated motions and for the real ones (the reference row).
+
+An evaluator is anything with `embed_texts(captions: list[Caption]) -> (B, E)` and
+`embed_motions(features (B, T, D) un-normalized, lengths (B,)) -> (B, E)`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from mmm.data.datasets import TextMotionDataset
+from mmm.data.humanml3d import MotionItem
+from mmm.evaluation.metrics import diversity, fid, matching_score, multimodality, r_precision_hits
+from mmm.generation.sampler import SamplingConfig
+
+log = logging.getLogger(__name__)
+
+METRICS = ("top1", "top2", "top3", "fid", "matching_score", "diversity", "multimodality")
+
+
+@dataclass
+class ProtocolConfig:
+    replications: int = 20
+    batch_size: int = 32
+    diversity_times: int = 300
+    mm_texts: int = 100
+    mm_generations: int = 30
+    mm_times: int = 10
+    max_batches: int | None = None  # cap per replication (quick runs on a CPU); None: the whole split
+    seed: int = 0
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+
+
+def interval(values: list[float]) -> tuple[float, float]:
+    """(mean, 1.96 · std / sqrt(n)) with the population std, as the protocol reports."""
+    arr = np.asarray(values, dtype=np.float64)
+    return float(arr.mean()), float(1.96 * arr.std() / math.sqrt(len(arr))) if len(arr) > 1 else 0.0
+
+
+def _batches(dataset: TextMotionDataset, batch_size: int, seed: int, max_batches: int | None):
+    order = torch.randperm(len(dataset), generator=torch.Generator().manual_seed(seed)).tolist()
+    count = len(order) // batch_size
+    if max_batches is not None:
+        count = min(count, max_batches)
+    for b in range(count):
+        yield [dataset[order[b * batch_size + k] + seed * len(dataset)] for k in range(batch_size)]
+
+
+def _caption_of(item: MotionItem, text: str):
+    return next(c for c in item.captions if c.text == text)
+
+
+@torch.no_grad()
+def evaluate_text_to_motion(model, evaluator, items: list[MotionItem], mean: np.ndarray, std: np.ndarray, cfg: ProtocolConfig, progress: bool = True) -> dict:
+    """Replicated protocol for a TextToMotion `model`; returns {"generated": {metric: (mean, ci)},
+    "real": {...}, "replications": [...per replication dicts...]}."""
+    if len(items) < cfg.batch_size:
+        raise ValueError(f"the split has {len(items)} items, fewer than one batch of {cfg.batch_size}")
+    by_name = {item.name: item for item in items}
+    rows = []
+    for rep in tqdm(range(cfg.replications), desc="evaluation replications", disable=not progress):
+        seed = cfg.seed * 1000 + rep
+        dataset = TextMotionDataset(items, mean, std, max_length=model.max_frames, unit_length=model.unit, random_crop=True, seed=seed)
+        texts, real, gen = [], [], []
+        for batch in _batches(dataset, cfg.batch_size, seed, cfg.max_batches):
+            captions = [_caption_of(by_name[b["name"]], b["caption"]) for b in batch]
+            lengths = torch.tensor([b["length"] for b in batch])
+            features = torch.stack([torch.as_tensor(b["motion"].numpy() * std + mean) for b in _pad(batch)])
+            out = model.generate([c.text for c in captions], lengths.tolist(), cfg.sampling, seed=seed * 7919 + len(texts), check_lengths=False)
+            generated = torch.from_numpy(_stack(out.features, features.shape[1]))
+            texts.append(evaluator.embed_texts(captions).cpu())
+            real.append(evaluator.embed_motions(features.float(), lengths).cpu())
+            gen.append(evaluator.embed_motions(generated.float(), lengths).cpu())
+        rows.append(_score(texts, real, gen, cfg, seed))
+    mm = _multimodality(model, evaluator, items, cfg, progress)
+    result = {"generated": {}, "real": {}, "replications": rows}
+    for which in ("generated", "real"):
+        for metric in ("top1", "top2", "top3", "fid", "matching_score", "diversity"):
+            result[which][metric] = interval([r[which][metric] for r in rows])
+    result["generated"]["multimodality"] = mm
+    return result
+
+
+def _pad(batch: list[dict]) -> list[dict]:
+    longest = max(b["length"] for b in batch)
+    out = []
+    for b in batch:
+        m = b["motion"]
+        if m.shape[0] < longest:
+            m = torch.cat((m, torch.zeros(longest - m.shape[0], m.shape[1])))
+        out.append({**b, "motion": m})
+    return out
+
+
+def _stack(features: list[np.ndarray], T: int) -> np.ndarray:
+    out = np.zeros((len(features), T, features[0].shape[1]), np.float32)
+    for i, f in enumerate(features):
+        out[i, : f.shape[0]] = f
+    return out
+
+
+def _score(texts, real, gen, cfg: ProtocolConfig, seed: int) -> dict:
+    generator = torch.Generator().manual_seed(seed)
+    t, r, g = torch.cat(texts), torch.cat(real), torch.cat(gen)
+    row = {}
+    for which, motions in (("real", r), ("generated", g)):
+        hits = sum(r_precision_hits(tb, mb, 3) for tb, mb in zip(texts, real if which == "real" else gen))
+        n = sum(len(tb) for tb in texts)
+        row[which] = {
+            "top1": float(hits[0]) / n, "top2": float(hits[1]) / n, "top3": float(hits[2]) / n,
+            "matching_score": float(matching_score(t, motions)),
+            "fid": float(fid(r, motions)),
+            "diversity": float(diversity(motions, min(cfg.diversity_times, len(motions)), generator)),
+        }
+    return row
+
+
+def _multimodality(model, evaluator, items, cfg: ProtocolConfig, progress: bool) -> tuple[float, float]:
+    """Mean and interval over replications of MultiModality on the first mm_texts items."""
+    if cfg.mm_texts <= 0 or cfg.mm_generations < 2:
+        return (float("nan"), 0.0)
+    chosen = items[: cfg.mm_texts]
+    values = []
+    for rep in range(cfg.replications):
+        embeddings = []
+        for k, item in enumerate(chosen):
+            frames = min(item.length, model.max_frames) // model.unit * model.unit
+            out = model.generate([item.captions[0].text] * cfg.mm_generations, [frames] * cfg.mm_generations, cfg.sampling,
+                                 seed=cfg.seed * 100_003 + rep * 1009 + k, check_lengths=False)
+            lengths = torch.full((cfg.mm_generations,), frames)
+            embeddings.append(evaluator.embed_motions(torch.from_numpy(np.stack(out.features)).float(), lengths).cpu())
+        generator = torch.Generator().manual_seed(cfg.seed * 31 + rep)
+        values.append(float(multimodality(torch.stack(embeddings), min(cfg.mm_times, cfg.mm_generations), generator)))
+    return interval(values)
+
+
+def results_table(results: dict[str, dict], title: str = "") -> str:
+    """Markdown table in the paper's layout: one row per entry, mean ± interval per metric."""
+    head = "| | R-Precision top-1 | top-2 | top-3 | FID | MM-Dist | Diversity | MultiModality |"
+    lines = ([f"**{title}**", ""] if title else []) + [head, "|---|---|---|---|---|---|---|---|"]
+    for name, row in results.items():
+        cells = []
+        for metric in METRICS:
+            value = row.get(metric)
+            cells.append("-" if value is None or (isinstance(value, tuple) and math.isnan(value[0])) else f"{value[0]:.3f} ± {value[1]:.3f}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
