@@ -11,10 +11,10 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test data demo train-stage1 train-stage2 train-length tokenize bench-train bench-generate mlflow-ui clean
+.PHONY: help setup test data demo train-stage1 train-stage2 train-length tokenize bench-train bench-generate bench evaluate train-evaluator mlflow-ui clean
 
 help: ## list the targets
-	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
+	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -62,6 +62,17 @@ bench-train: $(STAMP) ## training speed and peak memory of both stages (outputs/
 
 bench-generate: $(STAMP) ## time per sentence against length, AITS and a 10.9-minute motion (outputs/bench/generation_speed.json)
 	$(BIN)/python benchmarks/generation_speed.py $(ARGS)
+
+bench: bench-train bench-generate ## all speed measurements (training and generation), JSON and plots in outputs/bench/
+
+train-evaluator: $(STAMP) ## train the own text-motion evaluator (contrastive), register it in MLflow
+	$(BIN)/mmm train evaluator $(ARGS)
+
+evaluate: $(STAMP) ## the protocol (20 replications), reconstruction metrics and prompt adherence of the newest models (ARGS="key=value ...")
+	$(BIN)/mmm evaluate $(ARGS)
+
+ablate-%: $(STAMP) ## an ablation table as a sweep: ablate-reset|cross-layers|schedule|temperature|topk|topp (Tables 8-13)
+	$(BIN)/mmm ablate $* $(ARGS)
 
 mlflow-ui: $(STAMP) ## serve the MLflow dashboard for this project's store on http://127.0.0.1:5000
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --default-artifact-root $(CURDIR)/mlartifacts --host 127.0.0.1 --port 5000

@@ -64,7 +64,7 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", default=["tiny"])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--lengths", default="40,60,80,100,120,140,160,180,196")
-    parser.add_argument("--batches", default="1,32")
+    parser.add_argument("--batches", default="1,32,128")
     parser.add_argument("--long-minutes", type=float, default=10.873, help="0 skips the long sequence")
     parser.add_argument("--no-aits", action="store_true", help="skip the AITS spread")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")

@@ -26,3 +26,15 @@ def walker_dataset(tmp_path_factory):
     from helpers import write_walker_dataset
 
     return write_walker_dataset(tmp_path_factory.mktemp("walkers") / "ds")
+
+
+@pytest.fixture(scope="session")
+def trained(walker_dataset, tmp_path_factory):
+    """Tiny stage-1 and stage-2 models trained for a few steps on the walker dataset (shared)."""
+    from helpers import stage2_overrides, train_tiny_stage1
+    from mmm.training.stage2 import load_stage2_config, train_stage2
+
+    out = tmp_path_factory.mktemp("trained")
+    train_tiny_stage1(walker_dataset, out)
+    result = train_stage2(load_stage2_config(stage2_overrides(walker_dataset, out, **{"trainer.max_steps": 4, "trainer.val_check_interval": 4})))
+    return {"out": out, "checkpoint": result.best_checkpoint, "uri": f"sqlite:///{out}/mlflow.db", "walker": walker_dataset}

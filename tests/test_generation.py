@@ -18,7 +18,6 @@ from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModu
 from mmm.tokenizer.network import TokenizerConfig
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
-from helpers import stage2_overrides, train_tiny_stage1
 
 K = 32
 
@@ -175,16 +174,6 @@ def test_trace_plot(model, tmp_path):
     assert [int(m[0].sum()) for m in out.trace.masked] == [math.ceil(math.cos(math.pi / 2 * t / 6) * 30 - 1e-6) for t in range(1, 7)]
     png = plot_trace(out.trace, tmp_path / "t.png", title="walk")
     assert png.stat().st_size > 5000
-
-
-@pytest.fixture(scope="module")
-def trained(walker_dataset, tmp_path_factory):
-    from mmm.training.stage2 import load_stage2_config, train_stage2
-
-    out = tmp_path_factory.mktemp("trained")
-    train_tiny_stage1(walker_dataset, out)
-    result = train_stage2(load_stage2_config(stage2_overrides(walker_dataset, out, **{"trainer.max_steps": 4, "trainer.val_check_interval": 4})))
-    return {"out": out, "checkpoint": result.best_checkpoint, "uri": f"sqlite:///{out}/mlflow.db", "walker": walker_dataset}
 
 
 def test_cli_generate_writes_complete_sample_folders(trained, tmp_path, capsys):

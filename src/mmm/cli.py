@@ -131,6 +131,12 @@ def cmd_train(args: argparse.Namespace) -> None:
         from mmm.training.length import load_length_config, train_length
 
         result = train_length(load_length_config(args.overrides))
+    elif args.stage == "evaluator":
+        if args.resume:
+            raise CLIError("--resume is not supported for the evaluator (it trains in a few minutes)")
+        from mmm.training.evaluator import load_evaluator_config, train_evaluator
+
+        result = train_evaluator(load_evaluator_config(args.overrides))
     else:
         from mmm.training.stage2 import load_stage2_config, train_stage2
 
@@ -141,6 +147,9 @@ def cmd_train(args: argparse.Namespace) -> None:
     print(f"checkpoints: best {result.best_checkpoint}, last {result.last_checkpoint}")
     shown = {k: v for k, v in sorted(result.metrics.items()) if k.startswith("val/")}
     print("validation: " + ", ".join(f"{k}={v:.4g}" for k, v in shown.items()))
+    if getattr(result, "model_version", None):
+        print("test: " + ", ".join(f"{k}={v:.4g}" for k, v in sorted(result.metrics.items()) if k.startswith("test/r_precision") or k == "test/matching_distance"))
+        print(f"registered: models:/{result.registered_model}/{result.model_version}")
 
 
 def cmd_tokenize(args: argparse.Namespace) -> None:
@@ -149,6 +158,24 @@ def cmd_tokenize(args: argparse.Namespace) -> None:
     datamodule = prepare_stage2_data(load_stage2_config(args.overrides))
     print(f"tokens: {datamodule.tokens.folder} ({len(datamodule.tokens)} motions)")
     print(f"caption embeddings: {len(datamodule.caption_cache)} captions ({datamodule.text_encoder.identity})")
+
+
+def cmd_evaluate(args: argparse.Namespace) -> None:
+    from mmm.evaluation.run import evaluate, load_evaluate_config
+
+    results = evaluate(load_evaluate_config(args.overrides))
+    print(results["table"])
+    if results.get("run_id"):
+        print(f"MLflow run: {results['run_id']} (experiment mmm-evaluation)")
+
+
+def cmd_ablate(args: argparse.Namespace) -> None:
+    from mmm.evaluation.ablation import load_ablation_config, run_ablation
+
+    result = run_ablation(args.kind, load_ablation_config(args.overrides))
+    print(result["table"])
+    for path in result["files"]:
+        print(f"wrote {path}")
 
 
 def _sampling(args: argparse.Namespace):
@@ -329,7 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
     preview.set_defaults(func=cmd_data_preview)
 
     train = sub.add_parser("train", help="train a stage; any config key can be overridden as key=value")
-    train.add_argument("stage", choices=["stage1", "stage2", "length"])
+    train.add_argument("stage", choices=["stage1", "stage2", "length", "evaluator"])
     train.add_argument("overrides", nargs="*", help="e.g. trainer.max_steps=500 model=paper data=humanml3d")
     train.add_argument("--resume", default=None, help="'last' (newest run of this stage) or a checkpoint path")
     train.set_defaults(func=cmd_train)
@@ -364,6 +391,15 @@ def build_parser() -> argparse.ArgumentParser:
     long.add_argument("--transition-codes", type=int, default=2, help="codes generated between neighbouring segments")
     _add_generation_options(long)
     long.set_defaults(func=cmd_generate_long)
+
+    evaluate = sub.add_parser("evaluate", help="the evaluation protocol, reconstruction metrics and prompt adherence, logged to MLflow")
+    evaluate.add_argument("overrides", nargs="*", help="e.g. text2motion=RUN_ID protocol.replications=5 evaluator.reference=t2m:/ckpt/t2m")
+    evaluate.set_defaults(func=cmd_evaluate)
+
+    ablate = sub.add_parser("ablate", help="the supplementary's ablation tables (8-13) as sweeps")
+    ablate.add_argument("kind", choices=["reset", "cross-layers", "schedule", "temperature", "topk", "topp"])
+    ablate.add_argument("overrides", nargs="*", help="e.g. grids.temperature=[0.5,1.0] protocol.replications=5")
+    ablate.set_defaults(func=cmd_ablate)
 
     render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
     render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")

@@ -22,8 +22,8 @@ def tensors_fingerprint(state: dict[str, torch.Tensor], prefix: str = "") -> str
         t = state[name]
         if not isinstance(t, torch.Tensor):
             continue
-        t = t.detach().cpu().contiguous()
-        h.update(f"{name}:{tuple(t.shape)}:{t.dtype}".encode())
+        t = t.detach().cpu().contiguous().reshape(-1)  # 0-d tensors cannot be viewed as bytes
+        h.update(f"{name}:{tuple(state[name].shape)}:{t.dtype}".encode())
         h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
     return h.hexdigest()[:16]
 

@@ -63,6 +63,7 @@ class AblationConfig:
     stage1_overrides: list[str] = field(default_factory=list)  # applied to the training runs of a sweep
     stage2_overrides: list[str] = field(default_factory=list)
     device: str = "cpu"
+    split: str = "test"
     grids: Grids = field(default_factory=Grids)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -120,7 +121,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     mlflow.set_tracking_uri(tracking_uri)
     experiment = mlflow.get_experiment_by_name("mmm-ablations")
     experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment("mmm-ablations", artifact_location=Path(cfg.logger.artifact_root).resolve().as_uri())
-    items, _ = load_items(cfg.data.root, "test", feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
+    items, _ = load_items(cfg.data.root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
                           length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
     mean, std = load_stats(cfg.data.root, cfg.data.feature_dim)
     evaluator = load_evaluator(cfg.evaluator, tracking_uri, device=cfg.device)

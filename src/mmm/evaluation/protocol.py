@@ -52,12 +52,14 @@ def interval(values: list[float]) -> tuple[float, float]:
 
 
 def _batches(dataset: TextMotionDataset, batch_size: int, seed: int, max_batches: int | None):
+    """Shuffled batches (drop_last) of (item, sample) pairs."""
     order = torch.randperm(len(dataset), generator=torch.Generator().manual_seed(seed)).tolist()
     count = len(order) // batch_size
     if max_batches is not None:
         count = min(count, max_batches)
     for b in range(count):
-        yield [dataset[order[b * batch_size + k] + seed * len(dataset)] for k in range(batch_size)]
+        indices = order[b * batch_size : (b + 1) * batch_size]
+        yield [(dataset.items[i], dataset[i + seed * len(dataset)]) for i in indices]
 
 
 def _caption_of(item: MotionItem, text: str):
@@ -70,14 +72,14 @@ def evaluate_text_to_motion(model, evaluator, items: list[MotionItem], mean: np.
     "real": {...}, "replications": [...per replication dicts...]}."""
     if len(items) < cfg.batch_size:
         raise ValueError(f"the split has {len(items)} items, fewer than one batch of {cfg.batch_size}")
-    by_name = {item.name: item for item in items}
     rows = []
     for rep in tqdm(range(cfg.replications), desc="evaluation replications", disable=not progress):
         seed = cfg.seed * 1000 + rep
         dataset = TextMotionDataset(items, mean, std, max_length=model.max_frames, unit_length=model.unit, random_crop=True, seed=seed)
         texts, real, gen = [], [], []
-        for batch in _batches(dataset, cfg.batch_size, seed, cfg.max_batches):
-            captions = [_caption_of(by_name[b["name"]], b["caption"]) for b in batch]
+        for pairs in _batches(dataset, cfg.batch_size, seed, cfg.max_batches):
+            batch = [b for _, b in pairs]
+            captions = [_caption_of(item, b["caption"]) for item, b in pairs]
             lengths = torch.tensor([b["length"] for b in batch])
             features = torch.stack([torch.as_tensor(b["motion"].numpy() * std + mean) for b in _pad(batch)])
             out = model.generate([c.text for c in captions], lengths.tolist(), cfg.sampling, seed=seed * 7919 + len(texts), check_lengths=False)
@@ -156,6 +158,9 @@ def results_table(results: dict[str, dict], title: str = "") -> str:
         cells = []
         for metric in METRICS:
             value = row.get(metric)
-            cells.append("-" if value is None or (isinstance(value, tuple) and math.isnan(value[0])) else f"{value[0]:.3f} ± {value[1]:.3f}")
+            if value is None or math.isnan(value[0]):
+                cells.append("-")
+            else:
+                cells.append(f"{value[0]:.3f} ± {value[1]:.3f}".replace("-0.000 ", "0.000 "))  # FID of real vs real: rounding noise
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

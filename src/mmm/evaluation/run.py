@@ -1,0 +1,158 @@
+"""`mmm evaluate [key=value ...]`: the protocol for a text-to-motion model, reconstruction metrics
+for its tokenizer, and prompt adherence on a labelled dataset; logged to MLflow and printed.
+
+MLflow metrics: `generated/<metric>` and `real/<metric>` (mean over replications, and `_ci`:
+1.96·std/sqrt(n)), `recon/fid`, `recon/mpjpe_mm`, `recon/mpjpe_global_mm`, `adherence/rate`;
+artifacts `evaluation.md` (the table) and `evaluation.json`; tags: the model's and evaluator's
+identities and the data fingerprint (what promotion compares on).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig
+from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.training.common import TrackingConfig, resolve_tracking_uri
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvaluatorChoice:
+    reference: str | None = None  # own evaluator (path, run id, models:/...; newest when null) or t2m:DIR
+    glove_dir: str | None = None  # standard evaluator only
+    norm_dir: str | None = None  # standard evaluator only: its mean.npy / std.npy
+
+
+@dataclass
+class EvaluateConfig:
+    text2motion: str | None = None  # stage-2 model: path, run id, models:/NAME@ALIAS; newest when null
+    tokenizer: str | None = None  # for reconstruction metrics; default: the text2motion model's own
+    evaluator: EvaluatorChoice = field(default_factory=EvaluatorChoice)
+    split: str = "test"
+    what: list[str] = field(default_factory=lambda: ["text2motion", "reconstruction", "adherence"])
+    adherence_max_items: int | None = None
+    output_dir: str = "outputs/evaluation"
+    device: str = "cpu"
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+
+
+def load_evaluate_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("evaluate", list(overrides), schema=EvaluateConfig)
+
+
+@torch.no_grad()
+def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], batch: int = 32) -> dict:
+    """Stage-1 reconstruction of whole clips (cut to a multiple of 4, at most 196 frames): FID of
+    the reconstructions against the clips, and MPJPE in mm (root-aligned and global)."""
+    from mmm.evaluation.metrics import fid
+    from mmm.motion.features import recover_from_ric
+
+    unit = tokenizer.tokenizer.cfg.downsample
+    mean, std = tokenizer.mean, tokenizer.std
+    by_length: dict[int, list[np.ndarray]] = {}
+    for features in clips.values():
+        n = min(features.shape[0], 196) // unit * unit
+        if n >= unit:
+            by_length.setdefault(n, []).append(features[:n])
+    real_emb, rec_emb, errors, errors_global, frames = [], [], 0.0, 0.0, 0
+    scale = tokenizer.skeleton.unit_scale * 1000.0
+    for n, group in sorted(by_length.items()):
+        for i in range(0, len(group), batch):
+            x = torch.from_numpy(np.stack(group[i : i + batch]).astype(np.float32)).to(mean.device)
+            rec = tokenizer.tokenizer.decode(tokenizer.tokenizer.encode((x - mean) / std)) * std + mean
+            lengths = torch.full((len(x),), n)
+            real_emb.append(evaluator.embed_motions(x, lengths).cpu())
+            rec_emb.append(evaluator.embed_motions(rec, lengths).cpu())
+            j_real, j_rec = recover_from_ric(x.cpu()), recover_from_ric(rec.cpu())
+            local = ((j_real - j_real[..., :1, :]) - (j_rec - j_rec[..., :1, :])).norm(dim=-1).mean(-1)
+            errors += float(local.sum()) * scale
+            errors_global += float((j_real - j_rec).norm(dim=-1).mean(-1).sum()) * scale
+            frames += local.numel()
+    return {"fid": fid(torch.cat(real_emb), torch.cat(rec_emb)), "mpjpe_mm": errors / frames, "mpjpe_global_mm": errors_global / frames, "clips": sum(len(g) for g in by_length.values())}
+
+
+def evaluate(cfg_node: DictConfig) -> dict:
+    import mlflow
+
+    from mmm.data.humanml3d import load_clips, load_items, load_stats
+    from mmm.evaluation.adherence import prompt_adherence
+    from mmm.evaluation.evaluators import load_evaluator
+    from mmm.fingerprint import dataset_fingerprint
+    from mmm.generation.model import TextToMotion
+    from mmm.tokenizer.load import load_tokenizer
+
+    cfg: EvaluateConfig = to_object(cfg_node)
+    unknown = set(cfg.what) - {"text2motion", "reconstruction", "adherence"}
+    if unknown:
+        raise ValueError(f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence")
+    tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
+    model = TextToMotion.load(cfg.text2motion, tracking_uri, device=cfg.device)
+    evaluator = load_evaluator(cfg.evaluator.reference, tracking_uri, cfg.device, cfg.evaluator.glove_dir, cfg.evaluator.norm_dir) \
+        if {"text2motion", "reconstruction"} & set(cfg.what) else None
+    root = Path(cfg.data.root)
+    items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
+                          length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
+    results: dict = {"text2motion_model": model.identity, "evaluator": getattr(evaluator, "identity", None), "split": cfg.split}
+    metrics: dict[str, float] = {}
+    tables = []
+    if "text2motion" in cfg.what:
+        mean, std = load_stats(root, cfg.data.feature_dim)
+        proto = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol)
+        results["text2motion"] = {k: proto[k] for k in ("generated", "real")}
+        for which in ("generated", "real"):
+            for metric, (value, ci) in proto[which].items():
+                if not math.isnan(value):
+                    metrics[f"{which}/{metric}"], metrics[f"{which}/{metric}_ci"] = value, ci
+        tables.append(results_table({"Real motion": proto["real"], "Generated": proto["generated"]},
+                                    f"Text-to-motion on {cfg.data.name} {cfg.split}, {cfg.protocol.replications} replications, evaluator {evaluator.identity}"))
+    if "reconstruction" in cfg.what:
+        tokenizer = model.tokenizer if cfg.tokenizer is None else load_tokenizer(cfg.tokenizer, tracking_uri)[0].to(cfg.device)
+        clips, _ = load_clips(root, cfg.split, feature_dim=cfg.data.feature_dim, min_length=cfg.data.min_length, on_invalid=cfg.data.on_invalid)
+        recon = reconstruction_metrics(tokenizer, evaluator, clips)
+        results["reconstruction"] = recon
+        metrics.update({f"recon/{k}": float(v) for k, v in recon.items() if k != "clips"})
+        tables.append(f"**Reconstruction ({recon['clips']} {cfg.split} clips)**: FID {recon['fid']:.4f}, MPJPE {recon['mpjpe_mm']:.1f} mm (root-aligned), {recon['mpjpe_global_mm']:.1f} mm (global)")
+    if "adherence" in cfg.what and (root / "labels").is_dir():
+        adherence = prompt_adherence(model, root, items, cfg.protocol.sampling, cfg.protocol.seed, max_items=cfg.adherence_max_items)
+        results["adherence"] = adherence
+        metrics["adherence/rate"] = adherence["rate"]
+        lines = [f"**Prompt adherence**: {adherence['rate']:.3f} of {adherence['count']} {cfg.split} captions ({adherence['skipped']} without a checkable label)", "",
+                 "| actions | satisfied | of |", "|---|---|---|"]
+        lines += [f"| {k} | {a} | {b} |" for k, (a, b) in adherence["per_action"].items()]
+        tables.append("\n".join(lines))
+    table = "\n\n".join(tables)
+    out_dir = Path(cfg.output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "evaluation.md").write_text(table + "\n")
+    (out_dir / "evaluation.json").write_text(json.dumps(results, indent=2, default=str))
+    if cfg.logger.enabled:
+        mlflow.set_tracking_uri(tracking_uri)
+        experiment = mlflow.get_experiment_by_name(cfg.logger.experiment)
+        experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment(
+            cfg.logger.experiment, artifact_location=Path(cfg.logger.artifact_root).resolve().as_uri())
+        with mlflow.start_run(experiment_id=experiment_id, run_name=cfg.logger.run_name) as run:
+            mlflow.set_tags({
+                "mmm.stage": "evaluation", "text2motion.reference": model.identity.get("reference"), "text2motion.run_id": model.identity.get("run_id") or "",
+                "evaluator": results["evaluator"] or "", "data.fingerprint": dataset_fingerprint(root), "split": cfg.split,
+            })
+            mlflow.log_params({"replications": cfg.protocol.replications, "what": ",".join(cfg.what), "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500]})
+            mlflow.log_metrics(metrics)
+            mlflow.log_artifact(str(out_dir / "evaluation.md"))
+            mlflow.log_artifact(str(out_dir / "evaluation.json"))
+            results["run_id"] = run.info.run_id
+    results["table"] = table
+    results["metrics"] = metrics
+    return results

@@ -1,0 +1,312 @@
+"""Train the package's own text-motion evaluator (`train_evaluator(cfg)`; conf/train_evaluator.yaml).
+
+It reads the dataset's captioned motions (TextMotionDataModule: normalized features, lengths, one
+random caption and crop per item and epoch) and the cached sentence embeddings of the configured
+frozen text encoder, and trains a ContrastiveEvaluator (mmm.evaluation.contrastive) with a
+symmetric InfoNCE loss. The run is tracked like the other models: resolved config as params,
+per-step loss, validation loss and in-batch retrieval accuracy, best/last checkpoints as
+artifacts, tags naming the text encoder and the data fingerprint.
+
+After training, the best checkpoint is scored on the TEST split by the standard protocol
+(batches of 32 shuffled with a fixed seed, drop_last, one random caption per item, the length cut
+to a multiple of 4, one unit shorter with probability 1/3): R-precision top-1/2/3 and the mean
+matching distance, logged as `test/*`; the same with captions shuffled across items
+(`baseline/shuffled_*`, about 1/32 top-1) shows what chance scores. Then the checkpoints are
+registered in the MLflow Model Registry (a new version of `registry.name`, source
+`runs:/<run_id>/checkpoints`, tagged with the data fingerprint, the text encoder identity and the
+test numbers): the evaluator is the yardstick that promotion compares generators against.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import lightning as L
+import torch
+from omegaconf import DictConfig
+from torch.utils.data import Dataset
+
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig, TextMotionDataModule
+from mmm.data.datasets import TextMotionDataset, collate_motions
+from mmm.data.sampling import ResumableDataLoader
+from mmm.evaluation.contrastive import (
+    ContrastiveEvaluator, ContrastiveEvaluatorModule, ContrastiveLossConfig, ContrastiveModelConfig, load_contrastive_evaluator,
+    retrieval_metrics,
+)
+from mmm.tokenizer.module import OptimConfig
+from mmm.training.common import (
+    CheckpointConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer, checkpoint_callbacks,
+    log_checkpoints, log_config, resolve_tracking_uri, tag_run,
+)
+from mmm.training.runs import run_directory, shared_run_directory
+from mmm.training.stage2 import TextConfig, build_text
+
+log = logging.getLogger(__name__)
+
+EVALUATOR_EXPERIMENT = "mmm-evaluator"
+
+
+@dataclass
+class EvaluatorCallbacks:
+    checkpoint: CheckpointConfig = field(default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min"))
+
+
+@dataclass
+class RetrievalConfig:
+    """Validation and test retrieval: pairs in batches of batch_size (32 by the protocol)."""
+
+    batch_size: int = 32
+    seed: int = 0  # the test split's order and its caption/crop draws
+
+
+@dataclass
+class RegistryConfig:
+    register: bool = True
+    name: str = "mmm-evaluator"
+
+
+@dataclass
+class EvaluatorTrainConfig:
+    seed: int = 0
+    output_dir: str = "outputs/evaluator"
+    data: DataConfig = field(default_factory=lambda: DataConfig(batch_size=128))
+    text: TextConfig = field(default_factory=TextConfig)
+    model: ContrastiveModelConfig = field(default_factory=ContrastiveModelConfig)
+    loss: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=50, milestones=[1_000_000]))
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=EVALUATOR_EXPERIMENT))
+    callbacks: EvaluatorCallbacks = field(default_factory=EvaluatorCallbacks)
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    registry: RegistryConfig = field(default_factory=RegistryConfig)
+
+
+def load_evaluator_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("train_evaluator", list(overrides), schema=EvaluatorTrainConfig)
+
+
+@dataclass
+class EvaluatorTrainResult(TrainResult):
+    registered_model: str | None = None
+    model_version: str | None = None
+    data_fingerprint: str | None = None
+    text_encoder: str | None = None
+
+
+# ---------------------------------------------------------------------------------------- data
+
+
+class CaptionedMotionCollator:
+    """collate_motions plus the captions' cached sentence embeddings: {"motion" (B, T, D),
+    "lengths" (B,), "sentence" (B, Ds), "captions", "names"}. Picklable (loader workers)."""
+
+    def __init__(self, caption_cache):
+        self.caption_cache = caption_cache
+
+    def __call__(self, batch: list[dict]) -> dict:
+        out = collate_motions(batch)
+        out["sentence"] = self.caption_cache.lookup(out["captions"]).sentence
+        return out
+
+
+class FixedOrder(Dataset):
+    """`dataset` read in a fixed order, ignoring the epoch tag of the index: every validation
+    sees the same pairs in the same batches."""
+
+    def __init__(self, dataset: Dataset, order: list[int]):
+        self.dataset, self.order = dataset, list(order)
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def __getitem__(self, index: int) -> dict:
+        return self.dataset[self.order[index % len(self.order)]]
+
+
+def protocol_dataset(items, mean, std, data: DataConfig, seed: int) -> TextMotionDataset:
+    """Items as the evaluation protocol draws them: one random caption, the length cut to a
+    multiple of unit_length (one unit shorter with probability 1/3), at a random offset; seeded."""
+    return TextMotionDataset(items, mean, std, max_length=data.max_length, unit_length=data.unit_length, random_crop=True, seed=seed)
+
+
+def seeded_order(n: int, seed: int) -> list[int]:
+    return torch.randperm(n, generator=torch.Generator().manual_seed(seed)).tolist()
+
+
+@torch.no_grad()
+def evaluate_retrieval(
+    evaluator: ContrastiveEvaluator,
+    dataset: Dataset,
+    sentences_of: Callable[[list[str]], torch.Tensor],
+    batch_size: int = 32,
+    seed: int = 0,
+    shuffle_captions: bool = False,
+    device: str | torch.device = "cpu",
+) -> dict[str, float]:
+    """R-precision top-1/2/3 and matching distance of `evaluator` on `dataset` (items with
+    "motion" normalized, "length", "caption"): the items in an order seeded by `seed`, batches of
+    `batch_size` with the remainder dropped (a split smaller than one batch is one batch, with a
+    warning). shuffle_captions: pair each motion with another item's caption (a seeded
+    permutation over the evaluated items), what chance scores."""
+    n = len(dataset)
+    if n < 2:
+        raise ValueError(f"retrieval needs at least 2 items, the split has {n}")
+    if n < batch_size:
+        log.warning("the split has %d items, fewer than one batch of %d: scoring one batch of %d (easier than the protocol's)", n, batch_size, n)
+        batch_size = n
+    order = seeded_order(n, seed)[: n // batch_size * batch_size]
+    samples = [dataset[i] for i in order]
+    captions = [s["caption"] for s in samples]
+    if shuffle_captions:
+        permutation = seeded_order(len(captions), seed + 1)
+        captions = [captions[j] for j in permutation]
+    evaluator = evaluator.to(device).eval()
+    texts, motions = [], []
+    for start in range(0, len(samples), batch_size):
+        batch = collate_motions(samples[start : start + batch_size])
+        motions.append(evaluator.embed_motions(batch["motion"].to(device), batch["lengths"]).cpu())
+        texts.append(evaluator.embed_sentences(sentences_of(captions[start : start + batch_size]).to(device)).cpu())
+    scores = retrieval_metrics(texts, motions, top_k=3)
+    return {**scores, "items": float(len(samples)), "batch_size": float(batch_size)}
+
+
+# ---------------------------------------------------------------------------------------- registry
+
+
+def register_evaluator(tracking_uri: str, name: str, run_id: str, tags: dict[str, object], description: str = ""):
+    """A new version of registered model `name` (created when missing) whose source is the run's
+    checkpoints/ artifacts; returns the ModelVersion."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri)
+    try:
+        client.get_registered_model(name)
+    except MlflowException:
+        try:
+            client.create_registered_model(
+                name, tags={"mmm.kind": "evaluator"},
+                description="Contrastive text-motion evaluators (mmm train evaluator): the yardstick generators are promoted against.",
+            )
+        except MlflowException as e:  # another process created it meanwhile
+            if "RESOURCE_ALREADY_EXISTS" not in str(e.error_code):
+                raise
+    return client.create_model_version(
+        name, source=f"runs:/{run_id}/checkpoints", run_id=run_id, tags={k: "" if v is None else str(v) for k, v in tags.items()},
+        description=description,
+    )
+
+
+# ---------------------------------------------------------------------------------------- training
+
+
+def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
+    cfg: EvaluatorTrainConfig = to_object(cfg_node)
+    started = time.perf_counter()
+    L.seed_everything(cfg.seed, workers=True)
+    datamodule = TextMotionDataModule(cfg.data, seed=cfg.seed)
+    datamodule.prepare_data()
+    datamodule.setup()  # train, val and test items with the dataset's Mean/Std
+    items = {split: datamodule.datasets[split].items for split in ("train", "val", "test")}
+    mean, std = datamodule.mean, datamodule.std
+    from mmm.fingerprint import dataset_fingerprint
+
+    fingerprint = dataset_fingerprint(datamodule.root)
+
+    cache_started = time.perf_counter()
+    text_encoder, caption_cache = build_text(cfg.text)
+    captions = sorted({c.text for split_items in items.values() for item in split_items for c in item.captions})
+    counts = caption_cache.build(text_encoder, captions, progress=cfg.trainer.enable_progress_bar)
+    cache_seconds = time.perf_counter() - cache_started
+    log.info("caption embeddings (%s): %d captions, %d newly encoded", text_encoder.identity, len(captions), counts["added"])
+
+    train = protocol_dataset(items["train"], mean, std, cfg.data, cfg.seed)
+    val = FixedOrder(protocol_dataset(items["val"], mean, std, cfg.data, cfg.seed + 1), seeded_order(len(items["val"]), cfg.seed + 1))
+    val_batch = min(cfg.retrieval.batch_size, len(val))
+    collate = CaptionedMotionCollator(caption_cache)
+
+    text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
+    data = {
+        "name": cfg.data.name, "root": str(cfg.data.root), "fingerprint": fingerprint, "skeleton": cfg.data.skeleton, "fps": cfg.data.fps,
+        "max_length": cfg.data.max_length, "unit_length": cfg.data.unit_length,
+    }
+    module = ContrastiveEvaluatorModule(cfg.data.feature_dim, text_encoder.sentence_dim, cfg.model, cfg.optim, cfg.loss, mean, std, text, data)
+    run_dir = run_directory(cfg.output_dir)
+    logger = build_logger(cfg.logger)
+    if logger is not None:
+        _ = logger.experiment
+        log_config(logger, cfg_node, resumed=False)
+        tag_run(logger, {
+            "mmm.stage": "evaluator", "text_encoder": text_encoder.identity, "data.fingerprint": fingerprint, "data.name": cfg.data.name,
+            "data.root": cfg.data.root, "evaluator.train_items": len(items["train"]), "evaluator.val_items": len(items["val"]),
+            "evaluator.test_items": len(items["test"]),
+        })
+    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
+    trainer = build_trainer(cfg.trainer, [best, last, RunState()], logger, str(run_dir))
+    loaders = {
+        "train_dataloaders": ResumableDataLoader(
+            train, cfg.data.batch_size, shuffle=True, seed=cfg.seed, drop_last=len(train) > cfg.data.batch_size, collate_fn=collate,
+            num_workers=cfg.data.num_workers, persistent_workers=cfg.data.num_workers > 0,
+        ),
+        "val_dataloaders": ResumableDataLoader(val, val_batch, shuffle=False, seed=cfg.seed, drop_last=True, collate_fn=collate),
+    }
+    fit_started = time.perf_counter()
+    with shared_run_directory(run_dir):
+        trainer.fit(module, **loaders)
+    fit_seconds = time.perf_counter() - fit_started
+    paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    result = EvaluatorTrainResult(
+        run_id=logger.run_id if logger is not None else None,
+        checkpoint_dir=str(run_dir / "checkpoints"),
+        best_checkpoint=paths.get("best") or best.best_model_path or None,
+        last_checkpoint=paths.get("last") or last.best_model_path or None,
+        metrics=metrics,
+        stopped_early=trainer.global_step < cfg.trainer.max_steps,
+        data_fingerprint=fingerprint,
+        text_encoder=text_encoder.identity,
+    )
+    if not trainer.is_global_zero:
+        return result
+
+    # The model that gets registered: the best checkpoint (the last one when none was kept).
+    test_started = time.perf_counter()
+    checkpoint = result.best_checkpoint or result.last_checkpoint
+    evaluator = load_contrastive_evaluator(checkpoint)[0] if checkpoint else module.evaluator.eval()
+    test = protocol_dataset(items["test"], mean, std, cfg.data, cfg.retrieval.seed)
+
+    def sentences_of(captions: list[str]) -> torch.Tensor:
+        return caption_cache.lookup(captions).sentence
+
+    scores = evaluate_retrieval(evaluator, test, sentences_of, cfg.retrieval.batch_size, cfg.retrieval.seed)
+    chance = evaluate_retrieval(evaluator, test, sentences_of, cfg.retrieval.batch_size, cfg.retrieval.seed, shuffle_captions=True)
+    evaluation = {f"test/{k}": v for k, v in scores.items()}
+    evaluation.update({f"baseline/shuffled_{k}": v for k, v in chance.items() if k not in ("items", "batch_size")})
+    timing = {"time/caption_cache_s": cache_seconds, "time/fit_s": fit_seconds, "time/test_s": time.perf_counter() - test_started}
+    timing["time/total_s"] = time.perf_counter() - started
+    log.info("test retrieval: %s; with shuffled captions: %s", scores, chance)
+    result.metrics.update({**evaluation, **timing})
+    if logger is not None:
+        logger.log_metrics({**evaluation, **timing}, step=trainer.global_step)
+        if cfg.registry.register and cfg.logger.log_checkpoints and paths:
+            tags = {
+                "mmm.kind": "evaluator", "data.fingerprint": fingerprint, "data.name": cfg.data.name, "text_encoder": text_encoder.identity,
+                "global_step": trainer.global_step,
+                **{f"test.{k}": f"{v:.4f}" for k, v in scores.items() if k not in ("items", "batch_size")},
+                "test.items": int(scores["items"]), "test.batch_size": int(scores["batch_size"]),
+                "baseline.shuffled_r_precision_top1": f"{chance['r_precision_top1']:.4f}",
+            }
+            version = register_evaluator(
+                resolve_tracking_uri(cfg.logger.tracking_uri), cfg.registry.name, logger.run_id, tags,
+                description=f"{cfg.data.name} ({fingerprint}), text encoder {text_encoder.identity}: test R-precision top-1/2/3 "
+                f"{scores['r_precision_top1']:.3f}/{scores['r_precision_top2']:.3f}/{scores['r_precision_top3']:.3f}, "
+                f"matching distance {scores['matching_distance']:.3f}",
+            )
+            result.registered_model, result.model_version = cfg.registry.name, str(version.version)
+            tag_run(logger, {"registered_model": cfg.registry.name, "registered_version": version.version})
+            log.info("registered %s version %s (runs:/%s/checkpoints)", cfg.registry.name, version.version, logger.run_id)
+    return result
