@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test data demo train-stage1 train-stage2 train-length tokenize bench-train bench-generate bench evaluate train-evaluator mlflow-ui clean
+.PHONY: help setup test data demo train-stage1 train-stage2 train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
@@ -73,6 +73,15 @@ evaluate: $(STAMP) ## the protocol (20 replications), reconstruction metrics and
 
 ablate-%: $(STAMP) ## an ablation table as a sweep: ablate-reset|cross-layers|schedule|temperature|topk|topp (Tables 8-13)
 	$(BIN)/mmm ablate $* $(ARGS)
+
+pipeline: $(STAMP) ## the full pipeline (evaluator, stage 1, promote, tokenize, stage 2, evaluate, promote) as one MLflow run; unchanged steps are skipped
+	$(BIN)/mmm pipeline full $(ARGS)
+
+promote: $(STAMP) ## measure and register the newest evaluator, tokenizer and text-to-motion runs; champion moves only when they win
+	$(BIN)/mmm pipeline promote $(ARGS)
+
+models: $(STAMP) ## registered models: versions, aliases, metrics
+	$(BIN)/mmm models list
 
 mlflow-ui: $(STAMP) ## serve the MLflow dashboard for this project's store on http://127.0.0.1:5000
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --default-artifact-root $(CURDIR)/mlartifacts --host 127.0.0.1 --port 5000

@@ -178,6 +178,35 @@ def cmd_ablate(args: argparse.Namespace) -> None:
         print(f"wrote {path}")
 
 
+def cmd_pipeline(args: argparse.Namespace) -> None:
+    from mmm.pipeline.steps import load_pipeline_config, run_pipeline
+
+    reports = run_pipeline(args.name, load_pipeline_config(args.overrides), force=args.force)
+    for r in reports:
+        print(f"{r.name:22s} {r.status:8s} {r.seconds:7.1f} s  " + ", ".join(f"{k}={v}" for k, v in r.outputs.items() if k in ("run_id", "version", "alias")))
+        if r.outputs.get("reason"):
+            print(f"{'':22s} {r.outputs['reason']}")
+
+
+def cmd_promote(args: argparse.Namespace) -> None:
+    from mmm.registry.promote import load_promote_config, promote
+
+    decision = promote(args.kind, load_promote_config(args.overrides))
+    name = {"tokenizer": "mmm-tokenizer", "text2motion": "mmm-text2motion", "evaluator": "mmm-evaluator"}[args.kind]
+    print(f"{name} version {decision.version} -> {decision.alias}: {decision.reason}")
+    for line in decision.comparisons:
+        print(f"  {line}")
+
+
+def cmd_models(args: argparse.Namespace) -> None:
+    from mlflow.tracking import MlflowClient
+
+    from mmm.registry.promotion import list_models
+    from mmm.training.common import resolve_tracking_uri
+
+    print(list_models(MlflowClient(resolve_tracking_uri(args.tracking_uri))))
+
+
 def _sampling(args: argparse.Namespace):
     from mmm.generation.sampler import SamplingConfig
 
@@ -400,6 +429,22 @@ def build_parser() -> argparse.ArgumentParser:
     ablate.add_argument("kind", choices=["reset", "cross-layers", "schedule", "temperature", "topk", "topp"])
     ablate.add_argument("overrides", nargs="*", help="e.g. grids.temperature=[0.5,1.0] protocol.replications=5")
     ablate.set_defaults(func=cmd_ablate)
+
+    pipeline = sub.add_parser("pipeline", help="stages chained as one MLflow parent run; unchanged steps are skipped")
+    pipeline.add_argument("name", choices=["full", "stage1", "stage2", "evaluate", "promote"])
+    pipeline.add_argument("overrides", nargs="*", help="e.g. overrides.stage1=[trainer.max_steps=500] data=humanml3d")
+    pipeline.add_argument("--force", action="append", default=[], help="rerun this step even if its inputs did not change (or 'all')")
+    pipeline.set_defaults(func=cmd_pipeline)
+
+    promote = sub.add_parser("promote", help="measure a candidate, register it, move `champion` only when it wins")
+    promote.add_argument("kind", choices=["tokenizer", "text2motion", "evaluator"])
+    promote.add_argument("overrides", nargs="*", help="e.g. candidate=RUN_ID criteria.text2motion=[{metric: generated/fid, mode: min, margin: 0.01}]")
+    promote.set_defaults(func=cmd_promote)
+
+    models = sub.add_parser("models", help="registered models").add_subparsers(dest="models_command", required=True)
+    listing = models.add_parser("list", help="versions, aliases and metrics of the registered models")
+    listing.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    listing.set_defaults(func=cmd_models)
 
     render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
     render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")

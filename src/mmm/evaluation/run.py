@@ -56,7 +56,8 @@ def load_evaluate_config(overrides: list[str] = ()) -> DictConfig:
 @torch.no_grad()
 def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], batch: int = 32) -> dict:
     """Stage-1 reconstruction of whole clips (cut to a multiple of 4, at most 196 frames): FID of
-    the reconstructions against the clips, and MPJPE in mm (root-aligned and global)."""
+    the reconstructions against the clips (when an evaluator is given), and MPJPE in mm
+    (root-aligned and global)."""
     from mmm.evaluation.metrics import fid
     from mmm.motion.features import recover_from_ric
 
@@ -74,14 +75,18 @@ def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], b
             x = torch.from_numpy(np.stack(group[i : i + batch]).astype(np.float32)).to(mean.device)
             rec = tokenizer.tokenizer.decode(tokenizer.tokenizer.encode((x - mean) / std)) * std + mean
             lengths = torch.full((len(x),), n)
-            real_emb.append(evaluator.embed_motions(x, lengths).cpu())
-            rec_emb.append(evaluator.embed_motions(rec, lengths).cpu())
+            if evaluator is not None:
+                real_emb.append(evaluator.embed_motions(x, lengths).cpu())
+                rec_emb.append(evaluator.embed_motions(rec, lengths).cpu())
             j_real, j_rec = recover_from_ric(x.cpu()), recover_from_ric(rec.cpu())
             local = ((j_real - j_real[..., :1, :]) - (j_rec - j_rec[..., :1, :])).norm(dim=-1).mean(-1)
             errors += float(local.sum()) * scale
             errors_global += float((j_real - j_rec).norm(dim=-1).mean(-1).sum()) * scale
             frames += local.numel()
-    return {"fid": fid(torch.cat(real_emb), torch.cat(rec_emb)), "mpjpe_mm": errors / frames, "mpjpe_global_mm": errors_global / frames, "clips": sum(len(g) for g in by_length.values())}
+    result = {"mpjpe_mm": errors / frames, "mpjpe_global_mm": errors_global / frames, "clips": sum(len(g) for g in by_length.values())}
+    if evaluator is not None:
+        result["fid"] = fid(torch.cat(real_emb), torch.cat(rec_emb))
+    return result
 
 
 def evaluate(cfg_node: DictConfig) -> dict:

@@ -31,6 +31,19 @@ from mmm.transformer.module import MaskedTransformerModule
 
 STAGE2_EXPERIMENT = "mmm-stage2"
 LENGTH_EXPERIMENT = "mmm-length"
+REGISTERED_MODEL = "mmm-text2motion"
+
+
+def champion_reference(tracking_uri: str) -> str | None:
+    """models:/mmm-text2motion@champion when that alias exists, else None (the newest stage-2 run)."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    try:
+        MlflowClient(tracking_uri).get_model_version_by_alias(REGISTERED_MODEL, "champion")
+    except MlflowException:
+        return None
+    return f"models:/{REGISTERED_MODEL}@champion"
 
 
 @dataclass
@@ -75,7 +88,8 @@ class TextToMotion:
         device: str = "cpu",
         length_model: str | None = None,
     ) -> "TextToMotion":
-        """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS, or the newest stage-2 run.
+        """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS; by default the champion
+        (models:/mmm-text2motion@champion) when one was promoted, else the newest stage-2 run.
 
         length_model: the length estimator used when no length is given (a reference like the
         model's; default: the newest `make train-length` result), loaded only when needed.
@@ -84,24 +98,55 @@ class TextToMotion:
         from mmm.training.common import resolve_tracking_uri
 
         tracking_uri = resolve_tracking_uri(tracking_uri)
+        if reference is None:
+            reference = champion_reference(tracking_uri)
+        if reference is not None and reference.startswith("models:/"):
+            from mmm.registry.bundle import bundle_checkpoints
+            from mmm.resolve import registered_version
+
+            version = registered_version(reference, tracking_uri)  # a clear error for an unknown name or alias
+            stage2, stage1 = bundle_checkpoints(reference, tracking_uri)
+            model = cls.from_files(stage2, stage1, device, length_source=(length_model, tracking_uri))
+            model.identity.update({"reference": reference, "run_id": version.run_id, "version": version.version})
+            return model
         resolved, checkpoint, run_id = resolve_checkpoint(
             reference, tracking_uri, STAGE2_EXPERIMENT, output_dir, "text-to-motion model", "make train-stage2", "--model",
         )
+        model = cls.from_files(checkpoint, None, device, tracking_uri=tracking_uri, length_source=(length_model, tracking_uri))
+        model.identity.update({"reference": resolved, "run_id": run_id})
+        return model
+
+    @classmethod
+    def from_files(
+        cls,
+        checkpoint: str | Path,
+        tokenizer_checkpoint: str | Path | None = None,
+        device: str = "cpu",
+        tracking_uri: str | None = None,
+        length_source: tuple | None = None,
+    ) -> "TextToMotion":
+        """From a stage-2 checkpoint file and its stage-1 checkpoint file (default: the one recorded
+        in the stage-2 checkpoint, or its MLflow reference). The stage-1 weights must have the
+        fingerprint the transformer was trained with, and the text encoder must be the same."""
+        from mmm.text import build_text_encoder
+
         ckpt = torch.load(checkpoint, map_location="cpu", weights_only=True)
         hp = ckpt.get("hyper_parameters") or {}
         if "codebook_shape" not in hp:
             raise ValueError(f"{checkpoint}: not a stage-2 (masked transformer) checkpoint")
         stage1 = hp["stage1"]
-        local = stage1.get("checkpoint")
+        local = tokenizer_checkpoint or stage1.get("checkpoint")
         if local and Path(local).exists():
             tokenizer = load_tokenizer_checkpoint(local)
             identity = tensors_fingerprint(tokenizer.state_dict())
-        else:
+        elif tracking_uri is not None:
             tokenizer, source = load_tokenizer(stage1["reference"], tracking_uri)
             identity = source.identity
+        else:
+            raise FileNotFoundError(f"{checkpoint}: its stage-1 model {stage1.get('checkpoint')} is not here; pass its checkpoint file")
         if identity != stage1["identity"]:
             raise ValueError(
-                f"{resolved}: its stage-1 model {stage1['reference']} now has weights {identity}, but the transformer was trained "
+                f"{checkpoint}: its stage-1 model {stage1['reference']} has weights {identity}, but the transformer was trained "
                 f"on {stage1['identity']}; the tokens would not mean the same codes"
             )
         module = MaskedTransformerModule(tokenizer.tokenizer.codebook.detach(), hp["model"], hp["optim"], hp["corruption"], hp["sentence_dim"], hp["word_dim"])
@@ -110,9 +155,9 @@ class TextToMotion:
         options = {k: v for k, v in text.items() if k not in ("name", "identity") and v is not None}
         encoder = build_text_encoder(text["name"], **options)
         if encoder.identity != text["identity"]:
-            raise ValueError(f"{resolved}: text encoder {encoder.identity} differs from the one it was trained with ({text['identity']})")
-        info = {"reference": resolved, "run_id": run_id, "checkpoint": checkpoint, "stage1": stage1, "text_encoder": text["identity"]}
-        return cls(tokenizer, module.transformer, encoder, info, None, device, length_source=(length_model, tracking_uri))
+            raise ValueError(f"{checkpoint}: text encoder {encoder.identity} differs from the one it was trained with ({text['identity']})")
+        info = {"reference": str(checkpoint), "run_id": None, "checkpoint": str(checkpoint), "stage1": stage1, "text_encoder": text["identity"]}
+        return cls(tokenizer, module.transformer, encoder, info, None, device, length_source=length_source)
 
     # -- pieces ---------------------------------------------------------------------------------
     def check_frames(self, frames: int, what: str = "length") -> None:

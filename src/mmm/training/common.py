@@ -187,8 +187,11 @@ def flatten_config(cfg: DictConfig) -> dict[str, str]:
 def log_config(logger: MLFlowLogger | None, cfg: DictConfig, resumed: bool) -> None:
     if logger is None:
         return
+    from mmm.config import config_hash
+
     if not resumed:  # MLflow params are immutable: a resumed run keeps those it was started with
         logger.log_hyperparams(flatten_config(cfg))
+        logger.experiment.set_tag(logger.run_id, "config.hash", config_hash(cfg))
     logger.experiment.log_text(logger.run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
 
 

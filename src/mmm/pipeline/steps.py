@@ -1,0 +1,221 @@
+"""The pipelines: which steps, what each consumes, how it runs (conf/pipeline.yaml configures them).
+
+    full:      evaluator -> promote-evaluator -> stage1 -> promote-tokenizer -> tokenize -> stage2
+               -> length -> evaluate -> promote-text2motion
+    stage1:    stage1 -> promote-tokenizer
+    stage2:    tokenize -> stage2 -> length
+    evaluate:  evaluate
+    promote:   promote-evaluator, promote-tokenizer, promote-text2motion (of the newest runs)
+
+Stage 2 tokenizes with the tokenizer champion (the promoted one), so the transformer and the
+champion tokenizer always agree. Every step writes to the same tracking store and data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig
+from mmm.pipeline.runner import Context, Step, StepReport, run_steps
+from mmm.training.common import TrackingConfig, resolve_tracking_uri
+
+PIPELINES = {
+    "full": ["evaluator", "promote-evaluator", "stage1", "promote-tokenizer", "tokenize", "stage2", "length", "evaluate", "promote-text2motion"],
+    "stage1": ["stage1", "promote-tokenizer"],
+    "stage2": ["tokenize", "stage2", "length"],
+    "evaluate": ["evaluate"],
+    "promote": ["promote-evaluator", "promote-tokenizer", "promote-text2motion"],
+}
+
+
+@dataclass
+class StepOverrides:
+    stage1: list[str] = field(default_factory=list)
+    stage2: list[str] = field(default_factory=list)
+    length: list[str] = field(default_factory=list)
+    evaluator: list[str] = field(default_factory=list)
+    evaluate: list[str] = field(default_factory=list)
+    promote: list[str] = field(default_factory=list)
+
+
+@dataclass
+class PipelineConfig:
+    state_file: str = "outputs/pipeline/state.json"
+    overrides: StepOverrides = field(default_factory=StepOverrides)
+    data: DataConfig = field(default_factory=DataConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+
+
+def load_pipeline_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("pipeline", list(overrides), schema=PipelineConfig)
+
+
+def _common(ctx: Context) -> list[str]:
+    cfg: PipelineConfig = ctx.cfg
+    return [
+        f"data={cfg.data.name}", f"data.root={cfg.data.root}", f"logger.tracking_uri={cfg.logger.tracking_uri}",
+        f"logger.artifact_root={cfg.logger.artifact_root}",
+    ]
+
+
+def _data_fingerprint(ctx: Context) -> str:
+    from mmm.data.datamodule import TokenizerDataModule
+    from mmm.fingerprint import dataset_fingerprint
+
+    if "data_fingerprint" not in ctx.outputs:
+        TokenizerDataModule(ctx.cfg.data).prepare_data()  # synthesize the default dataset when missing
+        ctx.outputs["data_fingerprint"] = {"value": dataset_fingerprint(ctx.cfg.data.root)}
+    return ctx.outputs["data_fingerprint"]["value"]
+
+
+def _champion(ctx: Context, name: str) -> str | None:
+    """'<name> v<version>' of the current champion, or None."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    try:
+        version = MlflowClient(ctx.tracking_uri).get_model_version_by_alias(name, "champion")
+    except MlflowException:
+        return None
+    return f"{name} v{version.version}"
+
+
+def _run_exists(ctx: Context, outputs: dict) -> bool:
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    try:
+        return MlflowClient(ctx.tracking_uri).get_run(outputs["run_id"]).info.status == "FINISHED"
+    except (KeyError, MlflowException):
+        return False
+
+
+def _trained(result) -> dict:
+    return {"run_id": result.run_id, "checkpoint": result.best_checkpoint, "metrics": {k: v for k, v in result.metrics.items() if k.startswith(("val/", "test/"))}}
+
+
+def _promoted(decision) -> dict:
+    return {"version": decision.version, "alias": decision.alias, "reason": decision.reason}
+
+
+# -- the steps -------------------------------------------------------------------------------------
+def step_evaluator() -> Step:
+    def run(ctx):
+        from mmm.training.evaluator import load_evaluator_config, train_evaluator
+
+        return _trained(train_evaluator(load_evaluator_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.evaluator])))
+
+    return Step("evaluator", lambda ctx: {"data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.evaluator}, run, _run_exists)
+
+
+def _promote_step(kind: str, source_step: str | None) -> Step:
+    from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER
+
+    name = {"evaluator": EVALUATOR, "tokenizer": TOKENIZER, "text2motion": TEXT2MOTION}[kind]
+
+    def candidate(ctx):
+        return ctx.outputs.get(source_step, {}).get("run_id") if source_step else None
+
+    def inputs(ctx):
+        return {"candidate": candidate(ctx), "data": _data_fingerprint(ctx), "evaluator": _champion(ctx, EVALUATOR) if kind != "evaluator" else None,
+                "overrides": ctx.cfg.overrides.promote}
+
+    def run(ctx):
+        from mmm.registry.promote import load_promote_config, promote
+
+        chosen = candidate(ctx)
+        return _promoted(promote(kind, load_promote_config([*_common(ctx), *([f"candidate={chosen}"] if chosen else []), *ctx.cfg.overrides.promote])))
+
+    return Step(f"promote-{kind}", inputs, run, lambda ctx, outputs: _champion(ctx, name) is not None)
+
+
+def _stage2_options(ctx) -> list[str]:
+    from mmm.registry.promotion import TOKENIZER
+
+    tokenizer = "models:/mmm-tokenizer@champion" if _champion(ctx, TOKENIZER) else ctx.outputs.get("stage1", {}).get("run_id")
+    return [*_common(ctx), *([f"stage1={tokenizer}"] if tokenizer else [])]
+
+
+def step_stage1() -> Step:
+    def run(ctx):
+        from mmm.training.stage1 import load_stage1_config, train_stage1
+
+        return _trained(train_stage1(load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1])))
+
+    return Step("stage1", lambda ctx: {"data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.stage1}, run, _run_exists)
+
+
+def step_tokenize() -> Step:
+    from mmm.registry.promotion import TOKENIZER
+
+    def run(ctx):
+        from mmm.training.stage2 import load_stage2_config, prepare_stage2_data
+
+        dm = prepare_stage2_data(load_stage2_config([*_stage2_options(ctx), *ctx.cfg.overrides.stage2]))
+        return {"tokens": str(dm.tokens.folder), "motions": len(dm.tokens), "captions": len(dm.caption_cache), "tokenizer": dm.source.identity}
+
+    return Step("tokenize", lambda ctx: {"data": _data_fingerprint(ctx), "tokenizer": _champion(ctx, TOKENIZER) or ctx.outputs.get("stage1", {}).get("run_id"),
+                                         "overrides": ctx.cfg.overrides.stage2}, run, lambda ctx, outputs: Path(outputs.get("tokens", "")).is_dir())
+
+
+def step_stage2() -> Step:
+    def run(ctx):
+        from mmm.training.stage2 import load_stage2_config, train_stage2
+
+        return _trained(train_stage2(load_stage2_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage2])))
+
+    return Step("stage2", lambda ctx: {"tokens": ctx.outputs.get("tokenize", {}).get("tokenizer"), "data": _data_fingerprint(ctx),
+                                       "overrides": ctx.cfg.overrides.stage2}, run, _run_exists)
+
+
+def step_length() -> Step:
+    def run(ctx):
+        from mmm.training.length import load_length_config, train_length
+
+        return _trained(train_length(load_length_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.length])))
+
+    return Step("length", lambda ctx: {"tokens": ctx.outputs.get("tokenize", {}).get("tokenizer"), "data": _data_fingerprint(ctx),
+                                       "overrides": ctx.cfg.overrides.length}, run, _run_exists)
+
+
+def step_evaluate() -> Step:
+    from mmm.registry.promotion import EVALUATOR
+
+    def model(ctx):
+        return ctx.outputs.get("stage2", {}).get("run_id")
+
+    def run(ctx):
+        from mmm.evaluation.run import evaluate, load_evaluate_config
+
+        chosen = model(ctx)
+        evaluator = ["evaluator.reference=models:/mmm-evaluator@champion"] if _champion(ctx, EVALUATOR) else []
+        results = evaluate(load_evaluate_config([*_common(ctx), *([f"text2motion={chosen}"] if chosen else []), *evaluator, *ctx.cfg.overrides.evaluate]))
+        return {"run_id": results.get("run_id"), "metrics": results["metrics"], "table": results["table"]}
+
+    return Step("evaluate", lambda ctx: {"model": model(ctx), "evaluator": _champion(ctx, EVALUATOR), "data": _data_fingerprint(ctx),
+                                         "overrides": ctx.cfg.overrides.evaluate}, run, _run_exists)
+
+
+STEPS = {
+    "evaluator": step_evaluator, "promote-evaluator": lambda: _promote_step("evaluator", "evaluator"),
+    "stage1": step_stage1, "promote-tokenizer": lambda: _promote_step("tokenizer", "stage1"),
+    "tokenize": step_tokenize, "stage2": step_stage2, "length": step_length, "evaluate": step_evaluate,
+    "promote-text2motion": lambda: _promote_step("text2motion", "stage2"),
+}
+
+
+def run_pipeline(name: str, cfg_node: DictConfig, force: list[str] = ()) -> list[StepReport]:
+    if name not in PIPELINES:
+        raise ValueError(f"unknown pipeline {name!r}; choose one of {', '.join(PIPELINES)}")
+    unknown = set(force) - set(PIPELINES[name]) - {"all"}
+    if unknown:
+        raise ValueError(f"--force {sorted(unknown)}: not steps of pipeline {name!r} ({', '.join(PIPELINES[name])})")
+    cfg: PipelineConfig = to_object(cfg_node)
+    ctx = Context(cfg, resolve_tracking_uri(cfg.logger.tracking_uri))
+    steps = [STEPS[s]() for s in PIPELINES[name]]
+    forced = set(PIPELINES[name]) if "all" in force else set(force)
+    return run_steps(name, steps, ctx, Path(cfg.state_file), forced, artifact_root=cfg.logger.artifact_root)

@@ -1,0 +1,160 @@
+"""`mmm promote tokenizer|text2motion|evaluator [key=value ...]`: evaluate a candidate run,
+register it as a new version, and move `champion` to it only when it wins (see promotion.py).
+
+Candidates default to the newest finished run of the kind's experiment. Metrics are measured here,
+on the configured data (its fingerprint is recorded) with the champion evaluator (or the newest
+one): tokenizer: reconstruction MPJPE and FID on the split; text2motion: the protocol (reduced
+by conf/promote.yaml); evaluator: its own test retrieval numbers from training.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from mmm.config import compose, to_object
+from mmm.data.datamodule import DataConfig
+from mmm.evaluation.protocol import ProtocolConfig
+from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER, Criterion, Decision, promote_version, register_version, version_tags
+from mmm.training.common import TrackingConfig, resolve_tracking_uri
+
+log = logging.getLogger(__name__)
+
+EXPERIMENTS = {"tokenizer": "mmm-stage1", "text2motion": "mmm-stage2", "evaluator": "mmm-evaluator"}
+
+
+@dataclass
+class Criteria:
+    tokenizer: list[Criterion] = field(default_factory=lambda: [Criterion("recon/mpjpe_mm", "min", 0.0)])
+    text2motion: list[Criterion] = field(default_factory=lambda: [Criterion("generated/fid", "min", 0.0)])
+    evaluator: list[Criterion] = field(default_factory=lambda: [Criterion("test/r_precision_top1", "max", 0.0)])
+
+
+@dataclass
+class PromoteConfig:
+    candidate: str | None = None  # the run to promote; default: the newest finished run of the kind
+    evaluator: str | None = None  # evaluator for the metrics; default: the champion evaluator, else the newest
+    split: str = "test"
+    device: str = "cpu"
+    criteria: Criteria = field(default_factory=Criteria)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+
+
+def load_promote_config(overrides: list[str] = ()) -> DictConfig:
+    return compose("promote", list(overrides), schema=PromoteConfig)
+
+
+def _newest_run(client, experiment: str) -> str:
+    from mmm.resolve import ModelNotFound
+
+    found = client.get_experiment_by_name(experiment)
+    runs = client.search_runs([found.experiment_id], "attributes.status = 'FINISHED'", order_by=["attributes.start_time DESC"], max_results=20) if found else []
+    for run in runs:
+        if any(f.path == "checkpoints/best.ckpt" for f in client.list_artifacts(run.info.run_id, "checkpoints")):
+            return run.info.run_id
+    raise ModelNotFound(f"no finished run with a checkpoint in MLflow experiment {experiment!r}: train one first")
+
+
+def _evaluator(cfg: PromoteConfig, tracking_uri: str, required: bool):
+    """The evaluator the metrics are measured with: the configured one, the champion, or the newest."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    from mmm.evaluation.evaluators import load_evaluator
+    from mmm.resolve import ModelNotFound
+
+    reference = cfg.evaluator
+    if reference is None:
+        try:
+            MlflowClient(tracking_uri).get_model_version_by_alias(EVALUATOR, "champion")
+            reference = f"models:/{EVALUATOR}@champion"
+        except MlflowException:
+            reference = None
+    try:
+        return load_evaluator(reference, tracking_uri, cfg.device)
+    except ModelNotFound:
+        if required:
+            raise
+        log.warning("no evaluator found: tokenizer promotion measures MPJPE only (train one with `make train-evaluator`)")
+        return None
+
+
+def promote(kind: str, cfg_node: DictConfig) -> Decision:
+    from mlflow.tracking import MlflowClient
+
+    from mmm.fingerprint import dataset_fingerprint
+    from mmm.resolve import download_artifact
+
+    if kind not in EXPERIMENTS:
+        raise ValueError(f"unknown model kind {kind!r}; choose tokenizer, text2motion or evaluator")
+    cfg: PromoteConfig = to_object(cfg_node)
+    uri = resolve_tracking_uri(cfg.logger.tracking_uri)
+    client = MlflowClient(uri)
+    run_id = cfg.candidate or _newest_run(client, EXPERIMENTS[kind])
+    run = client.get_run(run_id)
+    criteria = getattr(cfg.criteria, kind)
+    config_hash = run.data.tags.get("config.hash")
+    root = Path(cfg.data.root)
+    if kind == "evaluator":
+        metrics = {k: v for k, v in run.data.metrics.items() if k.startswith("test/")}
+        existing = [v for v in client.search_model_versions(f"name='{EVALUATOR}'") if v.run_id == run_id]
+        fingerprint = run.data.tags.get("data.fingerprint", "")
+        tags = version_tags(metrics, fingerprint, None, config_hash, {"text_encoder": run.data.tags.get("text_encoder", "")})
+        if existing:
+            version = existing[0]
+            for key, value in tags.items():
+                client.set_model_version_tag(EVALUATOR, version.version, key, value)
+        else:
+            version = register_version(client, EVALUATOR, f"runs:/{run_id}/checkpoints", run_id, tags)
+        return promote_version(client, EVALUATOR, version.version, criteria, needs_evaluator=False)
+    fingerprint = dataset_fingerprint(root)
+    checkpoint = download_artifact(uri, run_id, "checkpoints/best.ckpt", "outputs/cache/models")
+    if kind == "tokenizer":
+        from mmm.data.humanml3d import load_clips
+        from mmm.evaluation.run import reconstruction_metrics
+        from mmm.fingerprint import tensors_fingerprint
+        from mmm.tokenizer.load import load_tokenizer_checkpoint
+
+        tokenizer = load_tokenizer_checkpoint(checkpoint).to(cfg.device)
+        evaluator = _evaluator(cfg, uri, required=any(c.metric == "recon/fid" for c in criteria))
+        clips, _ = load_clips(root, cfg.split, feature_dim=cfg.data.feature_dim, min_length=cfg.data.min_length, on_invalid=cfg.data.on_invalid)
+        recon = reconstruction_metrics(tokenizer, evaluator, clips)
+        metrics = {f"recon/{k}": v for k, v in recon.items() if k != "clips"}
+        metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
+        tags = version_tags(metrics, fingerprint, getattr(evaluator, "identity", None), config_hash, {"tokenizer.identity": tensors_fingerprint(tokenizer.state_dict())})
+        version = register_version(client, TOKENIZER, f"runs:/{run_id}/checkpoints", run_id, tags)
+        return promote_version(client, TOKENIZER, version.version, criteria, needs_evaluator=any(c.metric == "recon/fid" for c in criteria))
+    # text2motion: evaluate, bundle, register.
+    import mlflow
+    import torch
+
+    from mmm.data.humanml3d import load_items, load_stats
+    from mmm.evaluation.protocol import evaluate_text_to_motion
+    from mmm.generation.model import TextToMotion
+    from mmm.registry.bundle import log_bundle
+    from mmm.tokenizer.load import load_tokenizer
+
+    hp = torch.load(checkpoint, map_location="cpu", weights_only=True)["hyper_parameters"]
+    tokenizer_checkpoint = hp["stage1"].get("checkpoint")
+    if not tokenizer_checkpoint or not Path(tokenizer_checkpoint).exists():
+        tokenizer_checkpoint = load_tokenizer(hp["stage1"]["reference"], uri)[1].checkpoint
+    model = TextToMotion.from_files(checkpoint, tokenizer_checkpoint, cfg.device)
+    evaluator = _evaluator(cfg, uri, required=True)
+    items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
+                          length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
+    mean, std = load_stats(root, cfg.data.feature_dim)
+    result = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol, progress=False)
+    metrics = {f"generated/{m}": v[0] for m, v in result["generated"].items()}
+    metrics.update({f"real/{m}": v[0] for m, v in result["real"].items()})
+    mlflow.set_tracking_uri(uri)
+    with mlflow.start_run(run_id=run_id):
+        info = log_bundle(checkpoint, tokenizer_checkpoint, artifact_path="bundle")
+    tags = version_tags(metrics, fingerprint, evaluator.identity, config_hash,
+                        {"stage1.identity": hp["stage1"]["identity"], "text_encoder": hp["text_encoder"]["identity"], "replications": cfg.protocol.replications})
+    version = register_version(client, TEXT2MOTION, info.model_uri, run_id, tags, "text-to-motion bundle: tokenizer, transformer, normalization, text encoder")
+    return promote_version(client, TEXT2MOTION, version.version, criteria, needs_evaluator=True)
