@@ -36,12 +36,15 @@ def test_champion_moves_only_when_beaten_by_the_margin(client):
     v2 = add(client, fid=0.495)  # better, but not by 0.01
     d2 = promote_version(client, "m", v2, CRITERIA)
     assert (d2.promoted, d2.alias) == (False, "challenger")
-    assert "generated/fid: 0.495 vs champion 0.5 (needs <= 0.49): not better" in d2.reason
+    assert "generated/fid: 0.495 vs champion 0.5 (needs < 0.49): not better" in d2.reason
     assert client.get_model_version_by_alias("m", "champion").version == v1
     assert client.get_model_version_by_alias("m", "challenger").version == v2
     v3 = add(client, fid=0.3)
     d3 = promote_version(client, "m", v3, CRITERIA)
     assert d3.promoted and d3.previous_champion == v1 and client.get_model_version_by_alias("m", "champion").version == v3
+    # A tie is not a win, even with no margin (the same model trained again).
+    tie = promote_version(client, "m", add(client, fid=0.3), [Criterion("generated/fid", "min", 0.0)])
+    assert not tie.promoted and "(needs < 0.3): not better" in tie.reason
     # Every configured metric must win: better FID but a worse R-precision stays challenger.
     both = [Criterion("generated/fid", "min", 0.0), Criterion("generated/top1", "max", 0.0)]
     v4 = add(client, fid=0.1, top1=0.4)

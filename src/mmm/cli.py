@@ -181,7 +181,7 @@ def cmd_ablate(args: argparse.Namespace) -> None:
 def cmd_pipeline(args: argparse.Namespace) -> None:
     from mmm.pipeline.steps import load_pipeline_config, run_pipeline
 
-    reports = run_pipeline(args.name, load_pipeline_config(args.overrides), force=args.force)
+    reports = run_pipeline(args.name, load_pipeline_config(args.overrides), force=args.force, overrides=args.overrides)
     for r in reports:
         print(f"{r.name:22s} {r.status:8s} {r.seconds:7.1f} s  " + ", ".join(f"{k}={v}" for k, v in r.outputs.items() if k in ("run_id", "version", "alias")))
         if r.outputs.get("reason"):
@@ -455,18 +455,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever sys.stderr is at the time (not the one at set-up), so that `main` can be
+    called again after stderr was replaced, as tests and notebooks do."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value):
+        pass
+
+
 def _configure_logging(verbose: bool) -> None:
     """This package's INFO lines and everyone's warnings, once each (Lightning prints its own
     INFO lines through its own handler)."""
     fmt = logging.Formatter("%(levelname)s %(name)s: %(message)s")
-    logging.basicConfig(level=logging.WARNING)
+    logging.basicConfig(level=logging.WARNING, handlers=[_StderrHandler()])
     for handler in logging.getLogger().handlers:
         handler.setLevel(logging.DEBUG if verbose else logging.WARNING)
         handler.setFormatter(fmt)
     ours = logging.getLogger("mmm")
     ours.setLevel(logging.DEBUG if verbose else logging.INFO)
     if not ours.handlers:
-        handler = logging.StreamHandler()
+        handler = _StderrHandler()
         handler.setFormatter(fmt)
         ours.addHandler(handler)
         ours.propagate = False

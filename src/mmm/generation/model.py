@@ -1,7 +1,7 @@
 """`TextToMotion`: a trained stage-1 tokenizer, stage-2 transformer and text encoder, ready to
 generate and edit motion.
 
-    model = TextToMotion.load(None)                 # the newest stage-2 result
+    model = TextToMotion.load(None)                 # the champion, else the newest stage-2 result
     out = model.generate(["a person walks forward"], frames=[120], sampling=SamplingConfig(), seed=0)
     out.features[0]   # (120, 263), un-normalized;  out.joints[0]  # (120, 22, 3)
 
@@ -13,6 +13,7 @@ and decode the concatenation once.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from collections import defaultdict
@@ -105,7 +106,9 @@ class TextToMotion:
             from mmm.resolve import registered_version
 
             version = registered_version(reference, tracking_uri)  # a clear error for an unknown name or alias
-            stage2, stage1 = bundle_checkpoints(reference, tracking_uri)
+            # A registered version's files never change: one folder per (store, source) is reused.
+            key = hashlib.sha256(f"{tracking_uri}|{version.source}".encode()).hexdigest()[:12]
+            stage2, stage1 = bundle_checkpoints(reference, tracking_uri, dst=Path("outputs/cache/bundles") / key)
             model = cls.from_files(stage2, stage1, device, length_source=(length_model, tracking_uri))
             model.identity.update({"reference": reference, "run_id": version.run_id, "version": version.version})
             return model

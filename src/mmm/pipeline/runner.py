@@ -34,6 +34,7 @@ class Step:
 class Context:
     cfg: object  # PipelineConfig
     tracking_uri: str
+    shared_overrides: list[str] = field(default_factory=list)  # data.*/logger.* overrides every step takes
     outputs: dict[str, dict] = field(default_factory=dict)  # step name -> outputs, as the run goes
 
 

@@ -55,10 +55,11 @@ def load_pipeline_config(overrides: list[str] = ()) -> DictConfig:
 
 
 def _common(ctx: Context) -> list[str]:
+    """What every step shares: the data and the tracking store (with the user's data.*/logger.* overrides)."""
     cfg: PipelineConfig = ctx.cfg
     return [
         f"data={cfg.data.name}", f"data.root={cfg.data.root}", f"logger.tracking_uri={cfg.logger.tracking_uri}",
-        f"logger.artifact_root={cfg.logger.artifact_root}",
+        f"logger.artifact_root={cfg.logger.artifact_root}", *ctx.shared_overrides,
     ]
 
 
@@ -208,14 +209,19 @@ STEPS = {
 }
 
 
-def run_pipeline(name: str, cfg_node: DictConfig, force: list[str] = ()) -> list[StepReport]:
+def shared_overrides(overrides: list[str]) -> list[str]:
+    """The command line's data.* and logger.* overrides, which every step's config takes too."""
+    return [o for o in overrides if o.lstrip("+~").split("=")[0].split(".")[0] in ("data", "logger") and "." in o.split("=")[0]]
+
+
+def run_pipeline(name: str, cfg_node: DictConfig, force: list[str] = (), overrides: list[str] = ()) -> list[StepReport]:
     if name not in PIPELINES:
         raise ValueError(f"unknown pipeline {name!r}; choose one of {', '.join(PIPELINES)}")
     unknown = set(force) - set(PIPELINES[name]) - {"all"}
     if unknown:
         raise ValueError(f"--force {sorted(unknown)}: not steps of pipeline {name!r} ({', '.join(PIPELINES[name])})")
     cfg: PipelineConfig = to_object(cfg_node)
-    ctx = Context(cfg, resolve_tracking_uri(cfg.logger.tracking_uri))
+    ctx = Context(cfg, resolve_tracking_uri(cfg.logger.tracking_uri), shared_overrides(list(overrides)))
     steps = [STEPS[s]() for s in PIPELINES[name]]
     forced = set(PIPELINES[name]) if "all" in force else set(force)
     return run_steps(name, steps, ctx, Path(cfg.state_file), forced, artifact_root=cfg.logger.artifact_root)

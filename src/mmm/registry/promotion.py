@@ -89,8 +89,9 @@ def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool
         if new is None or old is None:
             failures.append(f"{c.metric} missing ({'candidate' if new is None else 'champion'})")
             continue
-        better = new <= old - c.margin if c.mode == "min" else new >= old + c.margin
-        relation = "<=" if c.mode == "min" else ">="
+        # Strictly: a tie (the same model trained again) does not take the alias.
+        better = new < old - c.margin if c.mode == "min" else new > old + c.margin
+        relation = "<" if c.mode == "min" else ">"
         target = old - c.margin if c.mode == "min" else old + c.margin
         line = f"{c.metric}: {new:.4g} vs champion {old:.4g} (needs {relation} {target:.4g}): {'better' if better else 'not better'}"
         comparisons.append(line)

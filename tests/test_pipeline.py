@@ -1,0 +1,158 @@
+"""The full pipeline end to end on a small synthetic dataset: one parent MLflow run with a nested
+run per step, champions promoted, generation defaulting to the champion, unchanged steps skipped
+on a rerun, and --force rerunning a step and what depends on it."""
+
+import json
+import time
+
+import numpy as np
+import pytest
+from mlflow.tracking import MlflowClient
+
+from mmm.cli import main
+from mmm.pipeline.steps import PIPELINES
+
+TINY = {
+    "evaluator": ["model.hidden_dim=16", "model.embed_dim=32", "model.text_hidden_dim=32", "trainer.max_steps=4", "trainer.val_check_interval=4",
+                  "retrieval.batch_size=8"],
+    "stage1": ["model.tokenizer.width=16", "model.tokenizer.num_codes=32", "trainer.max_steps=4", "trainer.val_check_interval=4",
+               "callbacks.preview_clips=0", "callbacks.usage_plot=false"],
+    "stage2": ["model.transformer.embed_dim=32", "model.transformer.num_heads=2", "model.transformer.num_layers=2", "trainer.max_steps=4",
+               "trainer.val_check_interval=4", "callbacks.preview_captions=0"],
+    "length": ["model.hidden_dim=16", "trainer.max_steps=4", "trainer.val_check_interval=4"],
+    "evaluate": ["protocol.batch_size=8", "protocol.replications=2", "protocol.mm_texts=2", "protocol.mm_generations=3", "protocol.mm_times=2",
+                 "protocol.diversity_times=10", "protocol.max_batches=null"],
+    "promote": ["protocol.batch_size=8", "protocol.replications=2", "protocol.mm_texts=2", "protocol.mm_generations=3", "protocol.mm_times=2",
+                "protocol.diversity_times=10", "protocol.max_batches=null"],
+}
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp("pipeline")
+
+
+def pipeline(workdir, monkeypatch, *extra):
+    """`mmm pipeline full` in `workdir` (relative outputs land there); returns (exit code, printed lines)."""
+    import mlflow
+
+    monkeypatch.chdir(workdir)
+    argv = ["pipeline", "full", f"data.root={workdir}/data", "data.synthesize.num_clips=60", "data.batch_size=8",
+            f"logger.tracking_uri=sqlite:///{workdir}/mlflow.db", f"logger.artifact_root={workdir}/art", f"state_file={workdir}/state.json",
+            *[f"overrides.{step}=[{','.join(items)}]" for step, items in TINY.items()], *extra]
+    previous = mlflow.get_tracking_uri()
+    try:
+        return main(argv)
+    finally:
+        mlflow.set_tracking_uri(previous)  # promotion sets the process-wide store; other tests expect theirs
+
+
+def steps_of(client, parent):
+    children = client.search_runs([parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'")
+    return {r.info.run_name: r for r in children}
+
+
+def newest_parent(client):
+    experiment = client.get_experiment_by_name("mmm-pipeline")
+    return client.search_runs([experiment.experiment_id], "tags.`mmm.pipeline` = 'full' and attributes.run_name LIKE 'pipeline-%'",
+                              order_by=["attributes.start_time DESC"])[0]
+
+
+def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypatch, capsys):
+    started = time.perf_counter()
+    assert pipeline(workdir, monkeypatch) == 0
+    print(f"[pipeline] full, first run: {time.perf_counter() - started:.1f} s")
+    out = capsys.readouterr().out
+    client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
+    parent = newest_parent(client)
+    assert parent.info.status == "FINISHED"
+    steps = steps_of(client, parent)
+    assert set(steps) == set(PIPELINES["full"])
+    assert all(r.data.tags["step.status"] == "ran" and r.info.status == "FINISHED" for r in steps.values())
+    summary = client.download_artifacts(parent.info.run_id, "steps.txt", str(workdir))
+    assert [line.split()[0] for line in open(summary)] == PIPELINES["full"]
+
+    # Every step's own run is in its experiment, linked from the step's run.
+    for step, experiment in (("evaluator", "mmm-evaluator"), ("stage1", "mmm-stage1"), ("stage2", "mmm-stage2"), ("length", "mmm-length"),
+                             ("evaluate", "mmm-evaluation")):
+        run = client.get_run(steps[step].data.tags["output.run_id"])
+        assert client.get_experiment(run.info.experiment_id).name == experiment and run.info.status == "FINISHED"
+
+    # Three champions, measured on the same data; the text-to-motion one with the champion evaluator.
+    champions = {name: client.get_model_version_by_alias(name, "champion") for name in ("mmm-evaluator", "mmm-tokenizer", "mmm-text2motion")}
+    fingerprint = champions["mmm-tokenizer"].tags["data.fingerprint"]
+    assert len(fingerprint) == 16 and champions["mmm-text2motion"].tags["data.fingerprint"] == fingerprint
+    assert champions["mmm-text2motion"].tags["evaluator"].startswith("contrastive-")
+    assert champions["mmm-text2motion"].run_id == steps["stage2"].data.tags["output.run_id"]
+    assert champions["mmm-tokenizer"].run_id == steps["stage1"].data.tags["output.run_id"]
+    assert np.isfinite(float(champions["mmm-text2motion"].tags["metric.generated/fid"]))
+    assert float(champions["mmm-tokenizer"].tags["metric.recon/mpjpe_mm"]) > 0
+    assert "promote-text2motion" in out and "no champion yet" in out
+    # Stage 2 was trained on the tokenizer champion's tokens.
+    stage2 = client.get_run(champions["mmm-text2motion"].run_id)
+    assert stage2.data.tags["stage1.reference"] == "models:/mmm-tokenizer@champion"
+
+    # Generation defaults to the champion bundle.
+    code = main(["generate", "--text", "a person walks forward", "--length", "48", "--tracking-uri", f"sqlite:///{workdir}/mlflow.db",
+                 "--out", str(workdir / "gen")])
+    assert code == 0
+    meta = json.loads((workdir / "gen/0/meta.json").read_text())
+    assert meta["model"]["reference"] == "models:/mmm-text2motion@champion" and str(meta["model"]["version"]) == str(champions["mmm-text2motion"].version)
+    assert np.load(workdir / "gen/0/joints.npy").shape == (48, 22, 3)
+    listing = capsys.readouterr()
+    assert main(["models", "list", "--tracking-uri", f"sqlite:///{workdir}/mlflow.db"]) == 0
+    listing = capsys.readouterr().out
+    assert "mmm-text2motion:" in listing and "champion" in listing and "generated/fid=" in listing
+
+
+def test_rerun_skips_unchanged_steps_and_force_reruns_what_depends(workdir, monkeypatch):
+    client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
+    versions = {name: len(client.search_model_versions(f"name='{name}'")) for name in ("mmm-evaluator", "mmm-tokenizer", "mmm-text2motion")}
+
+    started = time.perf_counter()
+    assert pipeline(workdir, monkeypatch) == 0
+    print(f"[pipeline] full, unchanged rerun: {time.perf_counter() - started:.1f} s")
+    steps = steps_of(client, newest_parent(client))
+    assert {name: r.data.tags["step.status"] for name, r in steps.items()} == {name: "skipped" for name in PIPELINES["full"]}
+    assert versions == {name: len(client.search_model_versions(f"name='{name}'")) for name in versions}  # nothing registered again
+
+    # A new stage-2 run: the evaluation and the text-to-motion promotion depend on it; the
+    # tokenizer, tokens, evaluator and length estimator do not.
+    assert pipeline(workdir, monkeypatch, "--force", "stage2") == 0
+    steps = steps_of(client, newest_parent(client))
+    ran = {name for name, r in steps.items() if r.data.tags["step.status"] == "ran"}
+    assert ran == {"stage2", "evaluate", "promote-text2motion"}
+    assert len(client.search_model_versions("name='mmm-text2motion'")) == versions["mmm-text2motion"] + 1
+    newest = max(client.search_model_versions("name='mmm-text2motion'"), key=lambda v: int(v.version))
+    assert newest.run_id == steps["stage2"].data.tags["output.run_id"]
+    # Trained again with the same seed on the same data: the same metrics, a tie, which is not a win.
+    newest = client.get_model_version("mmm-text2motion", newest.version)
+    assert newest.aliases == ["challenger"] and newest.tags["promotion"].startswith("challenger: does not beat the champion")
+
+    # A changed step override reruns that step (and its dependants) without --force.
+    assert pipeline(workdir, monkeypatch, f"overrides.length=[{','.join(TINY['length'])},model.dropout=0.3]") == 0
+    steps = steps_of(client, newest_parent(client))
+    assert {name for name, r in steps.items() if r.data.tags["step.status"] == "ran"} == {"length"}
+
+
+def test_a_failing_step_fails_the_parent_and_keeps_the_good_state(workdir, monkeypatch, capsys):
+    client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
+    # An evaluation override that cannot be applied: the step fails, the steps before it are skipped.
+    assert pipeline(workdir, monkeypatch, f"overrides.evaluate=[{','.join(TINY['evaluate'])},protocol.no_such_key=1]") == 2
+    assert "no_such_key" in capsys.readouterr().err
+    parent = newest_parent(client)
+    assert parent.info.status == "FAILED"
+    steps = steps_of(client, parent)
+    assert steps["evaluate"].info.status == "FAILED" and steps["evaluate"].data.tags["step.status"] == "failed"
+    assert "no_such_key" in open(client.download_artifacts(steps["evaluate"].info.run_id, "error.txt", str(workdir))).read()
+    before = PIPELINES["full"][:PIPELINES["full"].index("evaluate")]
+    # Length's override is back to TINY after the previous test's change: it runs again, the rest is reused.
+    assert {s: steps[s].data.tags["step.status"] for s in before} == {s: "ran" if s == "length" else "skipped" for s in before}
+    assert "promote-text2motion" not in steps  # nothing ran after the failure
+    state = json.loads((workdir / "state.json").read_text())
+    assert set(state) >= set(PIPELINES["full"])  # the state of the good runs is kept
+
+    # Back to the good configuration: the earlier evaluation of the same inputs is still valid.
+    assert pipeline(workdir, monkeypatch) == 0
+    steps = steps_of(client, newest_parent(client))
+    assert {r.data.tags["step.status"] for r in steps.values()} == {"skipped"}
