@@ -89,3 +89,26 @@ def stage2_overrides(root, out, **extra):
     }
     items.update(extra)
     return [f"{k}={v}" for k, v in items.items()]
+
+
+# Step overrides that make `mmm pipeline full` take seconds (tiny networks, a few steps each).
+PIPELINE_TINY = {
+    "evaluator": ["model.hidden_dim=16", "model.embed_dim=32", "model.text_hidden_dim=32", "trainer.max_steps=4", "trainer.val_check_interval=4",
+                  "retrieval.batch_size=8"],
+    "stage1": ["model.tokenizer.width=16", "model.tokenizer.num_codes=32", "trainer.max_steps=4", "trainer.val_check_interval=4", "trainer.log_every_n_steps=1",
+               "callbacks.preview_clips=0", "callbacks.usage_plot=false"],
+    "stage2": ["model.transformer.embed_dim=32", "model.transformer.num_heads=2", "model.transformer.num_layers=2", "trainer.max_steps=4",
+               "trainer.val_check_interval=4", "callbacks.preview_captions=0"],
+    "length": ["model.hidden_dim=16", "trainer.max_steps=4", "trainer.val_check_interval=4"],
+    "evaluate": ["protocol.batch_size=8", "protocol.replications=2", "protocol.mm_texts=2", "protocol.mm_generations=3", "protocol.mm_times=2",
+                 "protocol.diversity_times=10", "protocol.max_batches=null"],
+    "promote": ["protocol.batch_size=8", "protocol.replications=2", "protocol.mm_texts=2", "protocol.mm_generations=3", "protocol.mm_times=2",
+                "protocol.diversity_times=10", "protocol.max_batches=null"],
+}
+
+
+def pipeline_args(workdir, tracking_uri: str) -> list[str]:
+    """`mmm pipeline` overrides: a 60-clip synthetic dataset, the store, state and artifacts under `workdir`."""
+    return [f"data.root={workdir}/data", "data.synthesize.num_clips=60", "data.batch_size=8", f"logger.tracking_uri={tracking_uri}",
+            f"logger.artifact_root={workdir}/art", f"state_file={workdir}/state.json",
+            *[f"overrides.{step}=[{','.join(items)}]" for step, items in PIPELINE_TINY.items()]]

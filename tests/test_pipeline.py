@@ -7,24 +7,12 @@ import time
 
 import numpy as np
 import pytest
+from helpers import PIPELINE_TINY as TINY
+from helpers import pipeline_args
 from mlflow.tracking import MlflowClient
 
 from mmm.cli import main
 from mmm.pipeline.steps import PIPELINES
-
-TINY = {
-    "evaluator": ["model.hidden_dim=16", "model.embed_dim=32", "model.text_hidden_dim=32", "trainer.max_steps=4", "trainer.val_check_interval=4",
-                  "retrieval.batch_size=8"],
-    "stage1": ["model.tokenizer.width=16", "model.tokenizer.num_codes=32", "trainer.max_steps=4", "trainer.val_check_interval=4",
-               "callbacks.preview_clips=0", "callbacks.usage_plot=false"],
-    "stage2": ["model.transformer.embed_dim=32", "model.transformer.num_heads=2", "model.transformer.num_layers=2", "trainer.max_steps=4",
-               "trainer.val_check_interval=4", "callbacks.preview_captions=0"],
-    "length": ["model.hidden_dim=16", "trainer.max_steps=4", "trainer.val_check_interval=4"],
-    "evaluate": ["protocol.batch_size=8", "protocol.replications=2", "protocol.mm_texts=2", "protocol.mm_generations=3", "protocol.mm_times=2",
-                 "protocol.diversity_times=10", "protocol.max_batches=null"],
-    "promote": ["protocol.batch_size=8", "protocol.replications=2", "protocol.mm_texts=2", "protocol.mm_generations=3", "protocol.mm_times=2",
-                "protocol.diversity_times=10", "protocol.max_batches=null"],
-}
 
 
 @pytest.fixture(scope="module")
@@ -33,13 +21,11 @@ def workdir(tmp_path_factory):
 
 
 def pipeline(workdir, monkeypatch, *extra):
-    """`mmm pipeline full` in `workdir` (relative outputs land there); returns (exit code, printed lines)."""
+    """`mmm pipeline full` in `workdir` (relative outputs land there); returns its exit code."""
     import mlflow
 
     monkeypatch.chdir(workdir)
-    argv = ["pipeline", "full", f"data.root={workdir}/data", "data.synthesize.num_clips=60", "data.batch_size=8",
-            f"logger.tracking_uri=sqlite:///{workdir}/mlflow.db", f"logger.artifact_root={workdir}/art", f"state_file={workdir}/state.json",
-            *[f"overrides.{step}=[{','.join(items)}]" for step, items in TINY.items()], *extra]
+    argv = ["pipeline", "full", *pipeline_args(workdir, f"sqlite:///{workdir}/mlflow.db"), *extra]
     previous = mlflow.get_tracking_uri()
     try:
         return main(argv)

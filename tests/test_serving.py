@@ -4,13 +4,7 @@ checkpoints, and served by `mlflow models serve` as a real process on loopback."
 import json
 import os
 import shutil
-import signal
-import socket
-import subprocess
-import sys
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -234,85 +228,18 @@ def test_localize_text_files_points_at_bundled_files(tmp_path):
 
 
 # -- a real server -----------------------------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _post(url: str, body: dict, timeout: float = 60.0):
-    request = urllib.request.Request(url, data=json.dumps(body).encode(), headers={"Content-Type": "application/json"}, method="POST")
-    try:
-        with urllib.request.urlopen(request, timeout=timeout) as response:
-            return response.status, json.loads(response.read())
-    except urllib.error.HTTPError as e:
-        return e.code, json.loads(e.read() or b"{}")
-
-
-def _group_alive(pgid: int) -> bool:
-    try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    """SIGTERM to the server's process group, SIGKILL after 10 s if anything is left."""
-    for sig, grace in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
-        if not _group_alive(proc.pid):
-            break
-        try:
-            os.killpg(proc.pid, sig)
-        except ProcessLookupError:
-            break
-        deadline = time.monotonic() + grace
-        while time.monotonic() < deadline and _group_alive(proc.pid):
-            try:
-                proc.wait(timeout=0.2)  # reap the leader so the group can empty
-            except subprocess.TimeoutExpired:
-                pass
-    try:
-        proc.wait(timeout=5)
-    except subprocess.TimeoutExpired:
-        pass
-
-
 @pytest.mark.timeout(240)
 def test_mlflow_models_serve_answers_invocations(registered, store, tmp_path):
-    cli = Path(sys.executable).with_name("mlflow")
-    command = [str(cli)] if cli.exists() else [sys.executable, "-m", "mlflow"]
-    port = _free_port()
-    command += ["models", "serve", "-m", registered["uri"], "--env-manager", "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"]
-    # MLflow starts the server as `bash -c "exec uvicorn ..."`: uvicorn must be on PATH, which a
-    # venv's python run without activating the venv does not arrange.
-    path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
-    env = {**os.environ, "PATH": path, "MLFLOW_TRACKING_URI": store, "MLFLOW_REGISTRY_URI": store, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
-    log_path = tmp_path / "server.log"
-    base = f"http://127.0.0.1:{port}"
-    with open(log_path, "wb") as log:
-        started = time.perf_counter()
-        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env, cwd=tmp_path, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 90
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(f"the server exited with {proc.returncode} before answering /health:\n{log_path.read_text()[-4000:]}")
-            try:
-                with urllib.request.urlopen(f"{base}/health", timeout=2) as r:
-                    if r.status == 200:
-                        break
-            except (urllib.error.URLError, ConnectionError, TimeoutError):
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"the server did not answer /health within 90 s:\n{log_path.read_text()[-4000:]}")
-            time.sleep(0.5)
-        _report("mlflow models serve start-up (to /health 200)", time.perf_counter() - started)
+    from servers import free_port, mlflow_command, post, running, server_env
 
+    port = free_port()
+    command = [*mlflow_command(), "models", "serve", "-m", registered["uri"], "--env-manager", "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"]
+    base = f"http://127.0.0.1:{port}"
+    env = server_env(MLFLOW_TRACKING_URI=store, MLFLOW_REGISTRY_URI=store)
+    with running(command, base, tmp_path / "server.log", tmp_path, env) as startup:
+        _report("mlflow models serve start-up (to /health 200)", startup)
         t0 = time.perf_counter()
-        status, answer = _post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
+        status, answer = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
         _report("POST /invocations, 1 row of 80 frames (first request)", time.perf_counter() - t0)
         assert status == 200, answer
         predictions = answer["predictions"]
@@ -321,12 +248,9 @@ def test_mlflow_models_serve_answers_invocations(registered, store, tmp_path):
         assert np.asarray(predictions[0]["features"]).shape == (80, 263)
 
         t0 = time.perf_counter()
-        status, again = _post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
+        status, again = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
         _report("POST /invocations, same request again", time.perf_counter() - t0)
         assert status == 200 and again["predictions"][0]["joints"] == predictions[0]["joints"]
 
-        status, error = _post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "length": 80}, {"text": "", "length": 80}]})
+        status, error = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "length": 80}, {"text": "", "length": 80}]})
         assert status == 400 and "row 1: text is empty" in error["message"], error
-    finally:
-        _stop(proc)
-    assert not _group_alive(proc.pid), "a server process survived SIGKILL"

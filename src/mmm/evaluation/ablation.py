@@ -29,7 +29,7 @@ from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.generation.sampler import SamplingConfig
-from mmm.training.common import TrackingConfig, resolve_tracking_uri
+from mmm.training.common import TrackingConfig, artifact_location, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +120,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     mlflow.set_tracking_uri(tracking_uri)
     experiment = mlflow.get_experiment_by_name("mmm-ablations")
-    experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment("mmm-ablations", artifact_location=Path(cfg.logger.artifact_root).resolve().as_uri())
+    experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment("mmm-ablations", artifact_location=artifact_location(tracking_uri, cfg.logger.artifact_root))
     items, _ = load_items(cfg.data.root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
                           length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
     mean, std = load_stats(cfg.data.root, cfg.data.feature_dim)

@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
-from mmm.training.common import TrackingConfig, resolve_tracking_uri
+from mmm.training.common import TrackingConfig, artifact_location, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ def evaluate(cfg_node: DictConfig) -> dict:
         mlflow.set_tracking_uri(tracking_uri)
         experiment = mlflow.get_experiment_by_name(cfg.logger.experiment)
         experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment(
-            cfg.logger.experiment, artifact_location=Path(cfg.logger.artifact_root).resolve().as_uri())
+            cfg.logger.experiment, artifact_location=artifact_location(tracking_uri, cfg.logger.artifact_root))
         with mlflow.start_run(experiment_id=experiment_id, run_name=cfg.logger.run_name) as run:
             mlflow.set_tags({
                 "mmm.stage": "evaluation", "text2motion.reference": model.identity.get("reference"), "text2motion.run_id": model.identity.get("run_id") or "",

@@ -72,9 +72,11 @@ def _flat(outputs: dict) -> dict[str, str]:
 def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, force: set[str] = frozenset(), experiment: str = "mmm-pipeline", artifact_root: str = "mlartifacts") -> list[StepReport]:
     from mlflow.tracking import MlflowClient
 
+    from mmm.training.common import artifact_location
+
     client = MlflowClient(ctx.tracking_uri)
     found = client.get_experiment_by_name(experiment)
-    experiment_id = found.experiment_id if found else client.create_experiment(experiment, artifact_location=Path(artifact_root).resolve().as_uri())
+    experiment_id = found.experiment_id if found else client.create_experiment(experiment, artifact_location=artifact_location(ctx.tracking_uri, artifact_root))
     parent = client.create_run(experiment_id, run_name=f"pipeline-{name}", tags={"mmm.pipeline": name})
     state = _load_state(state_file)
     reports: list[StepReport] = []

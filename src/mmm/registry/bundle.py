@@ -327,6 +327,23 @@ def log_bundle(
 
 
 # -- reading a bundle back ------------------------------------------------------------------------
+def _artifact_location(model_uri: str, tracking_uri: str) -> str:
+    """Where a models:/ reference's files are, asked of `tracking_uri` itself: MLflow's own
+    models:/ download consults the process-wide registry instead of the one it is given."""
+    if not model_uri.startswith("models:/"):
+        return model_uri
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri, registry_uri=tracking_uri)
+    body = model_uri[len("models:/"):]
+    if body.startswith("m-") and "/" not in body and "@" not in body:
+        return client.get_logged_model(body).artifact_location
+    from mmm.resolve import registered_version
+
+    version = registered_version(model_uri, tracking_uri)
+    return client.get_model_version_download_uri(version.name, version.version)
+
+
 def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None = None) -> tuple[str, str]:
     """(stage-2 checkpoint, stage-1 checkpoint): local files of a logged or registered bundle
     (models:/NAME@ALIAS, models:/NAME/VERSION, models:/m-ID, runs:/ID/PATH or a local folder),
@@ -337,9 +354,12 @@ def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None
 
     if dst is not None:
         Path(dst).mkdir(parents=True, exist_ok=True)
-    local = Path(model_uri) if Path(model_uri).is_dir() else Path(mlflow.artifacts.download_artifacts(
-        artifact_uri=model_uri, dst_path=None if dst is None else str(dst), tracking_uri=tracking_uri, registry_uri=tracking_uri,
-    ))
+    if Path(model_uri).is_dir():
+        local = Path(model_uri)
+    else:
+        local = Path(mlflow.artifacts.download_artifacts(
+            artifact_uri=_artifact_location(model_uri, tracking_uri), dst_path=None if dst is None else str(dst), tracking_uri=tracking_uri,
+        ))
     conf = Model.load(str(local)).flavors.get("python_function", {})
     saved = conf.get("artifacts") or {}
     if TRANSFORMER not in saved or TOKENIZER not in saved:

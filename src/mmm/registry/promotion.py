@@ -57,14 +57,16 @@ def version_tags(metrics: dict[str, float], data_fingerprint: str, evaluator: st
 
 
 def register_version(client, name: str, source: str, run_id: str | None, tags: dict[str, str], description: str = ""):
-    """A new version of `name` (created if missing) with `tags`."""
+    """A new version of `name` (created if missing) with `tags`. `source` is runs:/ID/PATH or a
+    logged model's models:/m-ID (whose id a tracking server needs to be told as well)."""
     from mlflow.exceptions import MlflowException
 
     try:
         client.get_registered_model(name)
     except MlflowException:
         client.create_registered_model(name, tags={"mmm.kind": name.removeprefix("mmm-")}, description=description)
-    version = client.create_model_version(name, source, run_id=run_id, tags=tags, description=description)
+    model_id = source[len("models:/"):] if source.startswith("models:/m-") else None
+    version = client.create_model_version(name, source, run_id=run_id, tags=tags, description=description, model_id=model_id)
     return version
 
 

@@ -89,6 +89,17 @@ def resolve_tracking_uri(uri: str) -> str:
     return uri
 
 
+def artifact_location(tracking_uri: str, artifact_root: str) -> str | None:
+    """Where a new experiment keeps its artifacts: artifact_root as given when it is a URI
+    (s3://...), None against a tracking server (the server's own store, which it serves to every
+    client), else the local folder (the embedded store)."""
+    if "://" in artifact_root or artifact_root.startswith("mlflow-artifacts:"):
+        return artifact_root
+    if tracking_uri.split(":", 1)[0] in ("http", "https", "databricks"):
+        return None
+    return Path(artifact_root).resolve().as_uri()
+
+
 def build_logger(cfg: TrackingConfig, run_id: str | None = None) -> MLFlowLogger | None:
     if not cfg.enabled:
         return None
@@ -96,7 +107,7 @@ def build_logger(cfg: TrackingConfig, run_id: str | None = None) -> MLFlowLogger
         experiment_name=cfg.experiment,
         run_name=cfg.run_name,
         tracking_uri=resolve_tracking_uri(cfg.tracking_uri),
-        artifact_location=Path(cfg.artifact_root).resolve().as_uri(),
+        artifact_location=artifact_location(cfg.tracking_uri, cfg.artifact_root),
         run_id=run_id,
     )
 
