@@ -71,3 +71,20 @@ def test_models_list_shows_versions_aliases_and_metrics(client):
     text = list_models(client)
     assert "mmm-tokenizer:" in text and "v1   champion" in text and "recon/mpjpe_mm=31.4" in text
     assert "mmm-text2motion: not registered yet" in text
+
+
+def test_code_version_is_the_commit_of_a_checkout_and_the_package_version_otherwise(tmp_path, monkeypatch):
+    import subprocess
+
+    import mmm
+    from mmm.registry import promotion
+
+    head = subprocess.run(["git", "-C", str(promotion.Path(promotion.__file__).parents[3]), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    if head:  # this checkout is a git clone (CI's is)
+        assert code_version().removesuffix("+dirty") == head
+    # A copy of the module outside a checkout (as in site-packages, inside some other repository).
+    fake = tmp_path / "lib" / "python3" / "site-packages" / "mmm" / "registry" / "promotion.py"
+    fake.parent.mkdir(parents=True)
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    monkeypatch.setattr(promotion, "__file__", str(fake))
+    assert code_version() == f"mmm-motion {mmm.__version__}"

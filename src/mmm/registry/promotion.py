@@ -39,14 +39,21 @@ class Decision:
 
 
 def code_version() -> str:
-    """The git commit of this package's checkout (with "+dirty" when it has changes), or "unknown"."""
+    """The git commit of this package's source checkout ("+dirty" when it has changes); for an
+    installed (non-editable) package, or without git, the package version ("mmm-motion 0.1.0")."""
+    from mmm import __version__
+
+    fallback = f"mmm-motion {__version__}"
     root = Path(__file__).resolve().parents[3]
+    # Only a source checkout: an installed package's parents may be some other repository.
+    if not ((root / "pyproject.toml").is_file() and (root / "src" / "mmm" / "__init__.py").is_file()):
+        return fallback
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return (commit + ("+dirty" if dirty else "")) if commit else "unknown"
+        return fallback
+    return (commit + ("+dirty" if dirty else "")) if commit else fallback
 
 
 def version_tags(metrics: dict[str, float], data_fingerprint: str, evaluator: str | None, config_hash: str | None, extra: dict | None = None) -> dict[str, str]:
