@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test data demo train-stage1 train-stage2 train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui clean
+.PHONY: help setup test data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
@@ -54,6 +54,12 @@ train-stage1: $(STAMP) ## train the tokenizer (tiny size on the synthetic data b
 
 train-stage2: $(STAMP) ## train the masked transformer on the newest stage-1 result (or ARGS="stage1=RUN_ID|PATH|models:/NAME@ALIAS ...")
 	$(BIN)/mmm train stage2 $(ARGS)
+
+train-stage1-parts: $(STAMP) ## the part-aware tokenizer for upper-body editing (lower and upper body apart); ARGS="key=value ..."
+	$(BIN)/mmm train stage1-parts $(ARGS)
+
+train-stage2-parts: $(STAMP) ## the part-aware transformer (upper body from text given the lower body) on the newest part-aware tokenizer
+	$(BIN)/mmm train stage2-parts $(ARGS)
 
 train-length: $(STAMP) ## train the length estimator used when no length is given (ARGS as for train-stage2)
 	$(BIN)/mmm train length $(ARGS)

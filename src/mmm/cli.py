@@ -121,10 +121,10 @@ def cmd_render(args: argparse.Namespace) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    if args.stage == "stage1":
+    if args.stage in ("stage1", "stage1-parts"):
         from mmm.training.stage1 import load_stage1_config, train_stage1
 
-        result = train_stage1(load_stage1_config(args.overrides), resume=args.resume)
+        result = train_stage1(load_stage1_config(args.overrides, parts=args.stage.endswith("parts")), resume=args.resume)
     elif args.stage == "length":
         if args.resume:
             raise CLIError("--resume is not supported for the length estimator (it trains in seconds)")
@@ -140,7 +140,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     else:
         from mmm.training.stage2 import load_stage2_config, train_stage2
 
-        result = train_stage2(load_stage2_config(args.overrides), resume=args.resume)
+        result = train_stage2(load_stage2_config(args.overrides, parts=args.stage.endswith("parts")), resume=args.resume)
     if result.run_id is None and not result.best_checkpoint:
         return  # a non-zero rank of a distributed run
     print(f"MLflow run: {result.run_id}")
@@ -192,7 +192,7 @@ def cmd_promote(args: argparse.Namespace) -> None:
     from mmm.registry.promote import load_promote_config, promote
 
     decision = promote(args.kind, load_promote_config(args.overrides))
-    name = {"tokenizer": "mmm-tokenizer", "text2motion": "mmm-text2motion", "evaluator": "mmm-evaluator"}[args.kind]
+    name = {"tokenizer": "mmm-tokenizer", "text2motion": "mmm-text2motion", "evaluator": "mmm-evaluator", "upperbody": "mmm-upperbody"}[args.kind]
     print(f"{name} version {decision.version} -> {decision.alias}: {decision.reason}")
     for line in decision.comparisons:
         print(f"  {line}")
@@ -209,17 +209,20 @@ def cmd_models(args: argparse.Namespace) -> None:
 
 def _sampling(args: argparse.Namespace):
     from mmm.generation.sampler import SamplingConfig
+    from mmm.generation.upper_body import UPPER_BODY_GUIDANCE
 
+    guidance = args.guidance if args.guidance is not None else (UPPER_BODY_GUIDANCE if getattr(args, "kind", None) == "upper-body" else 1.0)
     return SamplingConfig(
         max_iterations=args.iterations, schedule=args.schedule, temperature=args.temperature, top_k=args.top_k,
-        top_p=args.top_p, guidance_scale=args.guidance,
+        top_p=args.top_p, guidance_scale=guidance,
     )
 
 
 def _load_model(args: argparse.Namespace):
     from mmm.generation.model import TextToMotion
 
-    return TextToMotion.load(args.model, tracking_uri=args.tracking_uri, output_dir=args.stage2_dir, device=args.device, length_model=args.length_model)
+    return TextToMotion.load(args.model, tracking_uri=args.tracking_uri, output_dir=args.stage2_dir, device=args.device, length_model=args.length_model,
+                             parts=getattr(args, "kind", None) == "upper-body")
 
 
 def _meta(args, model, out, kind: str, extra: dict) -> dict:
@@ -273,7 +276,24 @@ def cmd_edit(args: argparse.Namespace) -> None:
     from mmm.generation.outputs import write_samples
     from mmm.motion.features import joints_to_features
 
-    keep = _parse_keep(args.keep)
+    if args.kind == "upper-body":
+        from mmm.generation.upper_body import DEFAULT_LOWER_MASK
+
+        if args.keep:
+            raise CLIError("upper-body keeps the whole lower body of the source; choose how much of it constrains the upper body with --lower-mask SHARE or --lower-keep A:B")
+        if not args.text:
+            raise CLIError("upper-body needs --text saying what the upper body does, e.g. --text 'a man punches with both hands'")
+        if args.lower_mask is not None and args.lower_keep is not None:
+            raise CLIError("give --lower-mask (a share of lower-body codes hidden) or --lower-keep (frame ranges shown), not both")
+        if args.lower_mask is not None and not 0.0 <= args.lower_mask <= 1.0:
+            raise CLIError(f"--lower-mask {args.lower_mask}: a share between 0 (the lower body constrains fully) and 1 (only the text)")
+        keep = _parse_keep(args.lower_keep) if args.lower_keep is not None else None
+    else:
+        if args.lower_mask is not None or args.lower_keep is not None:
+            raise CLIError(f"--lower-mask/--lower-keep are for `mmm edit upper-body`, not {args.kind}")
+        if not args.keep:
+            raise CLIError(f"{args.kind} needs --keep START:END[,START:END] (source frames to keep)")
+        keep = _parse_keep(args.keep)
     if args.text is not None:
         _check_texts([args.text])
     if args.kind == "inbetween" and len(keep) < 2:
@@ -290,12 +310,21 @@ def cmd_edit(args: argparse.Namespace) -> None:
     if not np.isfinite(source).all():
         raise CLIError(f"{args.source}: contains NaN/Inf values")
     model = _load_model(args)
-    out = model.edit(source.astype(np.float32), keep, args.text, args.length, args.place, _sampling(args), args.seed, args.num_samples)
     caption = f"{args.kind}: {args.text or '(no text)'}"
-    extra = {"source": str(args.source), "keep_frames": keep, "place": args.place, "prompt": args.text, "kept_codes": out.kept_codes.astype(int).tolist()}
+    if args.kind == "upper-body":
+        lower_mask = None if keep is not None else (DEFAULT_LOWER_MASK if args.lower_mask is None else args.lower_mask)
+        out = model.edit_upper_body(source.astype(np.float32), args.text, lower_mask, keep, _sampling(args), args.seed, args.num_samples)
+        extra = {"source": str(args.source), "prompt": args.text, "lower_mask": lower_mask, "lower_keep_frames": keep}
+        kept = [row.astype(int).tolist() for row in out.kept_codes]
+        captions = [f"{caption} (lower body shown: {sum(row)}/{len(row)} codes)" for row in kept]
+    else:
+        out = model.edit(source.astype(np.float32), keep, args.text, args.length, args.place, _sampling(args), args.seed, args.num_samples)
+        extra = {"source": str(args.source), "keep_frames": keep, "place": args.place, "prompt": args.text}
+        kept = [out.kept_codes.astype(int).tolist()] * len(out.features)
+        captions = [caption] * len(out.features)
     samples = [
-        {"features": f, "joints": j, "caption": caption,
-         "meta": _meta(args, model, out, args.kind, {**extra, "length_frames": int(f.shape[0]), "sample": k})}
+        {"features": f, "joints": j, "caption": captions[k],
+         "meta": _meta(args, model, out, args.kind, {**extra, "kept_codes": kept[k], "length_frames": int(f.shape[0]), "sample": k})}
         for k, (f, j) in enumerate(zip(out.features, out.joints))
     ]
     for folder in write_samples(args.out, samples, model.skeleton, overwrite=args.overwrite):
@@ -329,7 +358,8 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
 def _add_generation_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder: one sub-folder per sample")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--model", default=None, help="stage-2 checkpoint, MLflow run id or models:/NAME@ALIAS (default: the newest stage-2 result)")
+    p.add_argument("--model", default=None, help="stage-2 checkpoint, MLflow run id or models:/NAME@ALIAS (default: the champion, else the newest "
+                   "stage-2 result; for upper-body: mmm-upperbody's champion, else the newest part-aware result)")
     p.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
     p.add_argument("--length-model", default=None, help="length estimator used when no length is given (default: the newest `make train-length` result)")
     p.add_argument("--stage2-dir", default="outputs/stage2", help=argparse.SUPPRESS)
@@ -341,7 +371,7 @@ def _add_generation_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--temperature", type=float, default=1.0)
     g.add_argument("--top-k", type=float, default=None, help="fraction of the codebook kept, e.g. 0.9")
     g.add_argument("--top-p", type=float, default=None)
-    g.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (1: none)")
+    g.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (1: none; default 1, 4 for upper-body edits)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -385,7 +415,8 @@ def build_parser() -> argparse.ArgumentParser:
     preview.set_defaults(func=cmd_data_preview)
 
     train = sub.add_parser("train", help="train a stage; any config key can be overridden as key=value")
-    train.add_argument("stage", choices=["stage1", "stage2", "length", "evaluator"])
+    train.add_argument("stage", choices=["stage1", "stage2", "length", "evaluator", "stage1-parts", "stage2-parts"],
+                       help="stage1-parts/stage2-parts: the part-aware model for upper-body editing")
     train.add_argument("overrides", nargs="*", help="e.g. trainer.max_steps=500 model=paper data=humanml3d")
     train.add_argument("--resume", default=None, help="'last' (newest run of this stage) or a checkpoint path")
     train.set_defaults(func=cmd_train)
@@ -402,10 +433,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_generation_options(gen)
     gen.set_defaults(func=cmd_generate)
 
-    edit = sub.add_parser("edit", help="edit a motion: keep some frames, generate the rest")
-    edit.add_argument("kind", choices=["inbetween", "outpaint", "complete"])
+    edit = sub.add_parser("edit", help="edit a motion: keep some frames and generate the rest, or give it a new upper body")
+    edit.add_argument("kind", choices=["inbetween", "outpaint", "complete", "upper-body"])
     edit.add_argument("--source", required=True, help="features (T, 263) or joints (T, 22, 3) .npy")
-    edit.add_argument("--keep", required=True, help="source frames to keep: START:END[,START:END]")
+    edit.add_argument("--keep", default=None, help="source frames to keep: START:END[,START:END] (inbetween, outpaint, complete)")
+    edit.add_argument("--lower-mask", type=float, default=None,
+                      help="upper-body: share of the source's lower-body codes hidden from the model (0: the lower body constrains fully; default 0.5)")
+    edit.add_argument("--lower-keep", default=None, help="upper-body: source frames whose lower-body codes constrain the upper body, START:END[,...]")
     edit.add_argument("--text", default=None, help="what the generated part shows (none: without text)")
     edit.add_argument("--length", type=int, default=None, help="output frames (default: the source's)")
     edit.add_argument("--place", type=int, default=0, help="output frame where the source starts (a multiple of 4)")
@@ -431,13 +465,13 @@ def build_parser() -> argparse.ArgumentParser:
     ablate.set_defaults(func=cmd_ablate)
 
     pipeline = sub.add_parser("pipeline", help="stages chained as one MLflow parent run; unchanged steps are skipped")
-    pipeline.add_argument("name", choices=["full", "stage1", "stage2", "evaluate", "promote"])
+    pipeline.add_argument("name", choices=["full", "stage1", "stage2", "evaluate", "promote", "parts"])
     pipeline.add_argument("overrides", nargs="*", help="e.g. overrides.stage1=[trainer.max_steps=500] data=humanml3d")
     pipeline.add_argument("--force", action="append", default=[], help="rerun this step even if its inputs did not change (or 'all')")
     pipeline.set_defaults(func=cmd_pipeline)
 
     promote = sub.add_parser("promote", help="measure a candidate, register it, move `champion` only when it wins")
-    promote.add_argument("kind", choices=["tokenizer", "text2motion", "evaluator"])
+    promote.add_argument("kind", choices=["tokenizer", "text2motion", "evaluator", "upperbody"])
     promote.add_argument("overrides", nargs="*", help="e.g. candidate=RUN_ID criteria.text2motion=[{metric: generated/fid, mode: min, margin: 0.01}]")
     promote.set_defaults(func=cmd_promote)
 

@@ -56,6 +56,16 @@ def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None
     """Compose conf/<name>.yaml with its defaults and `overrides`; validate against `schema`."""
     directory = directory or conf_dir()
     primary = _load_yaml(directory / f"{name}.yaml")
+    # `extends: other` starts from conf/other.yaml (its defaults included) and changes a few keys.
+    base_name = primary.pop("extends", None)
+    if base_name is not None:
+        base = _load_yaml(directory / f"{base_name}.yaml")
+        if "extends" in base:
+            raise ConfigError(f"{directory / name}.yaml extends {base_name}.yaml, which extends another: one level only")
+        base_defaults = list(base.pop("defaults", []))
+        own = list(primary.pop("defaults", []))
+        primary = OmegaConf.merge(base, primary)
+        primary["defaults"] = base_defaults + own  # later entries of a group win below
     defaults = primary.pop("defaults", [])
     choices: dict[str, str] = {}
     for entry in defaults:

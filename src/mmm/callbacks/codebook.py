@@ -1,7 +1,10 @@
-"""Callbacks around the EMA codebook: periodic reset of unused codes, and collapse detection.
+"""Callbacks around the EMA codebooks: periodic reset of unused codes, and collapse detection.
 
-Both read state that the quantizer keeps identical on every rank (usage from all-reduced counts),
-and the collapse decision is reduced across ranks as well, so every rank acts at the same step.
+Both handle every codebook of the tokenizer (`pl_module.quantizers`: one for the plain
+tokenizer, "lower" and "upper" for the part-aware one) and log per codebook when there are
+several. Both read state that the quantizer keeps identical on every rank (usage from
+all-reduced counts), and the collapse decision is reduced across ranks as well, so every rank
+acts at the same step.
 """
 
 from __future__ import annotations
@@ -15,12 +18,16 @@ import torch
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities import rank_zero_warn
 
+from mmm.tokenizer.quantizer import metric_name
+
 log = logging.getLogger(__name__)
 
 
 class CodebookReset(L.Callback):
     """Every `every_n_steps` optimizer steps, replace the codes no latent used since the last
-    reset by latents of the current batch (0 disables). Logs `codebook/codes_reset` every step."""
+    reset by latents of the current batch, in every codebook (0 disables). Logs
+    `codebook/codes_reset` (all codebooks) every step, and `codebook/<part>/codes_reset` when
+    there are several."""
 
     def __init__(self, every_n_steps: int = 20):
         self.every_n_steps = every_n_steps
@@ -28,11 +35,14 @@ class CodebookReset(L.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = trainer.global_step
-        n = 0
-        if self.every_n_steps > 0 and step > 0 and step % self.every_n_steps == 0:
-            n = pl_module.quantizer.reset_unused()
-            self.total_reset += n
-        pl_module.log("codebook/codes_reset", float(n), on_step=True, on_epoch=False)
+        due = self.every_n_steps > 0 and step > 0 and step % self.every_n_steps == 0
+        reset = {name: q.reset_unused() if due else 0 for name, q in pl_module.quantizers.items()}
+        n = sum(reset.values())
+        self.total_reset += n
+        metrics = {"codebook/codes_reset": float(n)}
+        if len(reset) > 1:
+            metrics.update({metric_name("codebook", name, "codes_reset"): float(k) for name, k in reset.items()})
+        pl_module.log_dict(metrics, on_step=True, on_epoch=False)
 
     def state_dict(self) -> dict:
         return {"total_reset": self.total_reset}
@@ -53,12 +63,30 @@ class CollapseEvent:
     perplexity: float
     perplexity_peak: float
     action: str
+    codebook: str = ""  # which one ("lower", "upper"); "" for the plain tokenizer's only codebook
+
+    def describe(self) -> str:
+        return f"{self.codebook} codebook: {self.reason}" if self.codebook else self.reason
+
+
+@dataclass
+class CodebookHealth:
+    """What the monitor follows of one codebook."""
+
+    usage: torch.Tensor | None = None  # (K,) assignments in the current window
+    steps_in_window: int = 0
+    active_fraction: float = 1.0  # of the last completed window
+    perplexity: float = 0.0  # smoothed
+    peak: float = 0.0
+    strikes: int = 0  # consecutive steps with a collapse reason
 
 
 class CollapseMonitor(L.Callback):
     """Detects codebook collapse: too few codes active over a window of steps, or the (smoothed)
-    perplexity far below its running peak. Acts per `action`: warn, stop (end the run cleanly on
-    all ranks) or fail (raise CodebookCollapseError). Logs `collapse/*` metrics and the event."""
+    perplexity far below its running peak, in any codebook. Acts per `action`: warn, stop (end
+    the run cleanly on all ranks) or fail (raise CodebookCollapseError). Logs `collapse/*`
+    metrics (`collapse/<part>/*` when there are several codebooks) and the events, which name
+    the codebook."""
 
     def __init__(
         self,
@@ -74,53 +102,62 @@ class CollapseMonitor(L.Callback):
             raise ValueError(f"collapse action must be warn, stop or fail, got {action!r}")
         self.action, self.warmup_steps, self.window_steps = action, warmup_steps, window_steps
         self.min_active_fraction, self.perplexity_drop, self.smoothing, self.patience = min_active_fraction, perplexity_drop, smoothing, patience
-        self.usage: torch.Tensor | None = None
-        self.steps_in_window = 0
-        self.active_fraction = 1.0  # of the last completed window
-        self.perplexity = 0.0  # smoothed
-        self.peak = 0.0
-        self.strikes = 0
+        self.codebooks: dict[str, CodebookHealth] = {}  # keyed like `pl_module.quantizers`, filled at the first step
         self.events: list[CollapseEvent] = []
 
-    def _update(self, quantizer, perplexity: float) -> None:
+    @property
+    def active_fraction(self) -> float:
+        """The lowest active fraction of any codebook over its last completed window."""
+        return min((h.active_fraction for h in self.codebooks.values()), default=1.0)
+
+    def _update(self, health: CodebookHealth, quantizer, perplexity: float) -> None:
         counts = quantizer.latest_counts
         if counts is None:
             return
-        self.usage = counts.detach().clone() if self.usage is None else self.usage.to(counts.device) + counts
-        self.steps_in_window += 1
-        if self.steps_in_window >= self.window_steps:
-            self.active_fraction = float((self.usage > 0).float().mean())
-            self.usage.zero_()
-            self.steps_in_window = 0
-        self.perplexity = perplexity if self.perplexity == 0.0 else self.smoothing * self.perplexity + (1 - self.smoothing) * perplexity
-        self.peak = max(self.peak, self.perplexity)
+        health.usage = counts.detach().clone() if health.usage is None else health.usage.to(counts.device) + counts
+        health.steps_in_window += 1
+        if health.steps_in_window >= self.window_steps:
+            health.active_fraction = float((health.usage > 0).float().mean())
+            health.usage.zero_()
+            health.steps_in_window = 0
+        health.perplexity = perplexity if health.perplexity == 0.0 else self.smoothing * health.perplexity + (1 - self.smoothing) * perplexity
+        health.peak = max(health.peak, health.perplexity)
 
-    def collapse_reason(self) -> str | None:
-        if self.active_fraction < self.min_active_fraction:
-            return f"active codes {self.active_fraction:.2%} of the codebook over the last {self.window_steps} steps (< {self.min_active_fraction:.2%})"
-        if self.peak > 0 and self.perplexity < self.perplexity_drop * self.peak:
-            return f"perplexity {self.perplexity:.1f} fell below {self.perplexity_drop:g} x its peak {self.peak:.1f}"
+    def collapse_reason(self, health: CodebookHealth) -> str | None:
+        if health.active_fraction < self.min_active_fraction:
+            return f"active codes {health.active_fraction:.2%} of the codebook over the last {self.window_steps} steps (< {self.min_active_fraction:.2%})"
+        if health.peak > 0 and health.perplexity < self.perplexity_drop * health.peak:
+            return f"perplexity {health.perplexity:.1f} fell below {self.perplexity_drop:g} x its peak {health.peak:.1f}"
         return None
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        self._update(pl_module.quantizer, pl_module.last_perplexity)
         step = trainer.global_step
-        pl_module.log_dict(
-            {"collapse/active_fraction": self.active_fraction, "collapse/perplexity_ratio": self.perplexity / self.peak if self.peak else 1.0},
-            on_step=True, on_epoch=False,
-        )
-        reason = self.collapse_reason() if step >= self.warmup_steps else None
-        self.strikes = self.strikes + 1 if reason else 0
-        detected = trainer.strategy.reduce_boolean_decision(self.strikes >= self.patience, all=False)
+        metrics, reasons = {}, {}
+        for name, quantizer in pl_module.quantizers.items():
+            health = self.codebooks.setdefault(name, CodebookHealth())
+            self._update(health, quantizer, pl_module.last_perplexities[name])
+            metrics[metric_name("collapse", name, "active_fraction")] = health.active_fraction
+            metrics[metric_name("collapse", name, "perplexity_ratio")] = health.perplexity / health.peak if health.peak else 1.0
+            reasons[name] = self.collapse_reason(health) if step >= self.warmup_steps else None
+            health.strikes = health.strikes + 1 if reasons[name] else 0
+        pl_module.log_dict(metrics, on_step=True, on_epoch=False)
+        collapsed = [name for name in reasons if self.codebooks[name].strikes >= self.patience]
+        detected = trainer.strategy.reduce_boolean_decision(bool(collapsed), all=False)
         if not detected:
             return
-        self.strikes = 0
-        event = CollapseEvent(step, reason or "collapse detected on another rank", self.active_fraction, self.perplexity, self.peak, self.action)
-        self.events.append(event)
+        for health in self.codebooks.values():
+            health.strikes = 0
+        # An event per collapsed codebook; when only another rank saw a collapse, one per codebook.
+        new_events = []
+        for name in collapsed or list(reasons):
+            health = self.codebooks[name]
+            reason = reasons[name] or "collapse detected on another rank"
+            new_events.append(CollapseEvent(step, reason, health.active_fraction, health.perplexity, health.peak, self.action, name))
+        self.events += new_events
         pl_module.log("collapse/detected", 1.0, on_step=True, on_epoch=False)
         if trainer.is_global_zero:
-            _record_events(trainer, self.events)
-        message = f"codebook collapse at step {step}: {event.reason}"
+            _record_events(trainer, self.events, new_events)
+        message = f"codebook collapse at step {step}: " + "; ".join(e.describe() for e in new_events)
         if self.action == "fail":
             raise CodebookCollapseError(message + " (callbacks.collapse.action=fail)")
         rank_zero_warn(message + ("; stopping the run" if self.action == "stop" else ""))
@@ -128,23 +165,29 @@ class CollapseMonitor(L.Callback):
             trainer.should_stop = True
 
     def state_dict(self) -> dict:
-        return {
-            "usage": self.usage, "steps_in_window": self.steps_in_window, "active_fraction": self.active_fraction,
-            "perplexity": self.perplexity, "peak": self.peak, "strikes": self.strikes, "events": [asdict(e) for e in self.events],
-        }
+        return {"codebooks": {name: asdict(h) for name, h in self.codebooks.items()}, "events": [asdict(e) for e in self.events]}
 
     def load_state_dict(self, state_dict: dict) -> None:
-        self.usage = state_dict["usage"]
-        self.steps_in_window, self.active_fraction = int(state_dict["steps_in_window"]), float(state_dict["active_fraction"])
-        self.perplexity, self.peak, self.strikes = float(state_dict["perplexity"]), float(state_dict["peak"]), int(state_dict["strikes"])
+        # Checkpoints written before the monitor followed several codebooks hold one codebook's
+        # fields at the top level.
+        codebooks = state_dict.get("codebooks", {"": state_dict})
+        self.codebooks = {
+            name: CodebookHealth(
+                usage=h["usage"], steps_in_window=int(h["steps_in_window"]), active_fraction=float(h["active_fraction"]),
+                perplexity=float(h["perplexity"]), peak=float(h["peak"]), strikes=int(h["strikes"]),
+            )
+            for name, h in codebooks.items()
+        }
         self.events = [CollapseEvent(**e) for e in state_dict["events"]]
 
 
-def _record_events(trainer, events: list[CollapseEvent]) -> None:
-    """Tag the MLflow run with the latest event and write all to events/collapse.json (rank 0)."""
-    latest = events[-1]
-    log.warning("collapse event: %s", json.dumps(asdict(latest)))
+def _record_events(trainer, events: list[CollapseEvent], latest: list[CollapseEvent]) -> None:
+    """Tag the MLflow run with the latest events (one step's) and write all to
+    events/collapse.json (rank 0)."""
+    for event in latest:
+        log.warning("collapse event: %s", json.dumps(asdict(event)))
+    tag = f"step {latest[0].step}: " + "; ".join(e.describe() for e in latest)
     for logger in trainer.loggers:
         if isinstance(logger, MLFlowLogger):
-            logger.experiment.set_tag(logger.run_id, "collapse", f"step {latest.step}: {latest.reason}")
+            logger.experiment.set_tag(logger.run_id, "collapse", tag)
             logger.experiment.log_text(logger.run_id, json.dumps([asdict(e) for e in events], indent=2), "events/collapse.json")

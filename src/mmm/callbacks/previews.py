@@ -67,7 +67,8 @@ def usage_histogram_png(counts: np.ndarray, out_path: Path, title: str) -> Path:
 
 
 class CodebookUsagePlot(L.Callback):
-    """At each validation, a histogram of the codebook's EMA counts, `codebook/usage_step<step>.png`."""
+    """At each validation, a histogram of each codebook's EMA counts, `codebook/usage_step<step>.png`
+    (`codebook/<part>/usage_step<step>.png` for each codebook of a part-aware tokenizer)."""
 
     def on_validation_epoch_end(self, trainer, pl_module) -> None:
         if not trainer.is_global_zero or trainer.sanity_checking:
@@ -75,17 +76,21 @@ class CodebookUsagePlot(L.Callback):
         loggers = _mlflow_loggers(trainer)
         if not loggers:
             return
-        counts = pl_module.quantizer.ema_count.detach().cpu().numpy()
-        with tempfile.TemporaryDirectory() as tmp:
-            path = usage_histogram_png(counts, Path(tmp) / f"usage_step{trainer.global_step:07d}.png", f"step {trainer.global_step}")
-            for lg in loggers:
-                lg.experiment.log_artifact(lg.run_id, str(path), "codebook")
+        step = trainer.global_step
+        for name, quantizer in pl_module.quantizers.items():
+            counts = quantizer.ema_count.detach().cpu().numpy()
+            with tempfile.TemporaryDirectory() as tmp:
+                title = f"{name} codebook, step {step}" if name else f"step {step}"
+                path = usage_histogram_png(counts, Path(tmp) / f"usage_step{step:07d}.png", title)
+                for lg in loggers:
+                    lg.experiment.log_artifact(lg.run_id, str(path), f"codebook/{name}" if name else "codebook")
 
 
 class GenerationPreview(L.Callback):
     """At each validation of stage 2, a few validation captions generated at their reference's
     length, beside the reference (decoded from its own codes), logged as
-    `previews/generation_step<step>.gif` (rank 0)."""
+    `previews/generation_step<step>.gif` (rank 0). A part-aware model shows the reference's lower
+    body with an upper body generated from the caption (half the lower-body codes hidden)."""
 
     def __init__(self, tokenizer, text_encoder, num_captions: int = 3, seed: int = 0, size: int = 240):
         self.tokenizer, self.text_encoder = tokenizer, text_encoder
@@ -99,6 +104,7 @@ class GenerationPreview(L.Callback):
         if not loggers:
             return
         from mmm.generation.model import TextToMotion
+        from mmm.generation.upper_body import DEFAULT_LOWER_MASK
         from mmm.render import render_gif
 
         training = pl_module.transformer.training
@@ -107,14 +113,19 @@ class GenerationPreview(L.Callback):
             n = min(self.num_captions, len(batch["captions"]))
             codes = [batch["tokens"][i, : int(batch["lengths"][i])].numpy() for i in range(n)]
             frames = [min(max(len(c) * model.unit, model.min_frames), model.max_frames) for c in codes]
-            generated = model.generate(list(batch["captions"][:n]), frames, seed=self.seed)
-            references = [model.to_joints(f) for f in model.decode(codes)]
+            reference_features = model.decode(codes)
+            references = [model.to_joints(f) for f in reference_features]
+            if model.part_aware:  # the reference's lower body, a new upper body from its caption
+                generated = [model.edit_upper_body(f, c, lower_mask=DEFAULT_LOWER_MASK, seed=self.seed).joints[0]
+                             for f, c in zip(reference_features, batch["captions"][:n])]
+            else:
+                generated = model.generate(list(batch["captions"][:n]), frames, seed=self.seed).joints
         finally:
             pl_module.transformer.train(training)
         motions, captions = [], []
         for i in range(n):
-            motions += [references[i], generated.joints[i]]
-            captions += [f"reference: {batch['captions'][i]}", f"generated: {batch['captions'][i]}"]
+            motions += [references[i], generated[i]]
+            captions += [f"reference: {batch['captions'][i]}", f"{'new upper body' if model.part_aware else 'generated'}: {batch['captions'][i]}"]
         with tempfile.TemporaryDirectory() as tmp:
             path = render_gif(motions, Path(tmp) / f"generation_step{trainer.global_step:07d}.gif", captions=captions, size=(self.size, self.size))
             for lg in loggers:

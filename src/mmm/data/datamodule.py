@@ -228,7 +228,11 @@ class TokenTextDataModule(_DatasetFolder):
         from mmm.data.tokens import TokenCache
 
         self.tokens = self.tokens or TokenCache(self._token_folder())
-        self.collate = TokenBatchCollator(self.caption_cache, self.tokenizer.quantizer.num_codes, self.max_tokens)
+        # END/PAD ids are K of the codebook; a part-aware tokenizer's two codebooks share one size.
+        sizes = {q.num_codes for q in self.tokenizer.quantizers.values()}
+        if len(sizes) != 1:
+            raise ValueError(f"the stage-1 model's codebooks have different sizes {sorted(sizes)}; stage 2 needs one")
+        self.collate = TokenBatchCollator(self.caption_cache, sizes.pop(), self.max_tokens)
         self.datasets = {}
         for split in ("train", "val"):
             items, report = self._items(split)

@@ -157,7 +157,8 @@ class TokenTextDataset(Dataset):
 class TokenBatchCollator:
     """Pads codes to [codes, END, PAD, ...], as long as the batch's longest sequence plus END (at
     most max_tokens), and adds the captions' cached text embeddings:
-    {"tokens" (B, M), "lengths" (B,), "sentence", "words", "word_mask", "captions", "names"}."""
+    {"tokens" (B, M) or (B, M, 2) for part-aware codes, "lengths" (B,), "sentence", "words",
+    "word_mask", "captions", "names"}."""
 
     def __init__(self, caption_cache, num_codes: int, max_tokens: int = 50):
         self.caption_cache, self.num_codes, self.max_tokens = caption_cache, num_codes, max_tokens
@@ -165,7 +166,8 @@ class TokenBatchCollator:
     def __call__(self, batch: list[dict]) -> dict:
         end, pad = self.num_codes, self.num_codes + 1
         lengths = torch.tensor([len(b["tokens"]) for b in batch], dtype=torch.long)
-        tokens = torch.full((len(batch), min(int(lengths.max()) + 1, self.max_tokens)), pad, dtype=torch.long)
+        parts = tuple(torch.as_tensor(batch[0]["tokens"]).shape[1:])  # (2,) for a part-aware tokenizer's [lower, upper]
+        tokens = torch.full((len(batch), min(int(lengths.max()) + 1, self.max_tokens), *parts), pad, dtype=torch.long)
         for i, b in enumerate(batch):
             n = len(b["tokens"])
             tokens[i, :n] = b["tokens"]

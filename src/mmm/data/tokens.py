@@ -1,6 +1,7 @@
 """Motion tokens of a dataset under one tokenizer, computed once and cached on disk.
 
-<cache_dir>/<tokenizer identity>-<data fingerprint>/tokens.npz (id -> (T // 4,) codes) and
+<cache_dir>/<tokenizer identity>-<data fingerprint>/tokens.npz (id -> (T // 4,) codes, or
+(T // 4, 2) [lower, upper] codes of a part-aware tokenizer) and
 meta.json. The folder name carries both fingerprints, so another tokenizer or changed data can
 never reuse stale tokens. A caption with a #start#end span selects codes [start // 4, end // 4).
 """
@@ -89,6 +90,7 @@ def tokenize_dataset(
     if not by_length:
         raise DataError(root, f"no motion of {', '.join(splits)} is at least {down} frames long", "check the dataset")
     tokenizer = tokenizer.to(device).eval()
+    num_codes = max(q.num_codes for q in tokenizer.tokenizer.quantizers.values())
     mean, std = tokenizer.mean.cpu().numpy(), tokenizer.std.cpu().numpy()
     tokens: dict[str, np.ndarray] = {}
     bar = tqdm(total=sum(len(v) for v in by_length.values()), desc="tokenizing motions", unit="motion", disable=not progress)
@@ -99,7 +101,7 @@ def tokenize_dataset(
             x = torch.from_numpy(np.stack([(f - mean) / std for _, f in chunk]).astype(np.float32)).to(device)
             codes = tokenizer.tokenizer.encode(x).cpu().numpy()
             for (motion_id, _), c in zip(chunk, codes):
-                tokens[motion_id] = c.astype(np.int16 if tokenizer.quantizer.num_codes <= 32767 else np.int32)
+                tokens[motion_id] = c.astype(np.int16 if num_codes <= 32767 else np.int32)
             bar.update(len(chunk))
     bar.close()
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -107,7 +109,7 @@ def tokenize_dataset(
     tmp.mkdir(parents=True, exist_ok=True)
     np.savez(tmp / "tokens.npz", **tokens)
     info = dict(meta or {})
-    info.update({"splits": list(splits), "motions": len(tokens), "left_out_too_short": too_short, "num_codes": tokenizer.quantizer.num_codes, "downsample": down})
+    info.update({"splits": list(splits), "motions": len(tokens), "left_out_too_short": too_short, "num_codes": num_codes, "downsample": down})
     (tmp / "meta.json").write_text(json.dumps(info, indent=2))
     if folder.exists():  # another process finished first: keep its identical result
         import shutil

@@ -28,23 +28,25 @@ from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes
 from mmm.motion.features import recover_from_ric
 from mmm.resolve import resolve_checkpoint
 from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint
-from mmm.transformer.module import MaskedTransformerModule
+from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
 
 STAGE2_EXPERIMENT = "mmm-stage2"
 LENGTH_EXPERIMENT = "mmm-length"
 REGISTERED_MODEL = "mmm-text2motion"
+# The part-aware model (upper-body editing) has its own experiment, outputs and registered name.
+PARTS = {"experiment": "mmm-stage2-parts", "output_dir": "outputs/stage2-parts", "registered": "mmm-upperbody", "train": "make train-stage2-parts"}
 
 
-def champion_reference(tracking_uri: str) -> str | None:
-    """models:/mmm-text2motion@champion when that alias exists, else None (the newest stage-2 run)."""
+def champion_reference(tracking_uri: str, name: str = REGISTERED_MODEL) -> str | None:
+    """models:/<name>@champion when that alias exists, else None (the newest stage-2 run)."""
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
 
     try:
-        MlflowClient(tracking_uri).get_model_version_by_alias(REGISTERED_MODEL, "champion")
+        MlflowClient(tracking_uri).get_model_version_by_alias(name, "champion")
     except MlflowException:
         return None
-    return f"models:/{REGISTERED_MODEL}@champion"
+    return f"models:/{name}@champion"
 
 
 @dataclass
@@ -59,7 +61,7 @@ class Generated:
     forward_passes: int  # passes of the whole batch
     seconds: dict[str, float] = field(default_factory=dict)
     segments: list[tuple[int, int]] | None = None  # long sequences: frame range of each prompt
-    kept_codes: np.ndarray | None = None  # edits: (L,) True where the source's code was kept
+    kept_codes: np.ndarray | None = None  # edits: (L,) True where the source's code was kept; upper body: (samples, L) lower codes shown
     trace: object | None = None  # DecodeTrace when asked for
 
 
@@ -88,9 +90,12 @@ class TextToMotion:
         output_dir: str = "outputs/stage2",
         device: str = "cpu",
         length_model: str | None = None,
+        parts: bool = False,
     ) -> "TextToMotion":
         """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS; by default the champion
         (models:/mmm-text2motion@champion) when one was promoted, else the newest stage-2 run.
+        parts=True: the defaults of the part-aware model (models:/mmm-upperbody@champion, else the
+        newest run of mmm-stage2-parts).
 
         length_model: the length estimator used when no length is given (a reference like the
         model's; default: the newest `make train-length` result), loaded only when needed.
@@ -100,7 +105,7 @@ class TextToMotion:
 
         tracking_uri = resolve_tracking_uri(tracking_uri)
         if reference is None:
-            reference = champion_reference(tracking_uri)
+            reference = champion_reference(tracking_uri, PARTS["registered"] if parts else REGISTERED_MODEL)
         if reference is not None and reference.startswith("models:/"):
             from mmm.registry.bundle import bundle_checkpoints
             from mmm.resolve import registered_version
@@ -113,7 +118,8 @@ class TextToMotion:
             model.identity.update({"reference": reference, "run_id": version.run_id, "version": version.version})
             return model
         resolved, checkpoint, run_id = resolve_checkpoint(
-            reference, tracking_uri, STAGE2_EXPERIMENT, output_dir, "text-to-motion model", "make train-stage2", "--model",
+            reference, tracking_uri, PARTS["experiment"] if parts else STAGE2_EXPERIMENT, PARTS["output_dir"] if parts else output_dir,
+            "part-aware model" if parts else "text-to-motion model", PARTS["train"] if parts else "make train-stage2", "--model",
         )
         model = cls.from_files(checkpoint, None, device, tracking_uri=tracking_uri, length_source=(length_model, tracking_uri))
         model.identity.update({"reference": resolved, "run_id": run_id})
@@ -152,7 +158,9 @@ class TextToMotion:
                 f"{checkpoint}: its stage-1 model {stage1['reference']} has weights {identity}, but the transformer was trained "
                 f"on {stage1['identity']}; the tokens would not mean the same codes"
             )
-        module = MaskedTransformerModule(tokenizer.tokenizer.codebook.detach(), hp["model"], hp["optim"], hp["corruption"], hp["sentence_dim"], hp["word_dim"])
+        codebook, condition_codebook = stage2_codebooks(tokenizer)
+        module = MaskedTransformerModule(codebook, hp["model"], hp["optim"], hp["corruption"], hp["sentence_dim"], hp["word_dim"],
+                                         condition_codebook=condition_codebook)
         module.load_state_dict(ckpt["state_dict"])
         text = hp["text_encoder"]
         options = {k: v for k, v in text.items() if k not in ("name", "identity") and v is not None}
@@ -163,6 +171,15 @@ class TextToMotion:
         return cls(tokenizer, module.transformer, encoder, info, None, device, length_source=length_source)
 
     # -- pieces ---------------------------------------------------------------------------------
+    @property
+    def part_aware(self) -> bool:
+        """A part-aware model: tokens [lower, upper] per step; it edits the upper body of a motion."""
+        return bool(getattr(self.transformer, "part_aware", False))
+
+    def _whole_body_only(self, what: str) -> None:
+        if self.part_aware:
+            raise ValueError(f"{what} needs a whole-body model; this part-aware one edits the upper body of a source motion (mmm edit upper-body)")
+
     def check_frames(self, frames: int, what: str = "length") -> None:
         if not self.min_frames <= frames <= self.max_frames:
             raise ValueError(f"{what} {frames} frames is outside {self.min_frames}..{self.max_frames} ({self.min_frames / self.fps:.1f}-{self.max_frames / self.fps:.1f} s at {self.fps:g} fps)")
@@ -257,6 +274,7 @@ class TextToMotion:
         check_lengths=False admits any length up to the maximum (the evaluation protocol
         generates at cropped ground-truth lengths, which can fall below the usual minimum).
         """
+        self._whole_body_only("generation from text alone")
         sampling = sampling or SamplingConfig()
         started = time.perf_counter()
         frames = list(frames) if frames is not None else self.estimate_frames(texts)
@@ -308,6 +326,7 @@ class TextToMotion:
         a prefix and a suffix, outpainting keeps a middle and grows before/after, completion keeps
         a prefix; text None decodes without text.
         """
+        self._whole_body_only("temporal editing")
         sampling = sampling or SamplingConfig()
         started = time.perf_counter()
         if source.ndim != 2 or source.shape[1] != self.feature_dim:
@@ -346,6 +365,13 @@ class TextToMotion:
         out = self._finish(texts, result, [frames] * num_samples, seconds, started)
         out.kept_codes = keep_mask[0].numpy()
         return out
+
+    def edit_upper_body(self, source: np.ndarray, text: str, lower_mask: float | None = None, lower_keep: list[tuple[int, int]] | None = None,
+                        sampling: SamplingConfig | None = None, seed: int | None = None, num_samples: int = 1) -> Generated:
+        """A new upper body from `text` on the source's lower body (part-aware models; see upper_body.py)."""
+        from mmm.generation.upper_body import edit_upper_body
+
+        return edit_upper_body(self, source, text, lower_mask, lower_keep, sampling, seed, num_samples)
 
     @torch.no_grad()
     def generate_long(

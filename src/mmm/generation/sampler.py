@@ -102,6 +102,7 @@ def sample_tokens(
     keep_tokens: torch.Tensor | None = None,
     keep_mask: torch.Tensor | None = None,
     no_text: torch.Tensor | None = None,
+    condition: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     trace: bool = False,
 ) -> SampleResult:
@@ -110,6 +111,7 @@ def sample_tokens(
     model: a MaskedMotionTransformer (eval). text: TextEmbedding of the batch. code_lengths (B,):
     codes per sample (ceil(frames / 4)). keep_tokens/keep_mask (B, >= max L): codes that are given
     and never change (editing). no_text (B,) True: decode without text (the unconditional branch).
+    condition (B, >= max L): a part-aware model's lower-body codes (its MASK id where hidden).
     """
     device = code_lengths.device
     B = len(code_lengths)
@@ -133,6 +135,13 @@ def sample_tokens(
         given[:, :n] = keep_tokens[:, :n].to(device)
         tokens = torch.where(keep, given, tokens)
         fixed = keep
+    cond = None
+    if condition is not None:
+        c = model.condition
+        cond = torch.full((B, M), c.pad_id, dtype=torch.long, device=device)
+        n = min(M, condition.shape[1])
+        cond[:, :n] = torch.where(real[:, :n], condition[:, :n].to(device), cond[:, :n])
+        cond[positions[None].expand(B, M) == code_lengths[:, None]] = c.end_id
     free = (real & ~fixed).sum(1)
     iterations = iteration_counts(code_lengths, free, cfg, M_model)
     gamma = SCHEDULES[cfg.schedule]
@@ -146,15 +155,16 @@ def sample_tokens(
         sub = tokens[idx]
         sentence, words, word_mask = text.sentence[idx], text.words[idx], text.word_mask[idx]
         drop = no_text[idx]
+        sub_condition = None if cond is None else cond[idx]
         if guided:
             both = model(
                 torch.cat((sub, sub)), torch.cat((sentence, sentence)), torch.cat((words, words)), torch.cat((word_mask, word_mask)),
-                torch.cat((drop, torch.ones_like(drop))),
+                torch.cat((drop, torch.ones_like(drop))), None if sub_condition is None else torch.cat((sub_condition, sub_condition)),
             )
-            cond, uncond = both.chunk(2)
-            logits = torch.where(drop[:, None, None], cond, uncond + cfg.guidance_scale * (cond - uncond))
+            with_text, without_text = both.chunk(2)
+            logits = torch.where(drop[:, None, None], with_text, without_text + cfg.guidance_scale * (with_text - without_text))
         else:
-            logits = model(sub, sentence, words, word_mask, drop)
+            logits = model(sub, sentence, words, word_mask, drop, sub_condition)
         logits = filter_logits(logits.float(), cfg.top_k, cfg.top_p)
         if cfg.temperature <= 0:
             sampled = logits.argmax(-1)

@@ -6,6 +6,8 @@
     stage2:    tokenize -> stage2 -> length
     evaluate:  evaluate
     promote:   promote-evaluator, promote-tokenizer, promote-text2motion (of the newest runs)
+    parts:     stage1-parts -> stage2-parts -> promote-upperbody (the part-aware model for
+               upper-body editing; overrides.stage1_parts / overrides.stage2_parts)
 
 Stage 2 tokenizes with the tokenizer champion (the promoted one), so the transformer and the
 champion tokenizer always agree. Every step writes to the same tracking store and data.
@@ -29,6 +31,7 @@ PIPELINES = {
     "stage2": ["tokenize", "stage2", "length"],
     "evaluate": ["evaluate"],
     "promote": ["promote-evaluator", "promote-tokenizer", "promote-text2motion"],
+    "parts": ["stage1-parts", "stage2-parts", "promote-upperbody"],
 }
 
 
@@ -40,6 +43,8 @@ class StepOverrides:
     evaluator: list[str] = field(default_factory=list)
     evaluate: list[str] = field(default_factory=list)
     promote: list[str] = field(default_factory=list)
+    stage1_parts: list[str] = field(default_factory=list)
+    stage2_parts: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -114,15 +119,15 @@ def step_evaluator() -> Step:
 
 
 def _promote_step(kind: str, source_step: str | None) -> Step:
-    from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER
+    from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY
 
-    name = {"evaluator": EVALUATOR, "tokenizer": TOKENIZER, "text2motion": TEXT2MOTION}[kind]
+    name = {"evaluator": EVALUATOR, "tokenizer": TOKENIZER, "text2motion": TEXT2MOTION, "upperbody": UPPERBODY}[kind]
 
     def candidate(ctx):
         return ctx.outputs.get(source_step, {}).get("run_id") if source_step else None
 
     def inputs(ctx):
-        return {"candidate": candidate(ctx), "data": _data_fingerprint(ctx), "evaluator": _champion(ctx, EVALUATOR) if kind != "evaluator" else None,
+        return {"candidate": candidate(ctx), "data": _data_fingerprint(ctx), "evaluator": _champion(ctx, EVALUATOR) if kind in ("tokenizer", "text2motion") else None,
                 "overrides": ctx.cfg.overrides.promote}
 
     def run(ctx):
@@ -201,11 +206,36 @@ def step_evaluate() -> Step:
                                          "overrides": ctx.cfg.overrides.evaluate}, run, _run_exists)
 
 
+def step_stage1_parts() -> Step:
+    def run(ctx):
+        from mmm.training.stage1 import load_stage1_config, train_stage1
+
+        return _trained(train_stage1(load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1_parts], parts=True)))
+
+    return Step("stage1-parts", lambda ctx: {"data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.stage1_parts}, run, _run_exists)
+
+
+def step_stage2_parts() -> Step:
+    def tokenizer(ctx):
+        return ctx.outputs.get("stage1-parts", {}).get("run_id")
+
+    def run(ctx):
+        from mmm.training.stage2 import load_stage2_config, train_stage2
+
+        chosen = tokenizer(ctx)
+        overrides = [*_common(ctx), *([f"stage1={chosen}"] if chosen else []), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage2_parts]
+        return _trained(train_stage2(load_stage2_config(overrides, parts=True)))
+
+    return Step("stage2-parts", lambda ctx: {"tokenizer": tokenizer(ctx), "data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.stage2_parts},
+                run, _run_exists)
+
+
 STEPS = {
     "evaluator": step_evaluator, "promote-evaluator": lambda: _promote_step("evaluator", "evaluator"),
     "stage1": step_stage1, "promote-tokenizer": lambda: _promote_step("tokenizer", "stage1"),
     "tokenize": step_tokenize, "stage2": step_stage2, "length": step_length, "evaluate": step_evaluate,
     "promote-text2motion": lambda: _promote_step("text2motion", "stage2"),
+    "stage1-parts": step_stage1_parts, "stage2-parts": step_stage2_parts, "promote-upperbody": lambda: _promote_step("upperbody", "stage2-parts"),
 }
 
 

@@ -37,8 +37,10 @@ from mlflow.exceptions import MlflowException
 from mlflow.models import ModelSignature
 from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 from mlflow.types import ColSpec, ParamSchema, ParamSpec, Schema
+from mlflow.types.schema import Array
 
 from mmm.generation.sampler import SamplingConfig
+from mmm.generation.upper_body import DEFAULT_LOWER_MASK, UPPER_BODY_GUIDANCE
 
 DEFAULT_FRAMES = 120  # length when a row gives none (clipped to the model's limits)
 TRANSFORMER = "transformer"
@@ -66,6 +68,17 @@ INPUT_SCHEMA = Schema([
 PARAM_SCHEMA = ParamSchema([ParamSpec(k, "long" if isinstance(v, int) else "double", v) for k, v in SAMPLING_PARAMS.items()])
 SIGNATURE = ModelSignature(inputs=INPUT_SCHEMA, params=PARAM_SCHEMA)
 INPUT_EXAMPLE = pd.DataFrame({"text": ["a person walks forward"], "length": [DEFAULT_FRAMES], "seed": [0]})
+# The part-aware bundle edits the upper body of a given motion.
+PARTS_SCHEMA = Schema([
+    ColSpec("string", "text"),
+    ColSpec(Array(Array("double")), "source"),
+    ColSpec("double", "lower_mask", required=False),
+    ColSpec("long", "seed", required=False),
+])
+# MLflow fills absent params from the signature's defaults: the edit's own guidance default there.
+PARTS_PARAM_SCHEMA = ParamSchema([ParamSpec(k, "long" if isinstance(v, int) else "double", UPPER_BODY_GUIDANCE if k == "guidance_scale" else v)
+                                  for k, v in SAMPLING_PARAMS.items()])
+PARTS_SIGNATURE = ModelSignature(inputs=PARTS_SCHEMA, params=PARTS_PARAM_SCHEMA)
 
 
 class InvalidRequest(MlflowException, ValueError):
@@ -89,6 +102,10 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         top_k/top_p 1.0 = off).
     Output: one dict per row, JSON-serializable:
         {"text", "length", "seed", "joints": (T, 22, 3) nested lists, "features": (T, 263) nested lists}
+    A part-aware bundle (mmm-upperbody) edits the upper body of a motion instead: each row has
+        text (what the upper body does), source (T, 263) features as nested lists, optional
+        lower_mask (share of the source's lower-body codes hidden, default 0.5) and seed (guidance
+        defaults to 4 there); and the output adds "lower_mask".
     model_config {"device": "cuda"} loads it on a GPU (default "cpu").
     """
 
@@ -103,13 +120,39 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         self.model = TextToMotion.from_files(transformer, context.artifacts[TOKENIZER], device=device)
 
     def predict(self, context, model_input, params=None):
+        if self.model.part_aware and "guidance_scale" not in (params or {}):
+            params = {**(params or {}), "guidance_scale": UPPER_BODY_GUIDANCE}  # as PARTS_PARAM_SCHEMA, for direct calls
         sampling = sampling_config(params)
+        if self.model.part_aware:
+            return [self._edit_upper_body(i, row, sampling) for i, row in enumerate(input_rows(model_input))]
         requests = [self._request(i, row) for i, row in enumerate(input_rows(model_input))]
         out = []
         for text, frames, seed in requests:
             g = self.model.generate([text], [frames], sampling, seed)
             out.append({"text": text, "length": frames, "seed": seed, "joints": g.joints[0].tolist(), "features": g.features[0].tolist()})
         return out
+
+    def _edit_upper_body(self, i: int, row: dict, sampling: SamplingConfig) -> dict:
+        m = self.model
+        text = row.get("text")
+        if _missing(text) or not isinstance(text, str) or not text.strip():
+            raise InvalidRequest(f"row {i}: text is empty or missing ({text!r}); say what the upper body does")
+        try:
+            source = np.asarray(row.get("source"), dtype=np.float32)
+        except (TypeError, ValueError):
+            raise InvalidRequest(f"row {i}: source must be (T, {m.feature_dim}) numbers") from None
+        if source.ndim != 2 or source.shape[1] != m.feature_dim or not np.isfinite(source).all():
+            raise InvalidRequest(f"row {i}: source has shape {source.shape}; expected finite (T, {m.feature_dim}) features, {m.min_frames}..{m.max_frames} frames")
+        lower_mask = row.get("lower_mask")
+        lower_mask = DEFAULT_LOWER_MASK if _missing(lower_mask) else float(lower_mask)
+        seed = _integer(row.get("seed"), i, "seed")
+        seed = 0 if seed is None else seed
+        try:
+            g = m.edit_upper_body(source, text, lower_mask=lower_mask, sampling=sampling, seed=seed)
+        except ValueError as e:
+            raise InvalidRequest(f"row {i}: {e}") from None
+        return {"text": text, "length": int(g.features[0].shape[0]), "seed": seed, "lower_mask": lower_mask,
+                "joints": g.joints[0].tolist(), "features": g.features[0].tolist()}
 
     def _request(self, i: int, row: dict) -> tuple[str, int, int]:
         """(text, frames, seed) of row i, or InvalidRequest naming the row."""
@@ -258,8 +301,18 @@ def describe_checkpoints(stage2_checkpoint: str | Path, tokenizer_checkpoint: st
         "skeleton": tokenizer.skeleton.name,
         "fps": float(tokenizer.skeleton.fps),
         "max_frames": int((model["max_tokens"] - 1) * unit),
+        "part_aware": hp.get("condition_codebook_shape") is not None,
         "text_files": {k: text[k] for k in TEXT_FILE_OPTIONS if isinstance(text.get(k), str) and Path(text[k]).is_file()},
     }
+
+
+def _parts_example(tokenizer_checkpoint) -> pd.DataFrame:
+    """A one-row request for the part-aware bundle: a still pose (the dataset mean) for 40 frames."""
+    from mmm.tokenizer.load import load_tokenizer_checkpoint
+
+    mean = load_tokenizer_checkpoint(tokenizer_checkpoint).mean.numpy()
+    pose = np.repeat(mean[None].astype(np.float64), 40, axis=0)
+    return pd.DataFrame({"text": ["a person waves both hands"], "source": [pose.tolist()], "lower_mask": [DEFAULT_LOWER_MASK], "seed": [0]})
 
 
 def _stage(src: str | Path, dst: Path) -> str:
@@ -298,7 +351,8 @@ def log_bundle(
         **{k: v for k, v in about.items() if k != "text_files"},
         "default_length": DEFAULT_FRAMES,
         "joints": 22,
-        "columns": {"text": "required", "length": f"frames, default {DEFAULT_FRAMES}", "seed": "default 0"},
+        "columns": ({"text": "required", "source": "(T, 263) features", "lower_mask": f"default {DEFAULT_LOWER_MASK}", "seed": "default 0"}
+                    if about["part_aware"] else {"text": "required", "length": f"frames, default {DEFAULT_FRAMES}", "seed": "default 0"}),
     }}
     with tempfile.TemporaryDirectory(prefix="mmm-bundle-") as tmp:
         staged = Path(tmp)
@@ -312,8 +366,8 @@ def log_bundle(
             name=artifact_path,
             python_model=TextToMotionPyfunc(),
             artifacts=artifacts,
-            signature=SIGNATURE,
-            input_example=INPUT_EXAMPLE,
+            signature=PARTS_SIGNATURE if about["part_aware"] else SIGNATURE,
+            input_example=_parts_example(tokenizer_checkpoint) if about["part_aware"] else INPUT_EXAMPLE,
             pip_requirements=bundle_requirements(about["text_encoder_name"]),
             metadata=metadata,
             tags={**identities, **(tags or {})},

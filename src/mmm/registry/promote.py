@@ -1,10 +1,11 @@
-"""`mmm promote tokenizer|text2motion|evaluator [key=value ...]`: evaluate a candidate run,
-register it as a new version, and move `champion` to it only when it wins (see promotion.py).
+"""`mmm promote tokenizer|text2motion|evaluator|upperbody [key=value ...]`: evaluate a candidate
+run, register it as a new version, and move `champion` to it only when it wins (see promotion.py).
 
 Candidates default to the newest finished run of the kind's experiment. Metrics are measured here,
 on the configured data (its fingerprint is recorded) with the champion evaluator (or the newest
 one): tokenizer: reconstruction MPJPE and FID on the split; text2motion: the protocol (reduced
-by conf/promote.yaml); evaluator: its own test retrieval numbers from training.
+by conf/promote.yaml); evaluator: its own test retrieval numbers from training; upperbody (the
+part-aware model): upper-body editing adherence on labelled data (no evaluator needed).
 """
 
 from __future__ import annotations
@@ -18,12 +19,12 @@ from omegaconf import DictConfig
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import ProtocolConfig
-from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER, Criterion, Decision, promote_version, register_version, version_tags
+from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, Criterion, Decision, promote_version, register_version, version_tags
 from mmm.training.common import TrackingConfig, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 
-EXPERIMENTS = {"tokenizer": "mmm-stage1", "text2motion": "mmm-stage2", "evaluator": "mmm-evaluator"}
+EXPERIMENTS = {"tokenizer": "mmm-stage1", "text2motion": "mmm-stage2", "evaluator": "mmm-evaluator", "upperbody": "mmm-stage2-parts"}
 
 
 @dataclass
@@ -31,6 +32,14 @@ class Criteria:
     tokenizer: list[Criterion] = field(default_factory=lambda: [Criterion("recon/mpjpe_mm", "min", 0.0)])
     text2motion: list[Criterion] = field(default_factory=lambda: [Criterion("generated/fid", "min", 0.0)])
     evaluator: list[Criterion] = field(default_factory=lambda: [Criterion("test/r_precision_top1", "max", 0.0)])
+    upperbody: list[Criterion] = field(default_factory=lambda: [Criterion("upper_body/both", "max", 0.0)])
+
+
+@dataclass
+class UpperBodyCheck:
+    max_sources: int = 12  # walk/squat clips of the split, each edited with every upper-body prompt
+    lower_mask: float = 0.5
+    seed: int = 0
 
 
 @dataclass
@@ -41,6 +50,7 @@ class PromoteConfig:
     device: str = "cpu"
     criteria: Criteria = field(default_factory=Criteria)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    upper_body: UpperBodyCheck = field(default_factory=UpperBodyCheck)
     data: DataConfig = field(default_factory=DataConfig)
     logger: TrackingConfig = field(default_factory=TrackingConfig)
 
@@ -91,7 +101,7 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     from mmm.resolve import download_artifact
 
     if kind not in EXPERIMENTS:
-        raise ValueError(f"unknown model kind {kind!r}; choose tokenizer, text2motion or evaluator")
+        raise ValueError(f"unknown model kind {kind!r}; choose {', '.join(EXPERIMENTS)}")
     cfg: PromoteConfig = to_object(cfg_node)
     uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     client = MlflowClient(uri)
@@ -129,14 +139,10 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         tags = version_tags(metrics, fingerprint, getattr(evaluator, "identity", None), config_hash, {"tokenizer.identity": tensors_fingerprint(tokenizer.state_dict())})
         version = register_version(client, TOKENIZER, f"runs:/{run_id}/checkpoints", run_id, tags)
         return promote_version(client, TOKENIZER, version.version, criteria, needs_evaluator=any(c.metric == "recon/fid" for c in criteria))
-    # text2motion: evaluate, bundle, register.
-    import mlflow
+    # text2motion and upperbody: measure, bundle, register.
     import torch
 
-    from mmm.data.humanml3d import load_items, load_stats
-    from mmm.evaluation.protocol import evaluate_text_to_motion
     from mmm.generation.model import TextToMotion
-    from mmm.registry.bundle import log_bundle
     from mmm.tokenizer.load import load_tokenizer
 
     hp = torch.load(checkpoint, map_location="cpu", weights_only=True)["hyper_parameters"]
@@ -144,17 +150,47 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     if not tokenizer_checkpoint or not Path(tokenizer_checkpoint).exists():
         tokenizer_checkpoint = load_tokenizer(hp["stage1"]["reference"], uri)[1].checkpoint
     model = TextToMotion.from_files(checkpoint, tokenizer_checkpoint, cfg.device)
-    evaluator = _evaluator(cfg, uri, required=True)
-    items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
-                          length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
-    mean, std = load_stats(root, cfg.data.feature_dim)
-    result = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol, progress=False)
-    metrics = {f"generated/{m}": v[0] for m, v in result["generated"].items()}
-    metrics.update({f"real/{m}": v[0] for m, v in result["real"].items()})
+    extra = {"stage1.identity": hp["stage1"]["identity"], "text_encoder": hp["text_encoder"]["identity"]}
+    if kind == "upperbody":
+        from mmm.evaluation.upper_body import upper_body_adherence
+
+        if not model.part_aware:
+            raise ValueError(f"run {run_id} is a whole-body model; `promote upperbody` takes part-aware runs (mmm-stage2-parts)")
+        check = cfg.upper_body
+        if (root / "labels").is_dir():
+            result = upper_body_adherence(model, root, cfg.split, check.max_sources, check.lower_mask, check.seed)
+            metrics = {f"upper_body/{k}": v for k, v in result.items() if isinstance(v, float)}
+            extra.update({"upper_body.edits": result["edits"], "upper_body.lower_mask": check.lower_mask})
+        else:  # no action labels to check edits against: only the run's validation numbers
+            log.warning("%s has no labels/: upper-body adherence not measured; criteria on upper_body/* cannot be met", root)
+            metrics = {}
+        evaluator_identity, name, description = None, UPPERBODY, "part-aware model for upper-body editing: tokenizer (lower/upper), transformer, text encoder"
+    else:
+        from mmm.data.humanml3d import load_items, load_stats
+        from mmm.evaluation.protocol import evaluate_text_to_motion
+
+        evaluator = _evaluator(cfg, uri, required=True)
+        items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
+                              length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
+        mean, std = load_stats(root, cfg.data.feature_dim)
+        result = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol, progress=False)
+        metrics = {f"generated/{m}": v[0] for m, v in result["generated"].items()}
+        metrics.update({f"real/{m}": v[0] for m, v in result["real"].items()})
+        evaluator_identity, name, description = evaluator.identity, TEXT2MOTION, "text-to-motion bundle: tokenizer, transformer, normalization, text encoder"
+        extra["replications"] = cfg.protocol.replications
+    metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
+    info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint)
+    tags = version_tags(metrics, fingerprint, evaluator_identity, config_hash, extra)
+    version = register_version(client, name, info.model_uri, run_id, tags, description)
+    return promote_version(client, name, version.version, criteria, needs_evaluator=kind == "text2motion")
+
+
+def _log_bundle(uri: str, run_id: str, checkpoint: str, tokenizer_checkpoint: str):
+    """The bundle logged into the candidate's own run."""
+    import mlflow
+
+    from mmm.registry.bundle import log_bundle
+
     mlflow.set_tracking_uri(uri)
     with mlflow.start_run(run_id=run_id):
-        info = log_bundle(checkpoint, tokenizer_checkpoint, artifact_path="bundle")
-    tags = version_tags(metrics, fingerprint, evaluator.identity, config_hash,
-                        {"stage1.identity": hp["stage1"]["identity"], "text_encoder": hp["text_encoder"]["identity"], "replications": cfg.protocol.replications})
-    version = register_version(client, TEXT2MOTION, info.model_uri, run_id, tags, "text-to-motion bundle: tokenizer, transformer, normalization, text encoder")
-    return promote_version(client, TEXT2MOTION, version.version, criteria, needs_evaluator=True)
+        return log_bundle(checkpoint, tokenizer_checkpoint, artifact_path="bundle")

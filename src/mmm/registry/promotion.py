@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 TOKENIZER, TEXT2MOTION, EVALUATOR = "mmm-tokenizer", "mmm-text2motion", "mmm-evaluator"
+UPPERBODY = "mmm-upperbody"  # the part-aware model (upper-body editing)
 
 
 @dataclass
@@ -129,7 +130,7 @@ def promote_version(client, name: str, version: str, criteria: list[Criterion], 
     return Decision(promoted, alias, reason, candidate.version, champion.version if champion else None, comparisons)
 
 
-def list_models(client, names=(TOKENIZER, TEXT2MOTION, EVALUATOR)) -> str:
+def list_models(client, names=(TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY)) -> str:
     """A text table of every version of the package's registered models: aliases, metrics, data."""
     from mlflow.exceptions import MlflowException
 

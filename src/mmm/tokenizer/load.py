@@ -34,13 +34,17 @@ class TokenizerSource:
     identity: str  # fingerprint of the tokenizer's weights and normalization
 
 
-def resolve_tokenizer(reference: str | None, tracking_uri: str, output_dir: str = "outputs/stage1", cache_dir: str = "outputs/cache/models") -> tuple[str, str, str | None]:
-    """(resolved reference, local checkpoint path, run id or None) for a tokenizer reference."""
-    return resolve_checkpoint(reference, tracking_uri, STAGE1_EXPERIMENT, output_dir, "stage-1 model", "make train-stage1", "stage1", cache_dir)
+def resolve_tokenizer(reference: str | None, tracking_uri: str, output_dir: str = "outputs/stage1", cache_dir: str = "outputs/cache/models",
+                      experiment: str = STAGE1_EXPERIMENT) -> tuple[str, str, str | None]:
+    """(resolved reference, local checkpoint path, run id or None) for a tokenizer reference
+    (None: the newest run of `experiment`, mmm-stage1-parts for the part-aware tokenizer)."""
+    hint = "make train-stage1-parts" if experiment.endswith("-parts") else "make train-stage1"
+    return resolve_checkpoint(reference, tracking_uri, experiment, output_dir, "stage-1 model", hint, "stage1", cache_dir)
 
 
 def load_tokenizer_checkpoint(path: str | Path) -> TokenizerModule:
-    """A TokenizerModule in eval mode from a stage-1 checkpoint (weights_only load)."""
+    """A TokenizerModule in eval mode from a stage-1 checkpoint (weights_only load); its
+    hyper-parameters say whether the tokenizer is plain or part-aware (`model.part_aware`)."""
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
     hp = ckpt.get("hyper_parameters") or {}
     if "model" not in hp or "feature_dim" not in hp:
@@ -50,8 +54,9 @@ def load_tokenizer_checkpoint(path: str | Path) -> TokenizerModule:
     return module.eval()
 
 
-def load_tokenizer(reference: str | None, tracking_uri: str, output_dir: str = "outputs/stage1") -> tuple[TokenizerModule, TokenizerSource]:
-    resolved, checkpoint, run_id = resolve_tokenizer(reference, tracking_uri, output_dir)
+def load_tokenizer(reference: str | None, tracking_uri: str, output_dir: str = "outputs/stage1",
+                   experiment: str = STAGE1_EXPERIMENT) -> tuple[TokenizerModule, TokenizerSource]:
+    resolved, checkpoint, run_id = resolve_tokenizer(reference, tracking_uri, output_dir, experiment=experiment)
     module = load_tokenizer_checkpoint(checkpoint)
     identity = tensors_fingerprint(module.state_dict())
     return module, TokenizerSource(resolved, checkpoint, run_id, identity)

@@ -1,4 +1,8 @@
-"""`TokenizerModule`: stage-1 training of the MotionTokenizer (losses, optimizer, validation)."""
+"""`TokenizerModule`: stage-1 training of the MotionTokenizer (losses, optimizer, validation).
+
+With `model.tokenizer.part_aware=true` it trains a PartAwareTokenizer (two codebooks) instead;
+codebook metrics are then logged per codebook (`codebook/lower/perplexity`, ...).
+"""
 
 from __future__ import annotations
 
@@ -13,6 +17,8 @@ from torchmetrics import MeanMetric
 from mmm.motion.features import FeatureLayout, recover_from_ric
 from mmm.motion.skeleton import skeleton_for
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
+from mmm.tokenizer.parts import PartAwareTokenizer
+from mmm.tokenizer.quantizer import EMAQuantizer, metric_name
 
 
 @dataclass
@@ -52,7 +58,8 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 class TokenizerModule(L.LightningModule):
-    """Trains a MotionTokenizer on normalized windows (B, T, D); validates on whole clips.
+    """Trains a MotionTokenizer (or a PartAwareTokenizer) on normalized windows (B, T, D);
+    validates on whole clips.
 
     mean/std: the dataset statistics (D,), kept as buffers so a checkpoint can denormalize.
     """
@@ -75,7 +82,7 @@ class TokenizerModule(L.LightningModule):
         # Plain dicts, so checkpoints load with torch.load(weights_only=True).
         self.save_hyperparameters({"feature_dim": feature_dim, "model": asdict(model), "optim": asdict(optim), "loss": asdict(loss)})
         self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
-        self.tokenizer = MotionTokenizer(feature_dim, model)
+        self.tokenizer = PartAwareTokenizer(feature_dim, model) if model.part_aware else MotionTokenizer(feature_dim, model)
         self.skeleton = skeleton_for(feature_dim)
         self.layout = FeatureLayout(self.skeleton.num_joints)
         self.register_buffer("mean", mean)
@@ -83,13 +90,22 @@ class TokenizerModule(L.LightningModule):
         self.val_recon = MeanMetric()
         self.val_mpjpe = MeanMetric()  # each pose aligned by its pelvis (the standard protocol)
         self.val_mpjpe_global = MeanMetric()  # recovered root path included
-        self.last_perplexity: float = 0.0
-        self.last_counts: torch.Tensor | None = None
+        self.last_perplexities: dict[str, float] = {}  # of the last training batch, keyed like `quantizers`
         self.preview_batch: dict | None = None  # first validation batch with reconstructions
 
     @property
-    def quantizer(self):
-        return self.tokenizer.quantizer
+    def quantizers(self) -> dict[str, EMAQuantizer]:
+        """The codebooks by name: {"": q} for the plain tokenizer, {"lower": q, "upper": q} part-aware."""
+        return self.tokenizer.quantizers
+
+    @property
+    def quantizer(self) -> EMAQuantizer:
+        """The one codebook of the plain tokenizer."""
+        quantizers = self.quantizers
+        if len(quantizers) != 1:
+            # Not AttributeError: nn.Module would swallow it and report a missing attribute.
+            raise TypeError(f"this tokenizer has {len(quantizers)} codebooks ({', '.join(quantizers)}): use `quantizers`")
+        return quantizers[""]
 
     def losses(self, recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         pos = self.layout.positions
@@ -103,23 +119,19 @@ class TokenizerModule(L.LightningModule):
         out = self.tokenizer(batch)
         parts = self.losses(out.reconstruction, batch)
         loss = parts["recon"] + self.loss_cfg.position_weight * parts["position"] + self.loss_cfg.commit_weight * out.commit_loss
-        self.last_perplexity = float(out.perplexity)
-        K = self.quantizer.num_codes
-        active = self.quantizer.window_active()
-        self.log_dict(
-            {
-                "train/loss": loss,
-                "train/recon": parts["recon"],
-                "train/position": parts["position"],
-                "train/commit": out.commit_loss,
-                "codebook/perplexity": out.perplexity,
-                "codebook/active_in_window": float(active),
-                "codebook/active_fraction": active / K,
-            },
-            prog_bar=False,
-            on_step=True,
-            on_epoch=False,
-        )
+        self.last_perplexities = {name: float(p) for name, p in out.perplexities.items()}
+        metrics = {
+            "train/loss": loss,
+            "train/recon": parts["recon"],
+            "train/position": parts["position"],
+            "train/commit": out.commit_loss,
+        }
+        for name, quantizer in self.quantizers.items():
+            active = quantizer.window_active()
+            metrics[metric_name("codebook", name, "perplexity")] = out.perplexities[name]
+            metrics[metric_name("codebook", name, "active_in_window")] = float(active)
+            metrics[metric_name("codebook", name, "active_fraction")] = active / quantizer.num_codes
+        self.log_dict(metrics, prog_bar=False, on_step=True, on_epoch=False)
         self.log("loss", loss, prog_bar=True, logger=False)
         return loss
 

@@ -1,7 +1,8 @@
 """The motion tokenizer (VQ-VAE): 1-D convolutional encoder, EMA quantizer, decoder.
 
 Motion (B, T, D) -> latents (B, C, T/4) -> code indices (B, T/4) -> motion (B, T, D).
-Sizes come from `TokenizerConfig` (conf/model/tokenizer_*.yaml); `paper` is method.md's table.
+Sizes come from `TokenizerConfig` (the `tokenizer` part of conf/model/tiny.yaml, paper.yaml); `paper` is method.md's table.
+`part_aware` selects `PartAwareTokenizer` (mmm.tokenizer.parts): one such tokenizer per body part.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ class TokenizerConfig:
     dilation_growth: int = 3
     ema_decay: float = 0.99
     l2_normalize: bool = False
+    part_aware: bool = False  # lower and upper body tokenized separately (two codebooks)
 
     @property
     def downsample(self) -> int:
@@ -87,13 +89,16 @@ class Decoder(nn.Module):
 @dataclass
 class TokenizerOutput:
     reconstruction: torch.Tensor  # (B, T, D)
-    indices: torch.Tensor  # (B, T')
+    indices: torch.Tensor  # (B, T'), or (B, T', 2) for a part-aware tokenizer
     commit_loss: torch.Tensor
-    perplexity: torch.Tensor
+    perplexity: torch.Tensor  # mean over codebooks
+    perplexities: dict[str, torch.Tensor]  # per codebook, keyed like `quantizers`
 
 
 class MotionTokenizer(nn.Module):
     """Normalized motion features (B, T, D) <-> code indices (B, T / 4)."""
+
+    part_aware = False  # one codebook for the whole body (PartAwareTokenizer: one per part)
 
     def __init__(self, feature_dim: int, cfg: TokenizerConfig):
         super().__init__()
@@ -106,7 +111,7 @@ class MotionTokenizer(nn.Module):
         z = self.encoder(motion.transpose(1, 2))
         q: QuantizerOutput = self.quantizer(z)
         recon = self.decoder(q.quantized).transpose(1, 2)
-        return TokenizerOutput(recon, q.indices, q.commit_loss, q.perplexity)
+        return TokenizerOutput(recon, q.indices, q.commit_loss, q.perplexity, {"": q.perplexity})
 
     @torch.no_grad()
     def encode(self, motion: torch.Tensor) -> torch.Tensor:
@@ -117,6 +122,11 @@ class MotionTokenizer(nn.Module):
     def decode(self, indices: torch.Tensor) -> torch.Tensor:
         """Motion (B, T' * 4, D) of code indices (B, T')."""
         return self.decoder(self.quantizer.lookup(indices)).transpose(1, 2)
+
+    @property
+    def quantizers(self) -> dict[str, EMAQuantizer]:
+        """The codebooks by name; one, unnamed, so callers loop alike over this and a part-aware tokenizer."""
+        return {"": self.quantizer}
 
     @property
     def codebook(self) -> torch.Tensor:

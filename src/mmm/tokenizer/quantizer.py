@@ -161,3 +161,9 @@ class EMAQuantizer(nn.Module):
     def window_active(self) -> int:
         """Codes used at least once since the last reset (the same on every rank)."""
         return int((self.window_usage > 0).sum())
+
+
+def metric_name(group: str, codebook: str, name: str) -> str:
+    """`<group>/<name>` for a tokenizer's only codebook (named ""), `<group>/<codebook>/<name>`
+    for one of several (a part-aware tokenizer's "lower" and "upper")."""
+    return f"{group}/{codebook}/{name}" if codebook else f"{group}/{name}"

@@ -56,8 +56,9 @@ class Stage1Config:
     callbacks: Stage1Callbacks = field(default_factory=Stage1Callbacks)
 
 
-def load_stage1_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("train_stage1", list(overrides), schema=Stage1Config)
+def load_stage1_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:
+    """conf/train_stage1.yaml, or with parts=True conf/train_stage1_parts.yaml (the part-aware tokenizer)."""
+    return compose("train_stage1_parts" if parts else "train_stage1", list(overrides), schema=Stage1Config)
 
 
 def build_callbacks(cfg: Stage1Config, checkpoint_dir: Path) -> tuple[list[L.Callback], tuple]:

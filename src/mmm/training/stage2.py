@@ -23,7 +23,7 @@ from mmm.training.common import (
     checkpoint_callbacks, log_checkpoints, log_config, read_checkpoint_meta, resolve_tracking_uri, tag_run,
 )
 from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
-from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
+from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, stage2_codebooks
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,8 @@ class Stage2Config:
     output_dir: str = "outputs/stage2"
     stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
     stage1_output_dir: str = "outputs/stage1"
+    stage1_experiment: str = "mmm-stage1"  # where the newest stage-1 run is looked for (mmm-stage1-parts: part-aware)
+    part_aware: bool = False  # the part-aware transformer (upper body given lower body); needs a part-aware stage-1 model
     token_cache_dir: str = "outputs/cache/tokens"
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -65,8 +67,9 @@ class Stage2Config:
     callbacks: Stage2Callbacks = field(default_factory=Stage2Callbacks)
 
 
-def load_stage2_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("train_stage2", list(overrides), schema=Stage2Config)
+def load_stage2_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:
+    """conf/train_stage2.yaml, or with parts=True conf/train_stage2_parts.yaml (the part-aware transformer)."""
+    return compose("train_stage2_parts" if parts else "train_stage2", list(overrides), schema=Stage2Config)
 
 
 def build_text(cfg: TextConfig):
@@ -88,8 +91,15 @@ def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:
 def prepare_stage2_data(cfg_node: DictConfig) -> TokenTextDataModule:
     """Resolve the stage-1 model, tokenize the dataset and cache the caption embeddings."""
     cfg: Stage2Config = to_object(cfg_node)
-    tokenizer, source = load_tokenizer(cfg.stage1, resolve_tracking_uri(cfg.logger.tracking_uri), cfg.stage1_output_dir)
+    tokenizer, source = load_tokenizer(cfg.stage1, resolve_tracking_uri(cfg.logger.tracking_uri), cfg.stage1_output_dir, cfg.stage1_experiment)
     log.info("stage-1 model: %s (identity %s)", source.reference, source.identity)
+    tokenizer_parts = bool(getattr(tokenizer.tokenizer, "part_aware", False))
+    if tokenizer_parts != cfg.part_aware:
+        raise ValueError(
+            f"stage-1 model {source.reference} is {'part-aware' if tokenizer_parts else 'a whole-body tokenizer'}, but this stage-2 config "
+            f"trains {'the part-aware' if cfg.part_aware else 'the whole-body'} transformer; "
+            + ("use `mmm train stage2-parts` (make train-stage2-parts)" if tokenizer_parts else "train one with `make train-stage1-parts` or name it with stage1=...")
+        )
     text_encoder, caption_cache = build_text(cfg.text)
     datamodule = TokenTextDataModule(
         cfg.data, cfg.seed, tokenizer, source.identity, text_encoder, caption_cache, cfg.token_cache_dir, cfg.model.transformer.max_tokens,
@@ -104,7 +114,7 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     L.seed_everything(cfg.seed, workers=True)
     datamodule = prepare_stage2_data(cfg_node)
     tokenizer, source, text_encoder = datamodule.tokenizer, datamodule.source, datamodule.text_encoder
-    codebook = tokenizer.tokenizer.codebook.detach().cpu()
+    codebook, condition_codebook = stage2_codebooks(tokenizer)
     ckpt_path, run_id = None, None
     if resume:
         ckpt_path = find_last_checkpoint(cfg.output_dir) if resume == "last" else Path(resume)
@@ -117,6 +127,7 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
     module = MaskedTransformerModule(
         codebook, cfg.model.transformer, cfg.optim, cfg.corruption, text_encoder.sentence_dim, text_encoder.word_dim, stage1, text,
+        condition_codebook=condition_codebook,
     )
     logger = build_logger(cfg.logger, run_id=run_id)
     if logger is not None:

@@ -20,12 +20,15 @@ class CorruptionConfig:
     pkeep: float = 0.5  # real tokens replaced by random codes with probability 1 - pkeep
     loss_on: str = "all"  # all real positions (released) | masked
     cond_drop: float = 0.0  # probability of dropping the text (0.1 enables classifier-free guidance)
+    lower_mask: float = 1.0  # part-aware model: a share ~ U(0, lower_mask) of the lower-body condition codes is masked
 
     def __post_init__(self):
         if self.mask_schedule not in ("uniform", "cosine"):
             raise ValueError(f"corruption.mask_schedule must be uniform or cosine, got {self.mask_schedule!r}")
         if self.loss_on not in ("all", "masked"):
             raise ValueError(f"corruption.loss_on must be all or masked, got {self.loss_on!r}")
+        if not 0.0 <= self.lower_mask <= 1.0:
+            raise ValueError(f"corruption.lower_mask is a share in [0, 1], got {self.lower_mask}")
 
 
 @dataclass
@@ -64,6 +67,20 @@ def corrupt(tokens: torch.Tensor, lengths: torch.Tensor, num_codes: int, cfg: Co
     return Corrupted(inputs, masked, replace & ~masked, real)
 
 
+def mask_condition(lower: torch.Tensor, lengths: torch.Tensor, max_share: float, mask_id: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Lower-body condition codes (B, M) with a share ~ U(0, max_share) of each sequence's real
+    positions replaced by MASK (chosen uniformly), so the model learns every strength of the
+    lower-body constraint, from all of it to none."""
+    B, M = lower.shape
+    device = lower.device
+    real = torch.arange(M, device=device)[None] < lengths[:, None]
+    share = torch.rand(B, generator=generator, device=device) * max_share
+    count = torch.round(share * lengths).long()
+    scores = torch.where(real, torch.rand(B, M, generator=generator, device=device), torch.full((B, M), 2.0, device=device))
+    hidden = scores.argsort(dim=1).argsort(dim=1) < count[:, None]
+    return torch.where(hidden, torch.full_like(lower, mask_id), lower)
+
+
 def sequence_mean(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """Mean over each sequence's weighted positions, then over the batch (B, M) -> ()."""
     weight = weight.to(values.dtype)
@@ -72,10 +89,22 @@ def sequence_mean(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return per_sequence[has_any].mean() if bool(has_any.any()) else values.sum() * 0.0
 
 
+def stage2_codebooks(tokenizer) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(codebook the transformer predicts, condition codebook or None) of a stage-1 TokenizerModule:
+    a part-aware tokenizer gives (upper body, lower body), a whole-body one (its codebook, None)."""
+    net = tokenizer.tokenizer
+    if getattr(net, "part_aware", False):
+        return net.upper.codebook.detach().cpu(), net.lower.codebook.detach().cpu()
+    return net.codebook.detach().cpu(), None
+
+
 class MaskedTransformerModule(L.LightningModule):
     """Trains the masked transformer on batches from TokenBatchCollator.
 
     codebook: (K, C) of the stage-1 model; stage1/text_encoder: identities recorded with the model.
+    condition_codebook: the lower-body codebook of a part-aware stage-1 model (then `codebook` is
+    its upper-body one, batches hold (B, M, 2) tokens [lower, upper], and the model learns upper
+    codes given a partly masked lower body).
     """
 
     def __init__(
@@ -88,36 +117,46 @@ class MaskedTransformerModule(L.LightningModule):
         word_dim: int,
         stage1: dict | None = None,
         text_encoder: dict | None = None,
+        condition_codebook: torch.Tensor | None = None,
     ):
         super().__init__()
         model, optim, corruption = _as(TransformerConfig, model), _as(OptimConfig, optim), _as(CorruptionConfig, corruption)
         codebook = torch.as_tensor(codebook, dtype=torch.float32)
+        condition_codebook = None if condition_codebook is None else torch.as_tensor(condition_codebook, dtype=torch.float32)
         self.save_hyperparameters(
             {
                 "codebook_shape": list(codebook.shape), "model": asdict(model), "optim": asdict(optim), "corruption": asdict(corruption),
                 "sentence_dim": sentence_dim, "word_dim": word_dim, "stage1": stage1 or {}, "text_encoder": text_encoder or {},
+                "condition_codebook_shape": None if condition_codebook is None else list(condition_codebook.shape),
             }
         )
         self.model_cfg, self.optim_cfg, self.corruption_cfg = model, optim, corruption
-        self.transformer = MaskedMotionTransformer(codebook, model, sentence_dim, word_dim)
+        self.transformer = MaskedMotionTransformer(codebook, model, sentence_dim, word_dim, condition_codebook)
         self.num_codes = codebook.shape[0]
         self.val_loss, self.val_acc_masked, self.val_acc_unmasked = MeanMetric(), MeanMetric(), MeanMetric()
         self.preview_batch: dict | None = None  # first validation batch, for generation previews
 
-    def forward_batch(self, batch: dict, corrupted: Corrupted, drop_text: torch.Tensor | None = None) -> torch.Tensor:
-        return self.transformer(corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], drop_text)
+    def targets_and_condition(self, batch: dict, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(codes to predict (B, M), lower-body condition (B, M) or None) of a batch."""
+        tokens = batch["tokens"]
+        if not self.transformer.part_aware:
+            return tokens, None
+        if tokens.dim() != 3:
+            raise ValueError(f"a part-aware transformer trains on (B, M, 2) tokens of a part-aware stage-1 model, got {tuple(tokens.shape)}")
+        condition = mask_condition(tokens[..., 0], batch["lengths"], self.corruption_cfg.lower_mask, self.transformer.condition.mask_id, generator)
+        return tokens[..., 1], condition
 
-    def loss(self, logits: torch.Tensor, batch: dict, corrupted: Corrupted) -> tuple[torch.Tensor, torch.Tensor]:
-        targets = batch["tokens"].clamp(max=self.num_codes - 1)  # END/PAD are never targets
-        ce = F.cross_entropy(logits.transpose(1, 2), targets, reduction="none")  # (B, M)
+    def loss(self, logits: torch.Tensor, targets: torch.Tensor, corrupted: Corrupted) -> tuple[torch.Tensor, torch.Tensor]:
+        ce = F.cross_entropy(logits.transpose(1, 2), targets.clamp(max=self.num_codes - 1), reduction="none")  # (B, M); END/PAD are never targets
         weight = corrupted.masked if self.corruption_cfg.loss_on == "masked" else corrupted.real
-        return sequence_mean(ce, weight), logits.argmax(-1) == batch["tokens"]
+        return sequence_mean(ce, weight), logits.argmax(-1) == targets
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        corrupted = corrupt(batch["tokens"], batch["lengths"], self.num_codes, self.corruption_cfg)
+        targets, condition = self.targets_and_condition(batch)
+        corrupted = corrupt(targets, batch["lengths"], self.num_codes, self.corruption_cfg)
         drop = torch.rand(len(batch["lengths"]), device=self.device) < self.corruption_cfg.cond_drop if self.corruption_cfg.cond_drop > 0 else None
-        logits = self.forward_batch(batch, corrupted, drop)
-        loss, correct = self.loss(logits, batch, corrupted)
+        logits = self.transformer(corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], drop, condition)
+        loss, correct = self.loss(logits, targets, corrupted)
         unmasked = corrupted.real & ~corrupted.masked
         self.log_dict(
             {
@@ -134,9 +173,10 @@ class MaskedTransformerModule(L.LightningModule):
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         # The same corruption at every validation: comparable numbers across a run.
         generator = torch.Generator(device=batch["tokens"].device).manual_seed(1234 + batch_idx)
-        corrupted = corrupt(batch["tokens"], batch["lengths"], self.num_codes, self.corruption_cfg, generator)
-        logits = self.forward_batch(batch, corrupted)
-        loss, correct = self.loss(logits, batch, corrupted)
+        targets, condition = self.targets_and_condition(batch, generator)
+        corrupted = corrupt(targets, batch["lengths"], self.num_codes, self.corruption_cfg, generator)
+        logits = self.transformer(corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], None, condition)
+        loss, correct = self.loss(logits, targets, corrupted)
         unmasked = corrupted.real & ~corrupted.masked
         self.val_loss.update(loss, weight=len(batch["lengths"]))
         self.val_acc_masked.update(correct[corrupted.masked].float().mean(), weight=corrupted.masked.sum())

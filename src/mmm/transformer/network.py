@@ -9,6 +9,12 @@ a mask of real words. Output: logits over the K codes at every motion position (
       -> [projected sentence, tokens] -> self-attention layers (keys after END masked)
       -> final LayerNorm -> linear E -> K
 
+Part-aware variant (upper-body editing): with a `condition_codebook` (the lower-body codebook of a
+part-aware tokenizer), a second token sequence (B, M) of lower-body codes, same id layout with
+their own END/PAD/MASK, is embedded the same way and added position by position. The model then
+predicts upper-body codes given the lower body and the text; MASK in the condition hides those
+lower-body codes (training masks a random share, editing chooses how much to keep).
+
 Two things the released code gets wrong are fixed here: padded word positions are masked in
 cross-attention, and the positional encoding is added once, not twice. Attention is PyTorch's
 scaled_dot_product_attention with boolean masks; no row is ever fully masked (the text token and
@@ -109,13 +115,38 @@ class CrossAttentionBlock(nn.Module):
         return x + self.mlp(self.ln2(x))
 
 
+def embed_ids(tokens: torch.Tensor, codebook: torch.Tensor, special: nn.Embedding, proj: nn.Linear) -> torch.Tensor:
+    """(B, M) ids -> (B, M, E): codebook (K, C) vectors for codes [0, K), the learned `special`
+    vectors for END = K, PAD = K + 1 and MASK = K + 2, then `proj` to E."""
+    K = codebook.shape[0]
+    codes = F.embedding(tokens.clamp(max=K - 1), codebook)
+    specials = special((tokens - K).clamp(min=0))
+    return proj(torch.where((tokens < K).unsqueeze(-1), codes, specials))
+
+
+class TokenEmbedding(nn.Module):
+    """The conditioning part's embedding: its own frozen codebook (K, C), specials and projection."""
+
+    def __init__(self, codebook: torch.Tensor, dim: int):
+        super().__init__()
+        self.num_codes = codebook.shape[0]
+        self.end_id, self.pad_id, self.mask_id = self.num_codes, self.num_codes + 1, self.num_codes + 2
+        self.register_buffer("codebook", codebook.detach().clone().float())
+        self.special = nn.Embedding(3, codebook.shape[1])
+        self.proj = nn.Linear(codebook.shape[1], dim)
+
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        return embed_ids(tokens, self.codebook, self.special, self.proj)
+
+
 class MaskedMotionTransformer(nn.Module):
     """Predicts motion codes at every position from a partly masked token sequence and text.
 
-    codebook: (K, C) stage-1 code vectors, kept frozen as a buffer.
+    codebook: (K, C) stage-1 code vectors, kept frozen as a buffer. condition_codebook: (Kc, Cc)
+    code vectors of the conditioning part (the lower body), or None for the plain model.
     """
 
-    def __init__(self, codebook: torch.Tensor, cfg: TransformerConfig, sentence_dim: int, word_dim: int):
+    def __init__(self, codebook: torch.Tensor, cfg: TransformerConfig, sentence_dim: int, word_dim: int, condition_codebook: torch.Tensor | None = None):
         super().__init__()
         self.cfg = cfg
         K, C = codebook.shape
@@ -125,6 +156,7 @@ class MaskedMotionTransformer(nn.Module):
         self.register_buffer("codebook", codebook.detach().clone().float())
         self.special = nn.Embedding(3, C)
         self.token_proj = nn.Linear(C, E)
+        self.condition = None if condition_codebook is None else TokenEmbedding(condition_codebook, E)
         self.register_buffer("positions", sinusoidal_positions(cfg.max_tokens, E), persistent=False)
         self.sentence_proj = nn.Linear(sentence_dim, E)
         self.word_proj = nn.Linear(word_dim, E)
@@ -147,12 +179,13 @@ class MaskedMotionTransformer(nn.Module):
             nn.init.ones_(module.weight)
             nn.init.zeros_(module.bias)
 
+    @property
+    def part_aware(self) -> bool:
+        return self.condition is not None
+
     def embed_tokens(self, tokens: torch.Tensor) -> torch.Tensor:
         """(B, M) ids -> (B, M, E): codebook vectors for codes, learned vectors for END/PAD/MASK."""
-        is_code = tokens < self.num_codes
-        codes = F.embedding(tokens.clamp(max=self.num_codes - 1), self.codebook)
-        specials = self.special((tokens - self.num_codes).clamp(min=0))
-        return self.token_proj(torch.where(is_code.unsqueeze(-1), codes, specials))
+        return embed_ids(tokens, self.codebook, self.special, self.token_proj)
 
     def forward(
         self,
@@ -161,15 +194,24 @@ class MaskedMotionTransformer(nn.Module):
         words: torch.Tensor,
         word_mask: torch.Tensor,
         drop_text: torch.Tensor | None = None,
+        condition: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Logits (B, M, K).
 
         tokens (B, M) with END after the last code and PAD after END; sentence (B, Ds);
         words (B, Lw, Dw); word_mask (B, Lw) True at real words; drop_text (B,) True replaces the
-        text by the learned null text (the unconditional branch of classifier-free guidance).
+        text by the learned null text (the unconditional branch of classifier-free guidance);
+        condition (B, M): the part-aware model's lower-body codes (MASK where hidden).
         """
         B, M = tokens.shape
         x = self.embed_tokens(tokens) + self.positions[:M]
+        if (condition is None) != (self.condition is None):
+            raise ValueError("a part-aware transformer needs the lower-body condition tokens; a plain one takes none"
+                             if condition is None else "condition tokens given to a transformer that is not part-aware")
+        if condition is not None:
+            if condition.shape != tokens.shape:
+                raise ValueError(f"condition tokens {tuple(condition.shape)} must have the shape of the tokens {tuple(tokens.shape)}")
+            x = x + self.condition(condition)
         s = self.sentence_proj(sentence)
         w = self.word_proj(words)
         # Always through torch.where, so the null text takes part in every graph (DDP expects
