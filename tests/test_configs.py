@@ -54,3 +54,24 @@ def test_unknown_group_option_lists_the_choices():
         compose("train_stage1", ["trainer=tpu"])
     with pytest.raises(ValueError, match="num_cross_layers=7 must be between 0 and num_layers=6"):
         to_object(load_stage2_config(["model.transformer.num_layers=6", "model.transformer.num_cross_layers=7"]))
+
+
+def test_part_aware_configs_extend_the_whole_body_ones():
+    base, parts = OmegaConf.to_container(load_stage1_config()), OmegaConf.to_container(load_stage1_config(parts=True))
+    assert parts["model"]["tokenizer"]["part_aware"] is True and parts["logger"]["experiment"] == "mmm-stage1-parts"
+    assert parts["output_dir"] == "outputs/stage1-parts"
+    differing = {k for k in base if base[k] != parts[k]}
+    assert differing == {"model", "logger", "output_dir"}  # everything else is inherited
+    assert {k: v for k, v in parts["model"]["tokenizer"].items() if k != "part_aware"} == {k: v for k, v in base["model"]["tokenizer"].items() if k != "part_aware"}
+    s2 = to_object(load_stage2_config(["model=paper", "corruption.lower_mask=0.5"], parts=True))  # groups and overrides still apply
+    assert (s2.part_aware, s2.stage1_experiment, s2.corruption.lower_mask, s2.model.transformer.num_layers) == (True, "mmm-stage1-parts", 0.5, 18)
+    assert s2.corruption.cond_drop == 0.1  # from train_stage2.yaml
+
+
+def test_extends_is_one_level(tmp_path):
+    (tmp_path / "a.yaml").write_text("x: 1\ny: 2\n")
+    (tmp_path / "b.yaml").write_text("extends: a\ny: 3\n")
+    (tmp_path / "c.yaml").write_text("extends: b\n")
+    assert OmegaConf.to_container(compose("b", ["x=5"], directory=tmp_path)) == {"x": 5, "y": 3}
+    with pytest.raises(ValueError, match="one level only"):
+        compose("c", directory=tmp_path)

@@ -142,3 +142,40 @@ def test_a_failing_step_fails_the_parent_and_keeps_the_good_state(workdir, monke
     assert pipeline(workdir, monkeypatch) == 0
     steps = steps_of(client, newest_parent(client))
     assert {r.data.tags["step.status"] for r in steps.values()} == {"skipped"}
+
+
+def test_parts_pipeline_trains_and_promotes_the_part_aware_model(workdir, monkeypatch):
+    import mlflow
+
+    from mmm.generation.model import TextToMotion
+
+    tiny_parts = {
+        "stage1_parts": [*TINY["stage1"], "trainer.log_every_n_steps=1"],
+        "stage2_parts": TINY["stage2"],
+        "promote": [*TINY["promote"], "upper_body.max_sources=4"],
+    }
+    argv = ["pipeline", "parts", *pipeline_args(workdir, f"sqlite:///{workdir}/mlflow.db"),
+            *[f"overrides.{step}=[{','.join(items)}]" for step, items in tiny_parts.items()]]
+    monkeypatch.chdir(workdir)
+    previous = mlflow.get_tracking_uri()
+    try:
+        assert main(argv) == 0
+        client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
+        experiment = client.get_experiment_by_name("mmm-pipeline")
+        parent = client.search_runs([experiment.experiment_id], "attributes.run_name = 'pipeline-parts'", order_by=["attributes.start_time DESC"])[0]
+        steps = steps_of(client, parent)
+        assert set(steps) == set(PIPELINES["parts"]) and all(r.data.tags["step.status"] == "ran" for r in steps.values())
+        stage1 = client.get_run(steps["stage1-parts"].data.tags["output.run_id"])
+        assert client.get_experiment(stage1.info.experiment_id).name == "mmm-stage1-parts" and "codebook/upper/perplexity" in stage1.data.metrics
+        champion = client.get_model_version_by_alias("mmm-upperbody", "champion")
+        assert champion.run_id == steps["stage2-parts"].data.tags["output.run_id"]
+        # Measured on the synthetic labels: 4 walking/squatting test clips x 3 upper-body prompts.
+        assert champion.tags["upper_body.edits"] == "12" and 0.0 <= float(champion.tags["metric.upper_body/both"]) <= 1.0
+        assert TextToMotion.load(None, tracking_uri=f"sqlite:///{workdir}/mlflow.db", parts=True).part_aware
+        # The whole-body champion is untouched, and a rerun skips everything.
+        assert client.get_model_version_by_alias("mmm-text2motion", "champion").run_id != champion.run_id
+        assert main(argv) == 0
+        parent = client.search_runs([experiment.experiment_id], "attributes.run_name = 'pipeline-parts'", order_by=["attributes.start_time DESC"])[0]
+        assert {r.data.tags["step.status"] for r in steps_of(client, parent).values()} == {"skipped"}
+    finally:
+        mlflow.set_tracking_uri(previous)
