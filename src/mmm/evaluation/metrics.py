@@ -153,7 +153,8 @@ def frechet_distance(mu1, sigma1, mu2, sigma2, eps: float = 1e-6) -> float:
         if imaginary > _IMAGINARY_TOLERANCE:
             raise ValueError(f"the matrix square root of sigma1·sigma2 has an imaginary component {imaginary:.4g} (tolerance {_IMAGINARY_TOLERANCE:g})")
         terms = terms.real
-    return float(diff @ diff + torch.trace(sigma1) + torch.trace(sigma2) - 2 * terms.sum())
+    # A distance: rounding makes identical distributions come out around -1e-7, reported as 0.
+    return max(0.0, float(diff @ diff + torch.trace(sigma1) + torch.trace(sigma2) - 2 * terms.sum()))
 
 
 def fid(real: Tensor, generated: Tensor) -> float:
