@@ -86,7 +86,7 @@ def edit_upper_body(
             if b > frames:
                 raise ValueError(f"lower-keep range {a}:{b} goes past the source's {frames} usable frames")
         keep = model.keep_mask(L, lower_keep)
-    generator = torch.Generator().manual_seed(seed if seed is not None else torch.seed() % 2**63)
+    generator = torch.Generator().manual_seed(seed if seed is not None else int(np.random.default_rng().integers(2**62)))
     condition = lower_condition(codes[:, 0], model.transformer.condition.mask_id, lower_mask, keep, generator, num_samples)
     texts = [text] * num_samples
     emb = model.encode_text(texts)
