@@ -145,14 +145,16 @@ def test_resetting_every_iteration_churns_the_codebook():
 
 
 @pytest.mark.ddp
-def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_path):
+@pytest.mark.parametrize("variant", ["whole", "parts"])
+def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_path, variant):
     result = subprocess.run(
-        [sys.executable, str(TESTS / "ddp_workers/stage1_ddp.py"), str(walker_dataset), str(tmp_path)],
+        [sys.executable, str(TESTS / "ddp_workers/stage1_ddp.py"), str(walker_dataset), str(tmp_path), *(["parts"] if variant == "parts" else [])],
         capture_output=True, text=True, timeout=180, env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     assert result.returncode == 0, result.stderr[-3000:]
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
     assert r0["first_batch_sum"] != r1["first_batch_sum"]  # the ranks trained on different data
+    assert r0["codebooks"] == (2 if variant == "parts" else 1)
     for key in ("codebook", "ema_sum", "ema_count", "window_usage", "weights"):
         assert torch.equal(r0[key], r1[key]), key
     assert r0["total_reset"] == r1["total_reset"] > 0

@@ -196,9 +196,10 @@ def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):
 
 
 @pytest.mark.ddp
-def test_ddp_ranks_agree(tmp_path):
+@pytest.mark.parametrize("variant", ["whole", "parts"])
+def test_ddp_ranks_agree(tmp_path, variant):
     result = subprocess.run(
-        [sys.executable, str(TESTS / "ddp_workers/stage2_ddp.py"), str(tmp_path)],
+        [sys.executable, str(TESTS / "ddp_workers/stage2_ddp.py"), str(tmp_path), *(["parts"] if variant == "parts" else [])],
         capture_output=True, text=True, timeout=180, env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     assert result.returncode == 0, result.stderr[-3000:]

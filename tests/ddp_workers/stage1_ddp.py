@@ -1,7 +1,7 @@
 """Stage-1 training on 2 CPU processes over gloo; each rank saves its quantizer state at the end.
 
-Run by tests/test_stage1.py as `python stage1_ddp.py DATA_ROOT OUT_DIR`: Lightning's DDP launcher
-re-runs this script for rank 1. The collapse monitor is made to fire on rank 0 only, so both
+Run by tests/test_stage1.py as `python stage1_ddp.py DATA_ROOT OUT_DIR [parts]`: Lightning's DDP
+launcher re-runs this script for rank 1; `parts` trains the part-aware tokenizer (two codebooks). The collapse monitor is made to fire on rank 0 only, so both
 ranks stopping at the same step shows that the stop decision is reduced across ranks.
 """
 
@@ -27,12 +27,12 @@ class SaveRankState(L.Callback):
             self.first_batch_sum = float(batch.sum())
 
     def on_train_end(self, trainer, pl_module):
-        q = pl_module.quantizer
+        quantizers = pl_module.quantizers.values()
         reset = next(c for c in trainer.callbacks if isinstance(c, CodebookReset))
+        state = {name: torch.cat([getattr(q, name).flatten().float() for q in quantizers]) for name in ("codebook", "ema_sum", "ema_count", "window_usage")}
         torch.save(
             {
-                "codebook": q.codebook.clone(), "ema_sum": q.ema_sum.clone(), "ema_count": q.ema_count.clone(),
-                "window_usage": q.window_usage.clone(), "global_step": trainer.global_step, "total_reset": reset.total_reset,
+                **state, "codebooks": len(quantizers), "global_step": trainer.global_step, "total_reset": reset.total_reset,
                 "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
                 "first_batch_sum": self.first_batch_sum,
             },
@@ -40,13 +40,13 @@ class SaveRankState(L.Callback):
         )
 
 
-def main(data_root, out_dir):
+def main(data_root, out_dir, parts=False):
     L.seed_everything(0)
     rank = int(os.environ.get("LOCAL_RANK", "0"))
     dm = TokenizerDataModule(DataConfig(root=data_root, batch_size=4, synthesize=None), seed=0)
     dm.prepare_data()
     dm.setup("fit")
-    module = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig(), dm.mean, dm.std)
+    module = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64, part_aware=parts), OptimConfig(warmup_steps=5), TokenizerLossConfig(), dm.mean, dm.std)
     monitor = CollapseMonitor(action="stop", warmup_steps=24, window_steps=4, min_active_fraction=2.0 if rank == 0 else -1.0, perplexity_drop=0.0, patience=1)
     trainer = L.Trainer(
         accelerator="cpu", devices=2, strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
@@ -57,4 +57,4 @@ def main(data_root, out_dir):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2])
+    main(sys.argv[1], sys.argv[2], parts=sys.argv[3:] == ["parts"])

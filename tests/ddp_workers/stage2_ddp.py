@@ -1,8 +1,9 @@
 """Stage-2 training on 2 CPU processes over gloo; each rank saves its weights and validation metrics.
 
-Run by tests/test_stage2.py as `python stage2_ddp.py OUT_DIR`. Random token sequences and random
-text embeddings: the point is that ranks see different batches yet end with the same weights,
-and that validation metrics are reduced across ranks.
+Run by tests/test_stage2.py as `python stage2_ddp.py OUT_DIR [parts]`. Random token sequences and
+random text embeddings: the point is that ranks see different batches yet end with the same
+weights, and that validation metrics are reduced across ranks. `parts`: the part-aware
+transformer on [lower, upper] code pairs (the lower ones its partly masked condition).
 """
 
 import os
@@ -36,7 +37,7 @@ class RandomTokens(Dataset):
         return i
 
 
-def collate(data):
+def collate(data, parts: bool):
     def fn(indices):
         n = len(indices)
         tokens = torch.full((n, 13), K + 1)
@@ -44,6 +45,11 @@ def collate(data):
         for row, i in enumerate(indices):
             tokens[row, : lengths[row]] = data.codes[i, : lengths[row]]
             tokens[row, lengths[row]] = K
+        if parts:  # lower codes: the upper ones reversed within each sequence (END/PAD in place)
+            lower = tokens.clone()
+            for row in range(n):
+                lower[row, : lengths[row]] = tokens[row, : lengths[row]].flip(0)
+            tokens = torch.stack((lower, tokens), dim=-1)
         words = data.text[indices]
         return {"tokens": tokens, "lengths": lengths, "sentence": words.mean(1), "words": words, "word_mask": torch.ones(n, 5, dtype=torch.bool)}
     return fn
@@ -68,12 +74,13 @@ class SaveRankState(L.Callback):
         )
 
 
-def main(out_dir):
+def main(out_dir, parts=False):
     L.seed_everything(0)
     train, val = RandomTokens(64, 1), RandomTokens(10, 2)  # 10 val items: 5 per rank
     module = MaskedTransformerModule(
         torch.randn(K, 8), TransformerConfig(embed_dim=32, num_heads=2, num_layers=2, num_cross_layers=1, dropout=0.0, max_tokens=13),
         OptimConfig(lr=1e-3, warmup_steps=0), CorruptionConfig(cond_drop=0.2), sentence_dim=16, word_dim=16,
+        condition_codebook=torch.randn(K, 4) if parts else None,
     )
     trainer = L.Trainer(
         accelerator="cpu", devices=2, strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
@@ -82,10 +89,10 @@ def main(out_dir):
     )
     trainer.fit(
         module,
-        ResumableDataLoader(train, batch_size=4, shuffle=True, seed=0, collate_fn=collate(train), drop_last=True),
-        ResumableDataLoader(val, batch_size=5, shuffle=False, seed=0, collate_fn=collate(val)),
+        ResumableDataLoader(train, batch_size=4, shuffle=True, seed=0, collate_fn=collate(train, parts), drop_last=True),
+        ResumableDataLoader(val, batch_size=5, shuffle=False, seed=0, collate_fn=collate(val, parts)),
     )
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(sys.argv[1], parts=sys.argv[2:] == ["parts"])
