@@ -169,6 +169,9 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         from mmm.data.humanml3d import load_items, load_stats
         from mmm.evaluation.protocol import evaluate_text_to_motion
 
+        if model.part_aware:
+            raise ValueError(f"run {run_id} is a part-aware model (it edits upper bodies); promote it with `mmm promote upperbody candidate={run_id}`")
+
         evaluator = _evaluator(cfg, uri, required=True)
         items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
                               length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
