@@ -14,7 +14,7 @@ ARGS ?=
 .PHONY: help setup test data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui clean
 
 help: ## list the targets
-	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-16s %s\n", $$1, $$2}'
+	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -78,7 +78,7 @@ bench: bench-train bench-generate ## all speed measurements (training and genera
 train-evaluator: $(STAMP) ## train the own text-motion evaluator (contrastive), register it in MLflow
 	$(BIN)/mmm train evaluator $(ARGS)
 
-evaluate: $(STAMP) ## the protocol (20 replications), reconstruction metrics and prompt adherence of the newest models (ARGS="key=value ...")
+evaluate: $(STAMP) ## the protocol (20 replications), reconstruction metrics and prompt adherence of the text-to-motion champion (else the newest stage-2 run); ARGS="key=value ..."
 	$(BIN)/mmm evaluate $(ARGS)
 
 ablate-%: $(STAMP) ## an ablation table as a sweep: ablate-reset|cross-layers|schedule|temperature|topk|topp (Tables 8-13)
