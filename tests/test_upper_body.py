@@ -227,6 +227,10 @@ def test_promotion_registers_the_part_aware_bundle_and_editing_defaults_to_it(pa
     finally:
         mlflow.set_tracking_uri(previous)
     assert (decision.promoted, decision.alias) == (True, "champion")  # the first one; no labels here, so only val/* metrics
+    with pytest.raises(ValueError, match="promote upperbody"):
+        promote("text2motion", load_promote_config([f"data.root={parts_model['walker']}", "data.synthesize=null", f"logger.tracking_uri={parts_model['uri']}",
+                                                    f"candidate={parts_model['stage2'].run_id}"]))
+    mlflow.set_tracking_uri(previous)
     version = MlflowClient(parts_model["uri"]).get_model_version_by_alias("mmm-upperbody", "champion")
     assert "metric.val/acc_masked" in version.tags and "metric.upper_body/both" not in version.tags
     model = TextToMotion.load(None, tracking_uri=parts_model["uri"], parts=True)
