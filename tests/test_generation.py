@@ -43,6 +43,7 @@ class CountingTransformer(torch.nn.Module):
         self.inner, self.calls = inner, []
         self.num_codes, self.cfg = inner.num_codes, inner.cfg
         self.mask_id, self.end_id, self.pad_id = inner.mask_id, inner.end_id, inner.pad_id
+        self.part_aware = inner.part_aware
 
     def forward(self, tokens, *args):
         self.calls.append(tokens.clone())

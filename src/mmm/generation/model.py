@@ -100,7 +100,6 @@ class TextToMotion:
         length_model: the length estimator used when no length is given (a reference like the
         model's; default: the newest `make train-length` result), loaded only when needed.
         """
-        from mmm.text import build_text_encoder
         from mmm.training.common import resolve_tracking_uri
 
         tracking_uri = resolve_tracking_uri(tracking_uri)
@@ -174,7 +173,7 @@ class TextToMotion:
     @property
     def part_aware(self) -> bool:
         """A part-aware model: tokens [lower, upper] per step; it edits the upper body of a motion."""
-        return bool(getattr(self.transformer, "part_aware", False))
+        return self.transformer.part_aware
 
     def _whole_body_only(self, what: str) -> None:
         if self.part_aware:

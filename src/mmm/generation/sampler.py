@@ -18,7 +18,6 @@ import math
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 
 SCHEDULES = {
     "cosine": lambda x: math.cos(math.pi / 2 * x),

@@ -241,7 +241,7 @@ STEPS = {
 
 def shared_overrides(overrides: list[str]) -> list[str]:
     """The command line's data.* and logger.* overrides, which every step's config takes too."""
-    return [o for o in overrides if o.lstrip("+~").split("=")[0].split(".")[0] in ("data", "logger") and "." in o.split("=")[0]]
+    return [o for o in overrides if o.split("=", 1)[0].lstrip("+~").startswith(("data.", "logger."))]
 
 
 def run_pipeline(name: str, cfg_node: DictConfig, force: list[str] = (), overrides: list[str] = ()) -> list[StepReport]:

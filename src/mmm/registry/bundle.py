@@ -398,22 +398,45 @@ def _artifact_location(model_uri: str, tracking_uri: str) -> str:
     return client.get_model_version_download_uri(version.name, version.version)
 
 
+COMPLETE = ".complete"  # in a download folder: the bundle's folder inside it, written last
+
+
+def _download(artifact_uri: str, tracking_uri: str, dst: str | Path | None) -> Path:
+    """Download into `dst` (a new temporary folder when None) all or nothing: into a sibling
+    first, renamed into place once complete."""
+    if dst is None:
+        return Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, tracking_uri=tracking_uri))
+    dst = Path(dst).resolve()  # MLflow answers with absolute paths
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
+    try:
+        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, dst_path=str(tmp), tracking_uri=tracking_uri))
+        inside = str(local.relative_to(tmp))
+        (tmp / COMPLETE).write_text(inside)
+        if not (dst / COMPLETE).is_file():  # else another process finished first: keep its copy
+            if dst.exists():  # an older, incomplete attempt
+                shutil.rmtree(dst)
+            os.replace(tmp, dst)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dst / (dst / COMPLETE).read_text().strip()
+
+
 def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None = None) -> tuple[str, str]:
     """(stage-2 checkpoint, stage-1 checkpoint): local files of a logged or registered bundle
     (models:/NAME@ALIAS, models:/NAME/VERSION, models:/m-ID, runs:/ID/PATH or a local folder),
-    downloaded under `dst` (default: a new temporary folder). `TextToMotion.from_files` loads
-    them without MLflow's pyfunc machinery. When the bundle carries text-encoder files (CLIP), the
-    stage-2 file returned is a copy pointing at them."""
+    downloaded under `dst` (default: a new temporary folder). A `dst` that already holds a
+    complete download is used as it is, so key it by what cannot change (a registered version,
+    not an alias). `TextToMotion.from_files` loads them without MLflow's pyfunc machinery. When
+    the bundle carries text-encoder files (CLIP), the stage-2 file returned is a copy pointing at them."""
     from mlflow.models import Model
 
-    if dst is not None:
-        Path(dst).mkdir(parents=True, exist_ok=True)
     if Path(model_uri).is_dir():
         local = Path(model_uri)
+    elif dst is not None and (Path(dst) / COMPLETE).is_file():
+        local = Path(dst) / (Path(dst) / COMPLETE).read_text().strip()
     else:
-        local = Path(mlflow.artifacts.download_artifacts(
-            artifact_uri=_artifact_location(model_uri, tracking_uri), dst_path=None if dst is None else str(dst), tracking_uri=tracking_uri,
-        ))
+        local = _download(_artifact_location(model_uri, tracking_uri), tracking_uri, dst)
     conf = Model.load(str(local)).flavors.get("python_function", {})
     saved = conf.get("artifacts") or {}
     if TRANSFORMER not in saved or TOKENIZER not in saved:

@@ -232,3 +232,20 @@ class TrainResult:
     last_checkpoint: str | None
     metrics: dict[str, float] = field(default_factory=dict)
     stopped_early: bool = False
+
+
+def train_result(trainer: L.Trainer, logger: MLFlowLogger | None, log_to_mlflow: bool, best: ModelCheckpoint, last: ModelCheckpoint,
+                 run_dir: Path, max_steps: int, extra_metrics: dict[str, float] | None = None, result_type: type = TrainResult, **fields):
+    """After fit: upload best/last checkpoints to the run (rank 0, when `log_to_mlflow`) and
+    collect what the caller gets back (`result_type` may add `fields`)."""
+    paths = (log_checkpoints(logger, best, last) if log_to_mlflow else None) or {}
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    return result_type(
+        run_id=logger.run_id if logger is not None else None,
+        checkpoint_dir=str(run_dir / "checkpoints"),
+        best_checkpoint=paths.get("best") or best.best_model_path or None,
+        last_checkpoint=paths.get("last") or last.best_model_path or None,
+        metrics={**metrics, **(extra_metrics or {})},
+        stopped_early=trainer.global_step < max_steps,
+        **fields,
+    )

@@ -40,7 +40,7 @@ from mmm.evaluation.contrastive import (
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (
     CheckpointConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer, checkpoint_callbacks,
-    log_checkpoints, log_config, resolve_tracking_uri, tag_run,
+    log_config, resolve_tracking_uri, tag_run, train_result,
 )
 from mmm.training.runs import run_directory, shared_run_directory
 from mmm.training.stage2 import TextConfig, build_text
@@ -258,18 +258,8 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
     with shared_run_directory(run_dir):
         trainer.fit(module, **loaders)
     fit_seconds = time.perf_counter() - fit_started
-    paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
-    result = EvaluatorTrainResult(
-        run_id=logger.run_id if logger is not None else None,
-        checkpoint_dir=str(run_dir / "checkpoints"),
-        best_checkpoint=paths.get("best") or best.best_model_path or None,
-        last_checkpoint=paths.get("last") or last.best_model_path or None,
-        metrics=metrics,
-        stopped_early=trainer.global_step < cfg.trainer.max_steps,
-        data_fingerprint=fingerprint,
-        text_encoder=text_encoder.identity,
-    )
+    result = train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps,
+                          result_type=EvaluatorTrainResult, data_fingerprint=fingerprint, text_encoder=text_encoder.identity)
     if not trainer.is_global_zero:
         return result
 
@@ -292,7 +282,7 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
     result.metrics.update({**evaluation, **timing})
     if logger is not None:
         logger.log_metrics({**evaluation, **timing}, step=trainer.global_step)
-        if cfg.registry.register and cfg.logger.log_checkpoints and paths:
+        if cfg.registry.register and cfg.logger.log_checkpoints and result.best_checkpoint:
             tags = {
                 "mmm.kind": "evaluator", "data.fingerprint": fingerprint, "data.name": cfg.data.name, "text_encoder": text_encoder.identity,
                 "global_step": trainer.global_step,

@@ -29,7 +29,7 @@ from mmm.generation.length import LengthEstimatorModule, LengthModelConfig, leng
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (
     CheckpointConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer, checkpoint_callbacks,
-    log_checkpoints, log_config, tag_run,
+    log_config, tag_run, train_result,
 )
 from mmm.training.runs import run_directory, shared_run_directory
 from mmm.training.stage2 import Stage2Config, TextConfig, prepare_stage2_data
@@ -161,16 +161,7 @@ def train_length(cfg_node: DictConfig) -> TrainResult:
     with shared_run_directory(run_dir):
         trainer.fit(module, **loaders)
     fit_seconds = time.perf_counter() - fit_started
-    paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}
     timing = {"time/fit_s": fit_seconds, "time/total_s": time.perf_counter() - started}
     if logger is not None and trainer.is_global_zero:
         logger.log_metrics(timing, step=trainer.global_step)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
-    return TrainResult(
-        run_id=logger.run_id if logger is not None else None,
-        checkpoint_dir=str(run_dir / "checkpoints"),
-        best_checkpoint=paths.get("best") or best.best_model_path or None,
-        last_checkpoint=paths.get("last") or last.best_model_path or None,
-        metrics={**metrics, **baseline, **timing},
-        stopped_early=trainer.global_step < cfg.trainer.max_steps,
-    )
+    return train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps, {**baseline, **timing})

@@ -16,7 +16,7 @@ from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
 from mmm.training.common import (
     CheckpointConfig, ModelConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer,
-    checkpoint_callbacks, log_checkpoints, log_config, read_checkpoint_meta, tag_run,
+    checkpoint_callbacks, log_config, read_checkpoint_meta, tag_run, train_result,
 )
 from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
 
@@ -97,13 +97,4 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     trainer = build_trainer(cfg.trainer, callbacks, logger, str(run_dir))
     with shared_run_directory(run_dir):
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True)
-    paths = (log_checkpoints(logger, best, last) if cfg.logger.log_checkpoints else None) or {}
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
-    return TrainResult(
-        run_id=logger.run_id if logger is not None else None,
-        checkpoint_dir=str(run_dir / "checkpoints"),
-        best_checkpoint=paths.get("best") or best.best_model_path or None,
-        last_checkpoint=paths.get("last") or last.best_model_path or None,
-        metrics=metrics,
-        stopped_early=trainer.global_step < cfg.trainer.max_steps,
-    )
+    return train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps)

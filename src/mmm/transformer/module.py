@@ -39,6 +39,13 @@ class Corrupted:
     real: torch.Tensor  # (B, M) bool: code positions (before END)
 
 
+def random_positions(scores: torch.Tensor, real: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+    """(B, M) bool: in each row, the `count` (B,) real positions with the smallest `scores` (B, M)
+    (uniform random scores in [0, 1) make it a uniform choice)."""
+    scores = torch.where(real, scores, torch.full_like(scores, 2.0))
+    return scores.argsort(dim=1).argsort(dim=1) < count[:, None]
+
+
 def corrupt(tokens: torch.Tensor, lengths: torch.Tensor, num_codes: int, cfg: CorruptionConfig, generator: torch.Generator | None = None) -> Corrupted:
     """Corrupt (B, M) token sequences as in training: random replacement, then masking.
 
@@ -59,10 +66,7 @@ def corrupt(tokens: torch.Tensor, lengths: torch.Tensor, num_codes: int, cfg: Co
     u = rand(B)
     ratio = 0.5 + 0.5 * u if cfg.mask_schedule == "uniform" else torch.cos(math.pi / 2 * u)
     count = torch.round(ratio * lengths).clamp(min=1).minimum(lengths).long()
-    # The `count` real positions with the smallest random scores are masked.
-    scores = torch.where(real, rand(B, M), torch.full((B, M), 2.0, device=device))
-    rank = scores.argsort(dim=1).argsort(dim=1)
-    masked = rank < count[:, None]
+    masked = random_positions(rand(B, M), real, count)
     inputs = torch.where(masked, torch.full_like(inputs, num_codes + 2), inputs)
     return Corrupted(inputs, masked, replace & ~masked, real)
 
@@ -76,8 +80,7 @@ def mask_condition(lower: torch.Tensor, lengths: torch.Tensor, max_share: float,
     real = torch.arange(M, device=device)[None] < lengths[:, None]
     share = torch.rand(B, generator=generator, device=device) * max_share
     count = torch.round(share * lengths).long()
-    scores = torch.where(real, torch.rand(B, M, generator=generator, device=device), torch.full((B, M), 2.0, device=device))
-    hidden = scores.argsort(dim=1).argsort(dim=1) < count[:, None]
+    hidden = random_positions(torch.rand(B, M, generator=generator, device=device), real, count)
     return torch.where(hidden, torch.full_like(lower, mask_id), lower)
 
 
