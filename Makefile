@@ -21,6 +21,8 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "torch==$(TORCH_VERSION)"
 	$(BIN)/python -m pip install -q -e ".[dev,text]"
+	# open_clip only for its CLIP BPE vocabulary (bpe_simple_vocab_16e6.txt.gz); it is never imported (it needs torchvision)
+	$(BIN)/python -m pip install -q --no-deps "open_clip_torch==3.3.0"
 	touch $(STAMP)
 
 setup: $(STAMP) ## create .venv and install the package (idempotent)

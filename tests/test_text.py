@@ -160,8 +160,9 @@ def test_clip_shapes_mask_and_projection(clip_random):
     for i, n in enumerate(lengths):
         assert emb.word_mask[i, :n].all() and not emb.word_mask[i, n:].any()
         assert emb.words[i, n:].abs().sum() == 0 and emb.words[i, :n].abs().amin(-1).gt(0).all()
-        # sentence = ln_final output at the EOT position @ text_projection
-        torch.testing.assert_close(emb.sentence[i], emb.words[i, n - 1] @ enc.model.text_projection, atol=1e-5, rtol=1e-5)
+        # sentence = ln_final output at the EOT position @ text_projection (float16 by default)
+        proj = enc.model.text_projection
+        torch.testing.assert_close(emb.sentence[i], (emb.words[i, n - 1].to(proj.dtype) @ proj).float(), atol=2e-3, rtol=2e-3)
     assert not emb.words.requires_grad and all(not p.requires_grad for p in enc.parameters())
 
 
@@ -219,7 +220,9 @@ def clip_reference(clip_random):
     return clip_random.encode(ROUND_TRIP_TEXTS)
 
 
-# .bin, .pt and .pth all go through torch.load(weights_only=True); the training checkpoint is a .pt
+# .bin, .pt and .pth all go through torch.load(weights_only=True); the training checkpoint is a .pt;
+# the TorchScript archive is read by mmm.text.torchscript, never loaded as TorchScript
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace
 @pytest.mark.parametrize("fmt", ["bin", "safetensors", "torchscript", "training-checkpoint"])
 def test_clip_weights_round_trip(fmt, vocab, clip_random, clip_state, clip_reference, tmp_path):
     full = _full_clip_state(clip_state)
@@ -245,7 +248,7 @@ def test_clip_weights_round_trip(fmt, vocab, clip_random, clip_state, clip_refer
 
 def test_clip_half_precision_weights_become_float32(vocab, clip_state):
     half = {k: v.half() for k, v in clip_state.items()}  # OpenAI's archive stores fp16
-    enc = CLIPTextEncoder(half, vocab=vocab)
+    enc = CLIPTextEncoder(half, vocab=vocab, precision="float32")
     loaded = enc.model.state_dict()
     assert set(loaded) == set(half)
     for k, v in half.items():

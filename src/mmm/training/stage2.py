@@ -34,11 +34,19 @@ class TextConfig:
     clip_weights: str | None = None
     clip_vocab: str | None = None
     clip_activation: str = "quick_gelu"  # quick_gelu (OpenAI weights) | gelu (LAION weights)
+    clip_precision: str = "float16"  # float16 (OpenAI's dtype flow, as MMM was trained) | float32
+    clip_words: str = "eot"  # eot (words up to end-of-text) | all (all 77 positions, as MMM attends)
     cache_dir: str = "outputs/cache/text"
 
     def options(self) -> dict:
         if self.encoder == "clip":
-            return {"weights": self.clip_weights, "vocab": self.clip_vocab, "activation": self.clip_activation}
+            return {
+                "weights": self.clip_weights,
+                "vocab": self.clip_vocab,
+                "activation": self.clip_activation,
+                "precision": self.clip_precision,
+                "words": self.clip_words,
+            }
         return {}
 
 
