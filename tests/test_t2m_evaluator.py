@@ -322,6 +322,7 @@ def test_missing_files_listed(tmp_path):
         assert str(p) in msg
     assert str(glove / "our_vab_data.npy") not in msg
     assert "text_mot_match" in msg and "T2M-GPT" in msg
+    assert "dataset/prepare/download_extractor.sh" in msg and "dataset/prepare/download_glove.sh" in msg
     assert isinstance(e.value, FileNotFoundError)
 
 
@@ -374,3 +375,191 @@ def test_matches_published_pipeline_layout(evaluator):
     assert _close(evaluator.embed_motions(x[1:, :120], lens[1:]), expected[1:])
     longer = torch.cat([x, torch.randn(4, 30, 263, generator=g)], dim=1)
     assert _close(evaluator.embed_motions(longer, lens), expected)
+
+
+# ---- the published checkpoint layout, written out literally ---------------------------------
+
+# Key names, shapes and order of the three state dicts in the published
+# `checkpoints/{t2m,kit}/text_mot_match/model/finest.tar` (networks/modules.py of
+# EricGuo5513/text-to-motion, built with the sizes of its evaluator wrapper). "IN" is the movement
+# encoder's input width: 263 - 4 = 259 (t2m) or 251 - 4 = 247 (kit).
+_BIGRU_TAIL = (
+    "gru.weight_ih_l0", "gru.weight_hh_l0", "gru.bias_ih_l0", "gru.bias_hh_l0",
+    "gru.weight_ih_l0_reverse", "gru.weight_hh_l0_reverse", "gru.bias_ih_l0_reverse", "gru.bias_hh_l0_reverse",
+)  # fmt: skip
+PUBLISHED_LAYOUT = {
+    "movement_encoder": [
+        ("main.0.weight", (512, "IN", 4)),
+        ("main.0.bias", (512,)),
+        ("main.3.weight", (512, 512, 4)),
+        ("main.3.bias", (512,)),
+        ("out_net.weight", (512, 512)),
+        ("out_net.bias", (512,)),
+    ],
+    "text_encoder": [
+        ("hidden", (2, 1, 512)),
+        ("pos_emb.weight", (300, 15)),
+        ("pos_emb.bias", (300,)),
+        ("input_emb.weight", (512, 300)),
+        ("input_emb.bias", (512,)),
+        ("gru.weight_ih_l0", (1536, 512)),
+        ("gru.weight_hh_l0", (1536, 512)),
+        ("gru.bias_ih_l0", (1536,)),
+        ("gru.bias_hh_l0", (1536,)),
+        ("gru.weight_ih_l0_reverse", (1536, 512)),
+        ("gru.weight_hh_l0_reverse", (1536, 512)),
+        ("gru.bias_ih_l0_reverse", (1536,)),
+        ("gru.bias_hh_l0_reverse", (1536,)),
+        ("output_net.0.weight", (512, 1024)),
+        ("output_net.0.bias", (512,)),
+        ("output_net.1.weight", (512,)),
+        ("output_net.1.bias", (512,)),
+        ("output_net.3.weight", (512, 512)),
+        ("output_net.3.bias", (512,)),
+    ],
+    "motion_encoder": [
+        ("hidden", (2, 1, 1024)),
+        ("input_emb.weight", (1024, 512)),
+        ("input_emb.bias", (1024,)),
+        ("gru.weight_ih_l0", (3072, 1024)),
+        ("gru.weight_hh_l0", (3072, 1024)),
+        ("gru.bias_ih_l0", (3072,)),
+        ("gru.bias_hh_l0", (3072,)),
+        ("gru.weight_ih_l0_reverse", (3072, 1024)),
+        ("gru.weight_hh_l0_reverse", (3072, 1024)),
+        ("gru.bias_ih_l0_reverse", (3072,)),
+        ("gru.bias_hh_l0_reverse", (3072,)),
+        ("output_net.0.weight", (1024, 2048)),
+        ("output_net.0.bias", (1024,)),
+        ("output_net.1.weight", (1024,)),
+        ("output_net.1.bias", (1024,)),
+        ("output_net.3.weight", (512, 1024)),
+        ("output_net.3.bias", (512,)),
+    ],
+}
+MOVEMENT_IN = {"t2m": 259, "kit": 247}
+
+
+def _published_shape(shape, dataset):
+    return tuple(MOVEMENT_IN[dataset] if s == "IN" else s for s in shape)
+
+
+def _adam_state_like():
+    """An Adam state dict with the structure the published trainer saves (small tensors)."""
+    p = torch.nn.Parameter(torch.zeros(3))
+    opt = torch.optim.Adam([p], lr=1e-4, betas=(0.9, 0.999))
+    p.grad = torch.ones(3)
+    opt.step()
+    return opt.state_dict()
+
+
+def _published_layout_checkpoint(dataset, seed):
+    """finest.tar as TextMotionMatchTrainer.save writes it, from the literal table, random values."""
+    g = torch.Generator().manual_seed(seed)
+    ck = {
+        comp: {k: 0.05 * torch.randn(_published_shape(shape, dataset), generator=g) for k, shape in keys}
+        for comp, keys in PUBLISHED_LAYOUT.items()
+    }
+    ck.update(opt_text_encoder=_adam_state_like(), opt_motion_encoder=_adam_state_like(), epoch=97, iter=123456)
+    return ck
+
+
+def test_published_key_table_is_complete():
+    assert all(len(set(k for k, _ in v)) == len(v) for v in PUBLISHED_LAYOUT.values())
+    assert len(PUBLISHED_LAYOUT["movement_encoder"]) == 6
+    assert [k for k, _ in PUBLISHED_LAYOUT["text_encoder"]][5:13] == list(_BIGRU_TAIL)
+    assert [k for k, _ in PUBLISHED_LAYOUT["motion_encoder"]][3:11] == list(_BIGRU_TAIL)
+
+
+@pytest.mark.parametrize("dataset", ["t2m", "kit"])
+def test_published_layout_checkpoint_loads_strict_and_every_key_is_consumed(tmp_path, glove_dir, dataset):
+    ck = _published_layout_checkpoint(dataset, seed={"t2m": 21, "kit": 22}[dataset])
+    root = tmp_path / "checkpoints" / dataset
+    path = root / "text_mot_match" / "model" / "finest.tar"
+    path.parent.mkdir(parents=True)
+    torch.save(ck, path)
+    ev = T2MEvaluator.load(root, glove_dir, dataset=dataset)
+    assert ev.feature_dim == {"t2m": 263, "kit": 251}[dataset]
+    for comp, keys in PUBLISHED_LAYOUT.items():
+        sd = getattr(ev, comp).state_dict()
+        # same names in the same order: nothing missing, nothing left over
+        assert list(sd) == [k for k, _ in keys], comp
+        for k, shape in keys:
+            assert tuple(sd[k].shape) == _published_shape(shape, dataset), (comp, k)
+            assert sd[k].dtype == torch.float32
+            assert torch.equal(sd[k], ck[comp][k]), (comp, k)  # this value was consumed
+    # the loaded weights are used: a fresh evaluator with these state dicts gives the same numbers
+    g = torch.Generator().manual_seed(9)
+    x = torch.randn(2, 80, ev.feature_dim, generator=g)
+    twin = T2MEvaluator(dataset).load_checkpoint({c: ck[c] for c in PUBLISHED_LAYOUT})
+    assert torch.equal(ev.embed_motions(x, [80, 52]), twin.embed_motions(x, [80, 52]))
+    # the other dataset's evaluator refuses it, naming the movement encoder's input conv
+    other = "kit" if dataset == "t2m" else "humanml3d"
+    with pytest.raises(EvaluatorCheckpointError, match=r"movement_encoder\.main\.0\.weight: shape"):
+        T2MEvaluator(other).load_checkpoint(path)
+
+
+@pytest.mark.parametrize("component", ["movement_encoder", "text_encoder", "motion_encoder"])
+def test_missing_extra_or_misshaped_key_is_refused_by_name(component):
+    ck = _published_layout_checkpoint("t2m", seed=23)
+    ev = T2MEvaluator("humanml3d")
+    before = {k: v.clone() for k, v in ev.text_encoder.state_dict().items()}
+    key, shape = PUBLISHED_LAYOUT[component][-1]
+
+    missing = {c: dict(v) if c == component else v for c, v in ck.items()}
+    del missing[component][key]
+    with pytest.raises(EvaluatorCheckpointError) as e:
+        ev.load_checkpoint(missing)
+    assert f"{component}: missing keys ['{key}']" in str(e.value)
+
+    extra = {c: dict(v) if c == component else v for c, v in ck.items()}
+    extra[component]["extra_layer.weight"] = torch.zeros(2)
+    with pytest.raises(EvaluatorCheckpointError) as e:
+        ev.load_checkpoint(extra)
+    assert f"{component}: unexpected keys ['extra_layer.weight']" in str(e.value)
+
+    bad = {c: dict(v) if c == component else v for c, v in ck.items()}
+    bad[component][key] = torch.zeros(*shape, 2)
+    with pytest.raises(EvaluatorCheckpointError) as e:
+        ev.load_checkpoint(bad)
+    assert f"{component}.{key}: shape {(*shape, 2)} in the checkpoint, {shape} expected" in str(e.value)
+    # nothing was loaded by a refused checkpoint (the check runs before any load_state_dict)
+    assert all(torch.equal(v, before[k]) for k, v in ev.text_encoder.state_dict().items())
+
+
+def test_text_encoder_parameter_order_is_the_published_one():
+    """pos_emb is registered before input_emb in the published text encoder; the order shows in
+    state_dict() and parameters() (and so in any optimizer state built over them)."""
+    ev = T2MEvaluator("humanml3d")
+    assert list(ev.text_encoder.state_dict()) == [k for k, _ in PUBLISHED_LAYOUT["text_encoder"]]
+    names = [n for n, _ in ev.text_encoder.named_parameters()]
+    assert names[:3] == ["hidden", "pos_emb.weight", "pos_emb.bias"]
+
+
+def test_word_vectorizer_accepts_every_class_name_as_tag(glove_dir):
+    """The published lookup one-hots a tag that is any of its 15 class names (VIP names included);
+    only a word in a VIP list overrides the tag, and an unknown word is always OTHER."""
+    wv = WordVectorizer.load(glove_dir)
+    for cls in POS_CLASSES:
+        assert wv.classify(f"man/{cls}") == ("man", cls)
+        assert wv[f"sos/{cls}"][1].argmax() == POS_CLASSES.index(cls)
+    assert wv.classify("walk/Loc_VIP") == ("walk", "Act_VIP")  # VIP word list first
+    assert wv.classify("zebra/Loc_VIP") == ("unk", "OTHER")
+    assert wv.classify("man/PROPN") == ("man", "OTHER")
+    assert wv.classify("Walk/VERB") == ("unk", "OTHER")  # looked up as written
+
+
+def test_evaluator_std_is_dataset_std_with_feat_bias_25(ref):
+    """checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta/std.npy (= reference
+    t2m-evaluator-norm) is HumanML3D's Std with the root dims 0-3 and the foot-contact dims
+    259-262 divided by feat_bias 25."""
+    m, s = load_mean_std(ref / "humanml3d")
+    me, se = load_mean_std(ref / "t2m-evaluator-norm")
+    biased = np.r_[0:4, 259:263]
+    expected = s.copy()
+    expected[biased] /= 25.0
+    rel = np.abs(se / expected - 1)
+    assert np.all(rel[biased] < 0.011)  # 24.9, 25.0, 25.0, 25.1 and 25.25 x 4
+    assert np.all(rel[4:259] < 0.004)
+    assert np.allclose((s / se)[259:263], 25.25, atol=0.01)
+    assert np.abs(m - me).max() < 0.03

@@ -57,7 +57,7 @@ def load_evaluator(reference: str | None, tracking_uri: str, device: str = "cpu"
         if glove_dir is None or norm_dir is None:
             raise ValueError(
                 "the standard evaluator needs evaluator.glove_dir (the folder with our_vab_data.npy, our_vab_words.pkl, our_vab_idx.pkl) "
-                "and evaluator.norm_dir (its mean.npy/std.npy, e.g. checkpoints/t2m/Comp_v6_KLD005/meta)"
+                "and evaluator.norm_dir (its mean.npy/std.npy, e.g. checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta)"
             )
         mean, std = load_mean_std(norm_dir)
         return T2MEmbedder(T2MEvaluator.load(directory, glove_dir), mean, std, device)

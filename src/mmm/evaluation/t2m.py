@@ -1,6 +1,7 @@
 """The standard text-to-motion evaluator (the one behind published HumanML3D / KIT-ML numbers).
 
-Architecture (the "Co" variants of the published evaluator):
+Architecture (the "Co" variants of Guo et al.'s evaluator, ``networks/modules.py`` of
+EricGuo5513/text-to-motion, copied unchanged as ``models/modules.py`` into T2M-GPT and MMM):
 
 * movement encoder: two Conv1d(k=4, stride 2, padding 1) with Dropout(0.2) and LeakyReLU(0.2)
   over the D-4 non-contact feature dims (259 HumanML3D, 247 KIT-ML), then a per-step
@@ -12,20 +13,55 @@ Architecture (the "Co" variants of the published evaluator):
   bidirectional GRU(512) with a learned initial state, packed by caption length (sos/eos
   included) -> Linear, LayerNorm, LeakyReLU, Linear -> 512.
 
-The weights and word vectors are never downloaded: the user provides
-``<evaluator_dir>/text_mot_match/model/finest.tar`` and ``<glove_dir>/our_vab_{data.npy,
-words.pkl,idx.pkl}`` (from the public text-to-motion evaluation release, e.g. the T2M /
-T2M-GPT ``checkpoints/t2m`` or ``checkpoints/kit`` folders and the ``glove`` folder). The module
-attribute names follow the published key names so those state dicts load with ``strict=True``.
+Module attribute names and their order follow the published state dicts, key by key, so the
+published weights load with ``strict=True``.
 
-Differences from the published wrapper, none of which changes a number:
+Files the user provides (nothing is downloaded or shipped here). Paths are those inside the
+published downloads, relative to the folder the download scripts run in:
+
+* ``checkpoints/t2m/text_mot_match/model/finest.tar`` (KIT-ML: ``checkpoints/kit/...``): read
+  by :meth:`T2MEvaluator.load` from ``<evaluator_dir>/text_mot_match/model/finest.tar``, with
+  ``evaluator_dir`` = ``checkpoints/t2m`` or ``checkpoints/kit``. Its top-level keys, as the
+  evaluator's trainer saves them, are ``text_encoder``, ``motion_encoder``, ``movement_encoder``
+  (the three state dicts the wrapper loads and the only ones used here), ``opt_text_encoder``,
+  ``opt_motion_encoder`` (Adam states), ``epoch`` and ``iter``.
+* ``glove/our_vab_data.npy``, ``glove/our_vab_words.pkl``, ``glove/our_vab_idx.pkl``: the word
+  vectors, read from ``<glove_dir>`` by :class:`WordVectorizer`.
+* the evaluator normalization ``checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta/mean.npy``
+  and ``std.npy`` (KIT-ML: ``checkpoints/kit/VQVAEV3_CB1024_CMT_H1024_NRES3/meta``): the folder
+  T2M-GPT's and MMM's ``dataset/dataset_TM_eval.py`` normalize the evaluation data with; read by
+  :func:`load_mean_std`. (The evaluator itself was trained with the statistics of
+  ``checkpoints/t2m/Comp_v6_KLD01/meta`` resp. ``checkpoints/kit/Comp_v6_KLD005/meta``, see
+  ``train_tex_mot_match.py`` of text-to-motion. MMM also commits a HumanML3D copy as
+  ``exit/t2m-mean.npy`` / ``exit/t2m-std.npy``, used by its ``generate.py``.) For HumanML3D that
+  std is the dataset Std.npy with the root (dims 0-3) and foot-contact (last 4) dims divided by
+  feat_bias = 25 (ratios 24.9-25.25 against HumanML3D's Std.npy), the other dims within 0.4%.
+
+Where they come from: in the T2M-GPT (Mael-zys/T2M-GPT) and MMM (exitudio/MMM) repositories,
+``bash dataset/prepare/download_extractor.sh`` downloads ``t2m.zip`` and ``kit.zip`` and unzips
+them into ``./checkpoints`` (their code then reads ``checkpoints/{t2m,kit}/text_mot_match``,
+``.../Comp_v6_KLD005/opt.txt`` and ``.../VQVAEV3_CB1024_CMT_H1024_NRES3/meta`` from there), and
+``bash dataset/prepare/download_glove.sh`` downloads ``glove.zip`` and unzips it into ``./glove``
+(their code reads ``WordVectorizer('./glove', 'our_vab')``). The evaluator's own repository
+(EricGuo5513/text-to-motion) links its model folders from its README ("Download Data &
+Pre-trained Models"; ``checkpoints/t2m/text_mot_match`` is among them) and keeps
+``glove/our_vab_*`` in the repository itself. The published wrapper takes its sizes from that
+``Comp_v6_KLD005/opt.txt`` (unit_length 4, movement hidden/latent 512); this module has those
+numbers built in and does not read it.
+
+Differences from the published wrapper, none of which changes a number (checked against the
+published modules, wrapper logic and eval-dataset caption code with shared random weights: the
+embeddings agree exactly):
 
 * ``embed_motions`` / ``embed_texts`` return embeddings in the order of their inputs (the
-  published wrapper returns them sorted by motion length); sorting for packing happens inside.
+  text-to-motion wrapper returns them sorted by motion length; T2M-GPT/MMM's returns them in the
+  batch order); sorting for packing happens inside.
 * frames at or beyond a motion's length are set to zero and the time axis is brought to 196
   frames before the convolutions, so neither padding content nor the batch's padded size
   changes an embedding (the published pipeline pads every motion with zeros to 196 frames,
   which is exactly this).
+* tokens the published code would reject (no ``/``, or several) are accepted: the part after the
+  last ``/`` is the tag, none means OTHER; extra whitespace in a token string is ignored.
 
 Inputs of ``embed_motions`` must already be in the evaluator's normalization; a model trained
 with other statistics maps its outputs with :class:`EvaluatorNormalization`
@@ -67,7 +103,6 @@ POS_CLASSES = (
     "Loc_VIP", "Body_VIP", "Obj_VIP", "Act_VIP", "Desc_VIP", "OTHER",
 )  # fmt: skip
 POS_INDEX = {name: i for i, name in enumerate(POS_CLASSES)}
-_TAGGED_POS = frozenset(POS_CLASSES[:9])  # POS tags that keep their own class
 
 VIP_WORDS: dict[str, tuple[str, ...]] = {
     "Loc_VIP": (
@@ -105,12 +140,16 @@ _COMPONENTS = ("movement_encoder", "motion_encoder", "text_encoder")
 
 _WHERE_FROM = (
     "These files are not shipped or downloaded by this package: they come from the public "
-    "text-to-motion evaluation release (the T2M evaluator of Guo et al., as redistributed by "
-    "T2M-GPT / MoMask / MMM): the evaluator weights are `checkpoints/t2m/text_mot_match/model/"
-    "finest.tar` (KIT-ML: `checkpoints/kit/text_mot_match/model/finest.tar`) and the word "
-    "vectors are `glove/our_vab_data.npy`, `glove/our_vab_words.pkl`, `glove/our_vab_idx.pkl`. "
-    "Pass the folder that holds `text_mot_match/` as evaluator_dir and the `glove` folder as "
-    "glove_dir."
+    "release of the T2M evaluator of Guo et al. (github.com/EricGuo5513/text-to-motion), as "
+    "redistributed by T2M-GPT (Mael-zys/T2M-GPT) and MMM (exitudio/MMM). In either of those two "
+    "repositories, `bash dataset/prepare/download_extractor.sh` unzips t2m.zip and kit.zip into "
+    "./checkpoints, which gives the evaluator weights `checkpoints/t2m/text_mot_match/model/"
+    "finest.tar` (KIT-ML: `checkpoints/kit/text_mot_match/model/finest.tar`) and the evaluation "
+    "normalization `checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta/{mean,std}.npy`; "
+    "`bash dataset/prepare/download_glove.sh` unzips glove.zip into ./glove, which gives "
+    "`glove/our_vab_data.npy`, `glove/our_vab_words.pkl`, `glove/our_vab_idx.pkl`. "
+    "Pass `checkpoints/t2m` (or `checkpoints/kit`), the folder that holds `text_mot_match/`, as "
+    "evaluator_dir and the `glove` folder as glove_dir."
 )
 
 
@@ -204,9 +243,11 @@ def load_checkpoint_dict(path: str | Path) -> dict:
 class WordVectorizer:
     """GloVe vector plus POS one-hot for `word/POS` tokens, as the published data code does it.
 
-    A word in a VIP list takes that class, otherwise its POS tag when it is one of the first nine
-    classes, else OTHER; a word outside the vocabulary becomes the 'unk' vector with class OTHER.
-    No lemmatization happens here: HumanML3D caption tokens already carry lemmas (`walk/VERB`).
+    A word in a VIP list takes that class, otherwise its POS tag when the tag is one of the 15
+    class names (in real captions one of the first nine, spaCy's tags), else OTHER; a word outside
+    the vocabulary becomes the 'unk' vector with class OTHER, whatever its tag. Words are looked up
+    as written (no lower-casing, no lemmatization): HumanML3D / KIT-ML caption tokens already
+    carry lower-case lemmas (`walk/VERB`).
     """
 
     def __init__(self, vectors: np.ndarray, words: Sequence[str], word2idx: Mapping[str, int]):
@@ -247,10 +288,12 @@ class WordVectorizer:
 
     @staticmethod
     def pos_class(word: str, pos: str) -> str:
-        """The class of an in-vocabulary word (VIP list first, then its POS tag, else OTHER)."""
+        """The class of an in-vocabulary word: its VIP list first, then its tag when the tag is
+        one of the 15 class names (the published lookup accepts every name of its enumerator,
+        VIP names and OTHER included), else OTHER."""
         if word in _VIP_CLASS:
             return _VIP_CLASS[word]
-        return pos if pos in _TAGGED_POS else "OTHER"
+        return pos if pos in POS_INDEX else "OTHER"
 
     def classify(self, token: str) -> tuple[str, str]:
         """`word/POS` -> (word used for the vector, class name)."""
@@ -332,9 +375,11 @@ class MovementConvEncoder(nn.Module):
 class _BiGRUCo(nn.Module):
     """input_emb -> packed bidirectional GRU from a learned state -> output_net on both finals."""
 
-    def __init__(self, input_size: int, hidden_size: int, output_size: int):
+    def __init__(self, input_size: int, hidden_size: int, output_size: int, pos_size: int | None = None):
         super().__init__()
         self.hidden_size = hidden_size
+        if pos_size is not None:  # text encoder: registered first, as in the published key order
+            self.pos_emb = nn.Linear(pos_size, input_size)
         self.input_emb = nn.Linear(input_size, hidden_size)
         self.gru = nn.GRU(hidden_size, hidden_size, batch_first=True, bidirectional=True)
         self.output_net = nn.Sequential(
@@ -380,8 +425,7 @@ class TextEncoderBiGRUCo(_BiGRUCo):
         hidden_size: int = TEXT_HIDDEN,
         output_size: int = EMBED_DIM,
     ):
-        super().__init__(word_size, hidden_size, output_size)
-        self.pos_emb = nn.Linear(pos_size, word_size)
+        super().__init__(word_size, hidden_size, output_size, pos_size=pos_size)
 
     def forward(self, word_embs: torch.Tensor, pos_onehot: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         return self._encode(word_embs + self.pos_emb(pos_onehot), lengths)
@@ -570,8 +614,9 @@ def load_mean_std(directory: str | Path) -> tuple[np.ndarray, np.ndarray]:
             return mean, std
     raise FileNotFoundError(
         f"no normalization statistics in {directory}: expected mean.npy and std.npy (or Mean.npy "
-        "and Std.npy). The standard T2M evaluator's statistics ship with the evaluation release "
-        "(e.g. checkpoints/t2m/Comp_v6_KLD005/meta/mean.npy, std.npy)"
+        "and Std.npy). The standard T2M evaluator's statistics ship with the evaluation release: "
+        "checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta/mean.npy and std.npy (KIT-ML: "
+        "checkpoints/kit/...), unzipped by dataset/prepare/download_extractor.sh of T2M-GPT / MMM"
     )
 
 
