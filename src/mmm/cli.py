@@ -65,6 +65,7 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
 
 def cmd_data_stats(args: argparse.Namespace) -> None:
     from mmm.data.humanml3d import compute_stats, save_array_atomic
+    from mmm.data.normalization import evaluator_style_std
     from mmm.motion.features import FeatureLayout
     from mmm.motion.skeleton import SKELETONS
 
@@ -76,6 +77,19 @@ def cmd_data_stats(args: argparse.Namespace) -> None:
         print(report.summary())
     layout = FeatureLayout(num_joints)
     names = ("root yaw vel", "root xz vel", "root height", "positions", "rotations", "velocities", "contacts")
+    if args.evaluator_style:
+        scaled = evaluator_style_std(std, num_joints, args.feat_bias)
+        print(f"evaluator-style: the root and foot-contact Std divided by {args.feat_bias:g} (what the released MMM normalizes with)")
+        print(f"{'group':14s} {'mean(avg)':>10s} {'std':>10s} {'scaled std':>10s}")
+        for name, sl in zip(names, layout.groups()):
+            print(f"{name:14s} {mean[sl].mean():10.4f} {std[sl][0]:10.4f} {scaled[sl][0]:10.4f}")
+        if args.write:
+            folder = root / "evaluator_style"
+            folder.mkdir(exist_ok=True)
+            save_array_atomic(folder / "mean.npy", mean)
+            save_array_atomic(folder / "std.npy", scaled)
+            print(f"wrote {folder / 'mean.npy'} and {folder / 'std.npy'} (stage 1: normalization.statistics=files normalization.dir={folder})")
+        return
     have = (root / "Mean.npy").exists() and (root / "Std.npy").exists()
     old_mean = np.load(root / "Mean.npy") if have else None
     old_std = np.load(root / "Std.npy") if have else None
@@ -198,6 +212,41 @@ def cmd_promote(args: argparse.Namespace) -> None:
         print(f"  {line}")
 
 
+def cmd_import(args: argparse.Namespace) -> None:
+    from mmm.released.importer import UPPER_BODY_REFUSAL, import_released
+
+    if args.kind == "released-upperbody":
+        raise CLIError(UPPER_BODY_REFUSAL)
+    result = import_released(args.vq, args.stats, args.transformer, args.clip, args.clip_vocab, args.alias, args.heads, args.out_dir,
+                             args.tracking_uri, register=not args.no_register)
+    print(f"tokenizer checkpoint: {result.tokenizer_checkpoint}")
+    if result.transformer_checkpoint:
+        print(f"transformer checkpoint: {result.transformer_checkpoint}")
+    if result.tokenizer_version:
+        print(f"registered{' (already imported: reused)' if result.reused else ''}: models:/mmm-tokenizer/{result.tokenizer_version} "
+              f"(@{result.alias})" + (f", models:/mmm-text2motion/{result.text2motion_version} (@{result.alias})" if result.text2motion_version else ""))
+    if result.text2motion_version:
+        print(f"generate with: mmm generate --model models:/mmm-text2motion@{result.alias} --text '...' --length 120 --out outputs/gen"
+              " [--decoding released]")
+
+
+def cmd_export(args: argparse.Namespace) -> None:
+    import torch
+
+    from mmm.generation.model import TextToMotion
+    from mmm.released.importer import export_released
+
+    model = TextToMotion.load(args.model, tracking_uri=args.tracking_uri)
+    net, trans = export_released(model.tokenizer, model.transformer)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, obj in (("vq.pth", net), ("trans.pth", trans)):
+        tmp = out / f".{name}.tmp"
+        torch.save(obj, tmp)
+        tmp.replace(out / name)
+        print(f"wrote {out / name}")
+
+
 def cmd_models(args: argparse.Namespace) -> None:
     from mlflow.tracking import MlflowClient
 
@@ -214,7 +263,7 @@ def _sampling(args: argparse.Namespace):
     guidance = args.guidance if args.guidance is not None else (UPPER_BODY_GUIDANCE if getattr(args, "kind", None) == "upper-body" else 1.0)
     return SamplingConfig(
         max_iterations=args.iterations, schedule=args.schedule, temperature=args.temperature, top_k=args.top_k,
-        top_p=args.top_p, guidance_scale=guidance,
+        top_p=args.top_p, guidance_scale=guidance, decoding=args.decoding,
     )
 
 
@@ -372,6 +421,8 @@ def _add_generation_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--top-k", type=float, default=None, help="fraction of the codebook kept, e.g. 0.9")
     g.add_argument("--top-p", type=float, default=None)
     g.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (1: none; default 1, 4 for upper-body edits)")
+    g.add_argument("--decoding", choices=["package", "released"], default="package",
+                   help="released: the authors' decoding loop (to compare outputs and speed with imported weights like for like)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -397,7 +448,10 @@ def build_parser() -> argparse.ArgumentParser:
     stats = data.add_parser("stats", help="Mean/Std of a dataset computed the reference way")
     stats.add_argument("root")
     stats.add_argument("--skeleton", choices=["t2m", "kit"], default="t2m")
-    stats.add_argument("--write", action="store_true", help="write Mean.npy and Std.npy into the dataset")
+    stats.add_argument("--write", action="store_true", help="write Mean.npy and Std.npy into the dataset (--evaluator-style: evaluator_style/{mean,std}.npy)")
+    stats.add_argument("--evaluator-style", action="store_true",
+                       help="the released recipe's statistics: root (dims 0-3) and foot-contact (last 4) Std divided by --feat-bias")
+    stats.add_argument("--feat-bias", type=float, default=25.0)
     stats.set_defaults(func=cmd_data_stats)
 
     check = data.add_parser("check", help="load every split and report what is kept and left out")
@@ -474,6 +528,28 @@ def build_parser() -> argparse.ArgumentParser:
     promote.add_argument("kind", choices=["tokenizer", "text2motion", "evaluator", "upperbody"])
     promote.add_argument("overrides", nargs="*", help="e.g. candidate=RUN_ID criteria.text2motion=[{metric: generated/fid, mode: min, margin: 0.01}]")
     promote.set_defaults(func=cmd_promote)
+
+    imp = sub.add_parser("import", help="the authors' released checkpoints as this package's models, registered in MLflow")
+    imp.add_argument("kind", choices=["released", "released-upperbody"],
+                     help="released: the text-to-motion pair; released-upperbody: refused (see the README)")
+    imp.add_argument("--vq", required=True, help="released stage-1 checkpoint ({'net': state_dict}, e.g. output/vq/.../net_last.pth)")
+    imp.add_argument("--transformer", default=None, help="released stage-2 checkpoint ({'trans': state_dict}); left out: the tokenizer only")
+    imp.add_argument("--stats", required=True, help="folder with the mean.npy/std.npy the release normalizes with (the T2M evaluator's meta folder)")
+    imp.add_argument("--clip", default=None, help="OpenAI CLIP ViT-B/32 weights (ViT-B-32.pt, read without running it) or open_clip's")
+    imp.add_argument("--clip-vocab", default=None, help="bpe_simple_vocab_16e6.txt.gz (default: the one inside an installed open_clip)")
+    imp.add_argument("--alias", default="released", help="alias given to the registered versions (not champion: promotion moves that)")
+    imp.add_argument("--heads", type=int, default=None, help="attention heads (default: embedding width / 64, the release's 16)")
+    imp.add_argument("--out-dir", default="outputs/imported", help="where this package's checkpoints are written")
+    imp.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    imp.add_argument("--no-register", action="store_true", help="only write the checkpoints")
+    imp.set_defaults(func=cmd_import)
+
+    exp = sub.add_parser("export", help="a model in the authors' released file layout")
+    exp.add_argument("kind", choices=["released"])
+    exp.add_argument("--model", required=True, help="a released-variant model: checkpoint, run id or models:/NAME@ALIAS")
+    exp.add_argument("--out", required=True, help="folder for vq.pth ({'net': ...}) and trans.pth ({'trans': ...})")
+    exp.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    exp.set_defaults(func=cmd_export)
 
     models = sub.add_parser("models", help="registered models").add_subparsers(dest="models_command", required=True)
     listing = models.add_parser("list", help="versions, aliases and metrics of the registered models")

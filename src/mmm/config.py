@@ -9,6 +9,10 @@ folders (conf/data/synthetic.yaml is option `synthetic` of group `data`):
 
 Overrides are `group=option` (choose another file of a group) or `dotted.key=value`; the result
 is validated against a dataclass schema when one is given, so a misspelt key is an error.
+
+`recipe=NAME` applies conf/recipe/NAME/<config>.yaml (or the file of the config it extends): a
+set of settings for one command, with group choices of its own in a defaults list. Precedence,
+lowest first: the config's defaults and keys, the recipe's, then the command line's.
 """
 
 from __future__ import annotations
@@ -52,6 +56,32 @@ def _options(directory: Path, group: str) -> list[str]:
     return sorted(p.stem for p in (directory / group).glob("*.yaml"))
 
 
+RECIPE = "recipe"
+
+
+def _choices(defaults, where: Path) -> dict[str, str]:
+    """{group: option} of a defaults list."""
+    choices: dict[str, str] = {}
+    for entry in defaults:
+        if not isinstance(entry, DictConfig) or len(entry) != 1:
+            raise ConfigError(f"{where}: each defaults entry must be one 'group: option', got {entry}")
+        (group, option), = entry.items()
+        choices[str(group)] = str(option)
+    return choices
+
+
+def _recipe(directory: Path, recipe: str, names: list[str]) -> DictConfig:
+    """The recipe's settings for the first of `names` it has a file for."""
+    folder = directory / RECIPE / recipe
+    if not folder.is_dir():
+        known = sorted(p.name for p in (directory / RECIPE).iterdir() if p.is_dir()) if (directory / RECIPE).is_dir() else []
+        raise ConfigError(f"recipe={recipe}: no {folder}; recipes: {', '.join(known) or 'none'}")
+    for candidate in names:
+        if (folder / f"{candidate}.yaml").is_file():
+            return _load_yaml(folder / f"{candidate}.yaml")
+    raise ConfigError(f"recipe={recipe} has no settings for {names[0]} (it covers: {', '.join(sorted(p.stem for p in folder.glob('*.yaml')))})")
+
+
 def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None, directory: Path | None = None) -> DictConfig:
     """Compose conf/<name>.yaml with its defaults and `overrides`; validate against `schema`."""
     directory = directory or conf_dir()
@@ -67,31 +97,32 @@ def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None
         primary = OmegaConf.merge(base, primary)
         primary["defaults"] = base_defaults + own  # later entries of a group win below
     defaults = primary.pop("defaults", [])
-    choices: dict[str, str] = {}
-    for entry in defaults:
-        if not isinstance(entry, DictConfig) or len(entry) != 1:
-            raise ConfigError(f"{directory / name}.yaml: each defaults entry must be one 'group: option', got {entry}")
-        (group, option), = entry.items()
-        choices[str(group)] = str(option)
+    choices = _choices(defaults, directory / f"{name}.yaml")
 
-    dotted = []
+    dotted, chosen, recipe = [], {}, None
     for item in overrides:
         if "=" not in item:
             raise ConfigError(f"override {item!r} is not key=value (e.g. trainer.max_steps=500 or model=paper)")
         key, value = item.split("=", 1)
-        if "." not in key and (directory / key).is_dir():
+        if key == RECIPE:
+            recipe = value
+        elif "." not in key and (directory / key).is_dir():
             if not (directory / key / f"{value}.yaml").exists():
                 raise ConfigError(f"{key}={value}: no {directory / key / value}.yaml; options: {', '.join(_options(directory, key))}")
-            choices[key] = value
+            chosen[key] = value
         else:
             dotted.append(item)
+    recipe_cfg = _recipe(directory, recipe, [name] + ([base_name] if base_name else [])) if recipe else None
+    if recipe_cfg is not None:
+        choices.update(_choices(recipe_cfg.pop("defaults", []), directory / RECIPE / recipe))
+    choices.update(chosen)
 
     cfg = OmegaConf.create({})
     for group, option in choices.items():
         group_cfg = _load_yaml(directory / group / f"{option}.yaml")
         cfg = OmegaConf.merge(cfg, {group: group_cfg})
     try:
-        cfg = OmegaConf.merge(cfg, primary, OmegaConf.from_dotlist(dotted))
+        cfg = OmegaConf.merge(cfg, primary, recipe_cfg or {}, OmegaConf.from_dotlist(dotted))
         if schema is not None:
             cfg = OmegaConf.merge(OmegaConf.structured(schema), cfg)
     except OmegaConfBaseException as e:

@@ -103,7 +103,19 @@ class _DatasetFolder(L.LightningDataModule):
 
 class TokenizerDataModule(_DatasetFolder):
     """Stage 1: training batches of `window`-frame windows (B, window, D); validation on whole
-    clips, padded: {"motion" (B, T, D), "lengths" (B,), "names"}."""
+    clips, padded: {"motion" (B, T, D), "lengths" (B,), "names"}. Normalized with the statistics
+    `normalization` chooses (mmm.data.normalization; the dataset's Mean/Std when None)."""
+
+    def __init__(self, cfg: DataConfig, seed: int = 0, normalization=None):
+        super().__init__(cfg, seed)
+        self.normalization = normalization
+
+    def _stats(self) -> None:
+        if self.mean is None and self.normalization is not None:
+            from mmm.data.normalization import tokenizer_statistics
+
+            self.mean, self.std = tokenizer_statistics(self.normalization, self.root, self.cfg.feature_dim)
+        super()._stats()
 
     def setup(self, stage: str | None = None) -> None:
         self._stats()

@@ -406,7 +406,8 @@ class TextToMotion:
                 keep_mask[i, : len(seq)] = True
                 keep_mask[i, len(a) : len(a) + transition_codes] = False
                 lengths[i] = len(seq)
-            one_pass = SamplingConfig(**{**sampling.__dict__, "max_iterations": 1, "dynamic_iterations": False})
+            # Transitions are one pass without text: this package's rule, whichever decoding made the segments.
+            one_pass = SamplingConfig(**{**sampling.__dict__, "max_iterations": 1, "dynamic_iterations": False, "decoding": "package"})
             generator = torch.Generator(device=self.device).manual_seed(seed + 1) if seed is not None else None
             emb = self.encode_text([None] * n)
             result = sample_tokens(self.transformer, emb, lengths.to(self.device), one_pass, keep_tokens=keep_tokens.to(self.device),

@@ -10,6 +10,17 @@ fixed before (kept or decoded earlier) have infinite confidence; then the n(t) =
 iterations are done takes no further forward passes; a batch of mixed lengths costs max_b T_b
 passes. Classifier-free guidance: logits = uncond + s * (cond - uncond), the two branches in one
 batched pass.
+
+`decoding="released"` runs the authors' released loop instead (`sample_tokens_released`), so
+outputs and speed can be compared like for like with imported weights: every sample starts from
+the model's full M positions; S = round(T_max * L / 49) steps per sample; at step s, with
+t = min(s / S, 1), the n = max(floor(cos(pi/2 * t) * L), 1) positions of highest score are
+masked (score = 1 - probability of the code drawn at the previous step where one was drawn, 0
+elsewhere; every position at step 0), then one pass draws a code at every masked position by
+Gumbel-max at the temperature (argmax at 0; no top-k, top-p or guidance). A batch of one stops
+early by the release's test `min(s - 1 / S, 1) == t` (the passes this gives: 10 for L <= 2, 2 for
+L 3-7, 1 for L 8-12, S from 13 on); larger batches always run T_max steps, finished samples
+re-predicting one position per step. Same generator and logits as the release: the same codes.
 """
 
 from __future__ import annotations
@@ -26,6 +37,9 @@ SCHEDULES = {
 }
 
 
+DECODINGS = ("package", "released")
+
+
 @dataclass
 class SamplingConfig:
     max_iterations: int = 10  # T_max
@@ -34,9 +48,19 @@ class SamplingConfig:
     top_k: float | None = None  # keep this fraction of the codebook's logits (1.0 = all)
     top_p: float | None = None  # nucleus: the smallest set of codes with this total probability
     guidance_scale: float = 1.0  # 1: conditional only; > 1 needs a model trained with cond_drop
-    dynamic_iterations: bool = True  # False: every sample runs max_iterations (the released code)
+    dynamic_iterations: bool = True  # False: every sample runs max_iterations
+    decoding: str = "package"  # package (this file's rule) | released (the authors' loop, see the module docstring)
 
     def __post_init__(self):
+        if self.decoding not in DECODINGS:
+            raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {self.decoding!r}")
+        if self.decoding == "released":
+            unsupported = [f"{name}={value}" for name, value, default in (
+                ("schedule", self.schedule, "cosine"), ("top_k", self.top_k, None), ("top_p", self.top_p, None),
+                ("guidance_scale", self.guidance_scale, 1.0)) if value != default]
+            if unsupported:
+                raise ValueError(f"the released decoding has a cosine schedule and no top-k, top-p or guidance; drop {', '.join(unsupported)} "
+                                 "or use decoding=package")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
         if self.max_iterations < 1:
@@ -112,6 +136,11 @@ def sample_tokens(
     and never change (editing). no_text (B,) True: decode without text (the unconditional branch).
     condition (B, >= max L): a part-aware model's lower-body codes (its MASK id where hidden).
     """
+    if cfg.decoding == "released":
+        if no_text is not None and bool(no_text.any()) or condition is not None or trace:
+            raise ValueError("the released decoding takes text-conditioned whole-body samples only (no edits without text, "
+                             "part-aware conditions or traces): use decoding=package")
+        return sample_tokens_released(model, text, code_lengths, cfg, keep_tokens=keep_tokens, keep_mask=keep_mask, generator=generator)
     device = code_lengths.device
     B = len(code_lengths)
     K, M_model = model.num_codes, model.cfg.max_tokens
@@ -190,6 +219,66 @@ def sample_tokens(
             record.masked.append((tokens == mask_id).cpu())
             record.tokens.append(tokens.cpu())
     return SampleResult(tokens, code_lengths, iterations, passes, record)
+
+
+@torch.no_grad()
+def sample_tokens_released(
+    model,
+    text,
+    code_lengths: torch.Tensor,
+    cfg: SamplingConfig,
+    *,
+    keep_tokens: torch.Tensor | None = None,
+    keep_mask: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> SampleResult:
+    """The released decoding loop (module docstring), op for op, on (B, M) with M the model's
+    token positions. keep_tokens/keep_mask (B, >= max L): codes given and never re-masked (the
+    release's `token_cond`); the masked counts then run over the free positions."""
+    device = code_lengths.device
+    B, M = len(code_lengths), model.cfg.max_tokens
+    mask_id, end_id, pad_id = model.mask_id, model.end_id, model.pad_id
+    if int(code_lengths.max()) > M - 1 or int(code_lengths.min()) < 1:
+        raise ValueError(f"code lengths must be in 1..{M - 1}, got {code_lengths.tolist()}")
+    lengths = code_lengths.long()
+    positions = torch.arange(M, device=device)[None]
+    visible = positions < (lengths + 1)[:, None]  # codes and END
+    real = positions < lengths[:, None]
+    ids = torch.full((B, M), mask_id, dtype=torch.long, device=device)
+    kept = torch.zeros(B, M, dtype=torch.bool, device=device)
+    if keep_mask is not None:
+        n = min(M, keep_mask.shape[1])
+        kept[:, :n] = keep_mask[:, :n].to(device) & real[:, :n]
+        ids[:, :n] = torch.where(kept[:, :n], keep_tokens[:, :n].to(device), ids[:, :n])
+    free = (real & ~kept).sum(1)
+    ids[~visible] = pad_id
+    ids.scatter_(-1, lengths[:, None], end_id)
+    scores = torch.ones(B, M, device=device)
+    steps = torch.round(cfg.max_iterations / 49 * lengths) + 1e-8  # S, as a float32 tensor like the release's
+    passes = 0
+    for step in range(cfg.max_iterations):
+        t = torch.clip(step / steps, max=1)
+        if B == 1 and step > 0 and torch.clip(step - 1 / steps, max=1).item() == t.item():
+            break  # the release's early exit for a batch of one (its precedence slip included)
+        count = (torch.cos(t * math.pi * 0.5) * (free if keep_mask is not None else lengths)).long().clip(min=1)
+        scores[kept] = 0
+        scores[~real] = 0
+        scores = scores / scores.sum(-1)[:, None]
+        order = scores.sort(descending=True).indices
+        ids[~visible] = pad_id
+        ids.scatter_(-1, lengths[:, None], end_id)
+        chosen = positions < count[:, None]
+        last = order.gather(-1, (count - 1)[:, None])
+        ids.scatter_(-1, order * chosen + last * ~chosen, mask_id)
+        logits = model(ids, text.sentence, text.words, text.word_mask)
+        uniform = torch.zeros_like(logits).uniform_(0, 1, generator=generator)
+        noise = -torch.log((-torch.log(uniform.clamp(min=1e-20))).clamp(min=1e-20))  # Gumbel, clamped as the release does
+        drawn = (logits / max(cfg.temperature, 1e-10) + noise).argmax(-1)
+        masked = ids == mask_id
+        ids = torch.where(masked, drawn, ids)
+        scores = (1 - logits.softmax(-1).gather(-1, drawn[..., None])[..., 0]).masked_fill(~masked, 0)
+        passes += 1
+    return SampleResult(ids, code_lengths, torch.full((B,), passes, dtype=torch.long, device=device), passes)
 
 
 def frames_to_codes(frames: torch.Tensor | int, unit_length: int = 4) -> torch.Tensor:

@@ -58,6 +58,7 @@ SAMPLING_PARAMS = {
     "guidance_scale": float(_DEFAULTS.guidance_scale),
     "top_k": 1.0,
     "top_p": 1.0,
+    "decoding": _DEFAULTS.decoding,  # "released": the authors' decoding loop
 }
 
 INPUT_SCHEMA = Schema([
@@ -65,7 +66,11 @@ INPUT_SCHEMA = Schema([
     ColSpec("long", "length", required=False),
     ColSpec("long", "seed", required=False),
 ])
-PARAM_SCHEMA = ParamSchema([ParamSpec(k, "long" if isinstance(v, int) else "double", v) for k, v in SAMPLING_PARAMS.items()])
+def _param_type(value) -> str:
+    return "string" if isinstance(value, str) else "long" if isinstance(value, int) else "double"
+
+
+PARAM_SCHEMA = ParamSchema([ParamSpec(k, _param_type(v), v) for k, v in SAMPLING_PARAMS.items()])
 SIGNATURE = ModelSignature(inputs=INPUT_SCHEMA, params=PARAM_SCHEMA)
 INPUT_EXAMPLE = pd.DataFrame({"text": ["a person walks forward"], "length": [DEFAULT_FRAMES], "seed": [0]})
 # The part-aware bundle edits the upper body of a given motion.
@@ -76,7 +81,7 @@ PARTS_SCHEMA = Schema([
     ColSpec("long", "seed", required=False),
 ])
 # MLflow fills absent params from the signature's defaults: the edit's own guidance default there.
-PARTS_PARAM_SCHEMA = ParamSchema([ParamSpec(k, "long" if isinstance(v, int) else "double", UPPER_BODY_GUIDANCE if k == "guidance_scale" else v)
+PARTS_PARAM_SCHEMA = ParamSchema([ParamSpec(k, _param_type(v), UPPER_BODY_GUIDANCE if k == "guidance_scale" else v)
                                   for k, v in SAMPLING_PARAMS.items()])
 PARTS_SIGNATURE = ModelSignature(inputs=PARTS_SCHEMA, params=PARTS_PARAM_SCHEMA)
 
@@ -99,7 +104,7 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         seed    optional int, default 0: a row's motion depends only on its text, length, seed
                 and the sampling params, never on the other rows of the request.
     Params (optional): max_iterations, temperature, guidance_scale, top_k, top_p (SamplingConfig;
-        top_k/top_p 1.0 = off).
+        top_k/top_p 1.0 = off), decoding ("package", or "released": the authors' decoding loop).
     Output: one dict per row, JSON-serializable:
         {"text", "length", "seed", "joints": (T, 22, 3) nested lists, "features": (T, 263) nested lists}
     A part-aware bundle (mmm-upperbody) edits the upper body of a motion instead: each row has
@@ -210,7 +215,7 @@ def sampling_config(params: dict | None) -> SamplingConfig:
     try:
         return SamplingConfig(
             max_iterations=int(values["max_iterations"]), temperature=float(values["temperature"]),
-            guidance_scale=float(values["guidance_scale"]), top_k=values["top_k"], top_p=values["top_p"],
+            guidance_scale=float(values["guidance_scale"]), top_k=values["top_k"], top_p=values["top_p"], decoding=str(values["decoding"]),
         )
     except ValueError as e:
         raise InvalidRequest(f"params: {e}") from None

@@ -35,6 +35,10 @@ class OptimConfig:
 class TokenizerLossConfig:
     position_weight: float = 0.5  # extra SmoothL1 on the root-relative joint positions
     commit_weight: float = 0.02
+    # Mean distance (m) between the windows' global joint positions, the root path integrated from
+    # the velocities as recover_from_ric does: small velocity errors add up along a clip.
+    global_weight: float = 0.0
+    root_weight: float = 1.0  # the reconstruction loss of the root dims (yaw and x/z velocity, height) times this
 
 
 def _as(cls, value):
@@ -110,6 +114,10 @@ class TokenizerModule(L.LightningModule):
     def losses(self, recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         pos = self.layout.positions
         full = F.smooth_l1_loss(recon, target, reduction="none")
+        if self.loss_cfg.root_weight != 1.0:
+            weight = torch.ones(full.shape[-1], device=full.device, dtype=full.dtype)
+            weight[: self.layout.root_height.stop] = self.loss_cfg.root_weight
+            full = full * weight
         position = F.smooth_l1_loss(recon[..., pos], target[..., pos], reduction="none")
         if mask is None:
             return {"recon": full.mean(), "position": position.mean()}
@@ -119,6 +127,9 @@ class TokenizerModule(L.LightningModule):
         out = self.tokenizer(batch)
         parts = self.losses(out.reconstruction, batch)
         loss = parts["recon"] + self.loss_cfg.position_weight * parts["position"] + self.loss_cfg.commit_weight * out.commit_loss
+        if self.loss_cfg.global_weight > 0:
+            parts["global_m"] = (self.joints(out.reconstruction) - self.joints(batch)).norm(dim=-1).mean()
+            loss = loss + self.loss_cfg.global_weight * parts["global_m"]
         self.last_perplexities = {name: float(p) for name, p in out.perplexities.items()}
         metrics = {
             "train/loss": loss,
@@ -126,6 +137,8 @@ class TokenizerModule(L.LightningModule):
             "train/position": parts["position"],
             "train/commit": out.commit_loss,
         }
+        if "global_m" in parts:
+            metrics["train/global_position_m"] = parts["global_m"]
         for name, quantizer in self.quantizers.items():
             active = quantizer.window_active()
             metrics[metric_name("codebook", name, "perplexity")] = out.perplexities[name]

@@ -13,6 +13,7 @@ from mmm.callbacks.codebook import CodebookReset, CollapseMonitor
 from mmm.callbacks.previews import CodebookUsagePlot, ReconstructionPreview
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig, TokenizerDataModule
+from mmm.data.normalization import NormalizationConfig
 from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
 from mmm.training.common import (
     CheckpointConfig, ModelConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer,
@@ -48,6 +49,7 @@ class Stage1Config:
     seed: int = 0
     output_dir: str = "outputs/stage1"
     data: DataConfig = field(default_factory=DataConfig)
+    normalization: NormalizationConfig = field(default_factory=NormalizationConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: TokenizerLossConfig = field(default_factory=TokenizerLossConfig)
@@ -84,7 +86,7 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
         log.info("resuming %s (MLflow run %s)", ckpt_path, run_id)
     else:
         run_dir = run_directory(cfg.output_dir)
-    datamodule = TokenizerDataModule(cfg.data, seed=cfg.seed)
+    datamodule = TokenizerDataModule(cfg.data, seed=cfg.seed, normalization=cfg.normalization)
     datamodule.prepare_data()
     datamodule.setup("fit")
     module = TokenizerModule(cfg.data.feature_dim, cfg.model.tokenizer, cfg.optim, cfg.loss, datamodule.mean, datamodule.std)

@@ -20,6 +20,18 @@ cross-attention, and the positional encoding is added once, not twice. Attention
 scaled_dot_product_attention with boolean masks; no row is ever fully masked (the text token and
 at least one word are always visible), so nothing produces NaN. Dropped text (for classifier-free
 guidance) is a learned null sentence and a single learned null word.
+
+`variant="released"` computes what the authors' released weights compute (imported with
+`mmm import released`), differing from the default in exactly these places:
+    positions   the table is added to the motion tokens before the cross layers (only when there
+                are any) and again to [sentence, tokens] after the sentence is prepended, so the
+                motion token at index i carries table[i] + table[i + 1] and the sentence table[0];
+    words       cross-attention reads every word position given, the word mask is ignored (the
+                release feeds all 77 CLIP positions, those after the end-of-text token included);
+    head        no bias;
+    no text     there is no learned null text (the release trains without text dropout): dropped
+                text is zero sentence and word features, with the sentence token hidden from
+                attention as the release's `att_txt=False` does.
 """
 
 from __future__ import annotations
@@ -32,6 +44,9 @@ import torch.nn.functional as F
 from torch import nn
 
 
+VARIANTS = ("fixed", "released")
+
+
 @dataclass
 class TransformerConfig:
     embed_dim: int = 1024  # E
@@ -41,8 +56,11 @@ class TransformerConfig:
     mlp_ratio: int = 4
     dropout: float = 0.1
     max_tokens: int = 50  # M: 196 frames / 4 + END
+    variant: str = "fixed"  # fixed (this package's) | released (the authors' forward pass, for imported weights)
 
     def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"model.transformer.variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
         if not 0 <= self.num_cross_layers <= self.num_layers:
             raise ValueError(f"num_cross_layers={self.num_cross_layers} must be between 0 and num_layers={self.num_layers}")
         if self.embed_dim % self.num_heads:
@@ -110,8 +128,10 @@ class CrossAttentionBlock(nn.Module):
         self.mlp = MLP(E, cfg.mlp_ratio, cfg.dropout)
         self.drop = nn.Dropout(cfg.dropout)
 
-    def forward(self, x: torch.Tensor, words: torch.Tensor, word_mask: torch.Tensor) -> torch.Tensor:
-        x = x + self.drop(self.attn(self.ln_x(x), self.ln_words(words), word_mask))
+    def forward(self, x: torch.Tensor, words: torch.Tensor, word_mask: torch.Tensor | None) -> torch.Tensor:
+        """word_mask (B, Lw) True = visible; None: every word position is read."""
+        mask = word_mask if word_mask is not None else torch.ones(words.shape[:2], dtype=torch.bool, device=words.device)
+        x = x + self.drop(self.attn(self.ln_x(x), self.ln_words(words), mask))
         return x + self.mlp(self.ln2(x))
 
 
@@ -153,26 +173,32 @@ class MaskedMotionTransformer(nn.Module):
         E = cfg.embed_dim
         self.num_codes = K
         self.end_id, self.pad_id, self.mask_id = K, K + 1, K + 2
+        self.released = cfg.variant == "released"
+        if self.released and condition_codebook is not None:
+            raise ValueError("the released variant has no part-aware form: train the part-aware model with variant=fixed")
         self.register_buffer("codebook", codebook.detach().clone().float())
         self.special = nn.Embedding(3, C)
         self.token_proj = nn.Linear(C, E)
         self.condition = None if condition_codebook is None else TokenEmbedding(condition_codebook, E)
-        self.register_buffer("positions", sinusoidal_positions(cfg.max_tokens, E), persistent=False)
+        # The released form also positions the prepended sentence: one more row.
+        self.register_buffer("positions", sinusoidal_positions(cfg.max_tokens + self.released, E), persistent=False)
         self.sentence_proj = nn.Linear(sentence_dim, E)
         self.word_proj = nn.Linear(word_dim, E)
-        self.null_sentence = nn.Parameter(torch.zeros(E))
-        self.null_word = nn.Parameter(torch.zeros(E))
+        if not self.released:
+            self.null_sentence = nn.Parameter(torch.zeros(E))
+            self.null_word = nn.Parameter(torch.zeros(E))
         self.cross_layers = nn.ModuleList(CrossAttentionBlock(cfg) for _ in range(cfg.num_cross_layers))
         self.layers = nn.ModuleList(SelfAttentionBlock(cfg) for _ in range(cfg.num_layers - cfg.num_cross_layers))
         self.ln_f = nn.LayerNorm(E)
-        self.head = nn.Linear(E, K)
+        self.head = nn.Linear(E, K, bias=not self.released)
         self.apply(self._init)
 
     @staticmethod
     def _init(module: nn.Module) -> None:
         if isinstance(module, nn.Linear):
             nn.init.normal_(module.weight, std=0.02)
-            nn.init.zeros_(module.bias)
+            if module.bias is not None:
+                nn.init.zeros_(module.bias)
         elif isinstance(module, nn.Embedding):
             nn.init.normal_(module.weight, std=0.02)
         elif isinstance(module, nn.LayerNorm):
@@ -204,10 +230,12 @@ class MaskedMotionTransformer(nn.Module):
         condition (B, M): the part-aware model's lower-body codes (MASK where hidden).
         """
         B, M = tokens.shape
-        x = self.embed_tokens(tokens) + self.positions[:M]
         if (condition is None) != (self.condition is None):
             raise ValueError("a part-aware transformer needs the lower-body condition tokens; a plain one takes none"
                              if condition is None else "condition tokens given to a transformer that is not part-aware")
+        if self.released:
+            return self._forward_released(tokens, sentence, words, drop_text)
+        x = self.embed_tokens(tokens) + self.positions[:M]
         if condition is not None:
             if condition.shape != tokens.shape:
                 raise ValueError(f"condition tokens {tuple(condition.shape)} must have the shape of the tokens {tuple(tokens.shape)}")
@@ -228,6 +256,26 @@ class MaskedMotionTransformer(nn.Module):
         x = torch.cat((s.unsqueeze(1), x), dim=1)
         # Visible keys: the text token and every position up to and including END.
         key_mask = torch.cat((torch.ones_like(tokens[:, :1], dtype=torch.bool), tokens != self.pad_id), dim=1)
+        for layer in self.layers:
+            x = layer(x, key_mask)
+        return self.head(self.ln_f(x[:, 1:]))
+
+    def _forward_released(self, tokens: torch.Tensor, sentence: torch.Tensor, words: torch.Tensor, drop_text: torch.Tensor | None) -> torch.Tensor:
+        """The released forward pass (see the module docstring); logits (B, M, K)."""
+        B, M = tokens.shape
+        see_text = torch.ones(B, dtype=torch.bool, device=tokens.device)
+        if drop_text is not None:
+            see_text = ~drop_text
+            sentence = sentence * see_text[:, None].to(sentence.dtype)
+            words = words * see_text[:, None, None].to(words.dtype)
+        x = self.embed_tokens(tokens)
+        if self.cross_layers:
+            x = x + self.positions[:M]
+            w = self.word_proj(words)
+            for layer in self.cross_layers:
+                x = layer(x, w, None)
+        x = torch.cat((self.sentence_proj(sentence).unsqueeze(1), x), dim=1) + self.positions[: M + 1]
+        key_mask = torch.cat((see_text[:, None], tokens != self.pad_id), dim=1)
         for layer in self.layers:
             x = layer(x, key_mask)
         return self.head(self.ln_f(x[:, 1:]))

@@ -1,0 +1,1 @@
+"""The authors' released MMM checkpoints: key maps (keys.py) and the importer (importer.py)."""
