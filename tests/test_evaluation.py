@@ -157,7 +157,7 @@ def test_mmm_evaluate_logs_the_table_to_mlflow(trained, own_evaluator, tmp_path)
     run = client.get_run(results["run_id"])
     metrics = run.data.metrics
     for name in ("generated/top1", "generated/fid", "generated/matching_score", "generated/diversity", "generated/multimodality",
-                 "real/top1", "recon/fid", "recon/mpjpe_mm"):
+                 "real/top1", "recon/fid", "recon/mpjpe_root_aligned_mm"):
         assert name in metrics and np.isfinite(metrics[name]), name
         assert 0 <= metrics.get(name + "_ci", 0)
     assert abs(metrics["real/fid"]) < 1e-6

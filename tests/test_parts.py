@@ -126,10 +126,10 @@ def test_stage1_trains_a_part_aware_tokenizer_with_metrics_per_codebook(walker_d
     per_codebook = {
         f"{group}/{part}/{name}"
         for part in ("lower", "upper")
-        for group, name in [("codebook", "perplexity"), ("codebook", "active_fraction"), ("codebook", "active_in_window"),
-                            ("codebook", "codes_reset"), ("collapse", "active_fraction"), ("collapse", "perplexity_ratio")]
+        for group, name in [("codebook", "perplexity"), ("codebook", "used_since_reset_fraction"), ("codebook", "used_since_reset"),
+                            ("codebook", "codes_reset_total"), ("collapse", "window_active_fraction"), ("collapse", "perplexity_ratio")]
     }
-    assert per_codebook | {"codebook/codes_reset", "val/mpjpe_mm"} <= logged
+    assert per_codebook | {"codebook/codes_reset_total", "val/mpjpe_root_aligned_mm"} <= logged
     assert "codebook/perplexity" not in logged  # no name that hides which codebook it is
     assert {"codebook/lower", "codebook/upper"} <= {f.path for f in client.list_artifacts(result.run_id, "codebook")}
 
@@ -185,8 +185,8 @@ def test_codebook_reset_resets_the_dead_codes_of_both_codebooks():
         changed = (q.codebook != kill.before[name]).any(dim=-1)
         assert changed[:4].all() and not changed[4:].any(), name
         assert q.window_usage.sum() == 0
-        assert trainer.callback_metrics[f"codebook/{name}/codes_reset"] == 4
-    assert trainer.callback_metrics["codebook/codes_reset"] == 8
+        assert trainer.callback_metrics[f"codebook/{name}/codes_reset_total"] == 4
+    assert trainer.callback_metrics["codebook/codes_reset_total"] == 8
 
 
 class DegenerateEncoder(torch.nn.Module):

@@ -34,8 +34,10 @@ def pipeline(workdir, monkeypatch, *extra):
 
 
 def steps_of(client, parent):
+    """The parent's nested runs by step (their names are `01-<step>`, `02-<step>`, ...)."""
     children = client.search_runs([parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'")
-    return {r.info.run_name: r for r in children}
+    assert all(r.info.run_name == f"{int(r.data.tags['mmm.step.order']):02d}-{r.data.tags['mmm.step']}" for r in children)
+    return {r.data.tags["mmm.step"]: r for r in children}
 
 
 def newest_parent(client):
@@ -72,7 +74,7 @@ def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypa
     assert champions["mmm-text2motion"].run_id == steps["stage2"].data.tags["output.run_id"]
     assert champions["mmm-tokenizer"].run_id == steps["stage1"].data.tags["output.run_id"]
     assert np.isfinite(float(champions["mmm-text2motion"].tags["metric.generated/fid"]))
-    assert float(champions["mmm-tokenizer"].tags["metric.recon/mpjpe_mm"]) > 0
+    assert float(champions["mmm-tokenizer"].tags["metric.recon/mpjpe_root_aligned_mm"]) > 0
     assert "promote-text2motion" in out and "no champion yet" in out
     # Stage 2 was trained on the tokenizer champion's tokens.
     stage2 = client.get_run(champions["mmm-text2motion"].run_id)
@@ -162,7 +164,7 @@ def test_parts_pipeline_trains_and_promotes_the_part_aware_model(workdir, monkey
         assert main(argv) == 0
         client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
         experiment = client.get_experiment_by_name("mmm-pipeline")
-        parent = client.search_runs([experiment.experiment_id], "attributes.run_name = 'pipeline-parts'", order_by=["attributes.start_time DESC"])[0]
+        parent = client.search_runs([experiment.experiment_id], "attributes.run_name LIKE 'pipeline-parts-%'", order_by=["attributes.start_time DESC"])[0]
         steps = steps_of(client, parent)
         assert set(steps) == set(PIPELINES["parts"]) and all(r.data.tags["step.status"] == "ran" for r in steps.values())
         stage1 = client.get_run(steps["stage1-parts"].data.tags["output.run_id"])
@@ -175,7 +177,7 @@ def test_parts_pipeline_trains_and_promotes_the_part_aware_model(workdir, monkey
         # The whole-body champion is untouched, and a rerun skips everything.
         assert client.get_model_version_by_alias("mmm-text2motion", "champion").run_id != champion.run_id
         assert main(argv) == 0
-        parent = client.search_runs([experiment.experiment_id], "attributes.run_name = 'pipeline-parts'", order_by=["attributes.start_time DESC"])[0]
+        parent = client.search_runs([experiment.experiment_id], "attributes.run_name LIKE 'pipeline-parts-%'", order_by=["attributes.start_time DESC"])[0]
         assert {r.data.tags["step.status"] for r in steps_of(client, parent).values()} == {"skipped"}
     finally:
         mlflow.set_tracking_uri(previous)

@@ -67,9 +67,9 @@ def test_other_data_or_evaluator_is_never_compared(client):
 
 def test_models_list_shows_versions_aliases_and_metrics(client):
     promote_version(client, "mmm-tokenizer", register_version(client, "mmm-tokenizer", "runs:/0123456789abcdef0123456789abcdef/checkpoints", None,
-                                                              version_tags({"recon/mpjpe_mm": 31.4}, "d1", None, None)).version, [Criterion("recon/mpjpe_mm")])
+                                                              version_tags({"recon/mpjpe_root_aligned_mm": 31.4}, "d1", None, None)).version, [Criterion("recon/mpjpe_root_aligned_mm")])
     text = list_models(client)
-    assert "mmm-tokenizer:" in text and "v1   champion" in text and "recon/mpjpe_mm=31.4" in text
+    assert "mmm-tokenizer:" in text and "v1   champion" in text and "recon/mpjpe_root_aligned_mm=31.4" in text
     assert "mmm-text2motion: not registered yet" in text
 
 

@@ -200,5 +200,5 @@ def test_resume_continues_the_run_and_matches_an_uninterrupted_one(walker_datase
     previews = [f.path for f in client.list_artifacts(first.run_id, "previews")]
     assert len(previews) == 4 and all(p.endswith(".gif") for p in previews)  # validations at 5, 10, 15, 20
     assert {f.path for f in client.list_artifacts(first.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
-    history = client.get_metric_history(first.run_id, "val/mpjpe_mm")
+    history = client.get_metric_history(first.run_id, "val/mpjpe_root_aligned_mm")
     assert len(history) == 4 and all(np.isfinite(m.value) for m in history)

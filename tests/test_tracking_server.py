@@ -51,10 +51,10 @@ def test_pipeline_and_promotion_over_a_tracking_server(tmp_path, monkeypatch, ca
         status, body = get(f"{base}{API}/experiments/get-by-name", experiment_name="mmm-pipeline")
         assert status == 200, body
         pipeline_experiment = body["experiment"]["experiment_id"]
-        parents = search_runs(base, [pipeline_experiment], "tags.`mmm.pipeline` = 'full' and attributes.run_name = 'pipeline-full'")
+        parents = search_runs(base, [pipeline_experiment], "tags.`mmm.pipeline` = 'full' and attributes.run_name LIKE 'pipeline-full-%'")
         assert len(parents) == 1 and parents[0]["info"]["status"] == "FINISHED"
         children = search_runs(base, [pipeline_experiment], f"tags.mlflow.parentRunId = '{parents[0]['info']['run_id']}'")
-        by_step = {c["info"]["run_name"]: c for c in children}
+        by_step = {tags(c)["mmm.step"]: c for c in children}
         assert len(by_step) == 9 and all(c["info"]["status"] == "FINISHED" for c in children)
 
         # Metrics: the stage-1 run's training curve and its validation MPJPE.
@@ -63,7 +63,7 @@ def test_pipeline_and_promotion_over_a_tracking_server(tmp_path, monkeypatch, ca
         assert status == 200 and len(history["metrics"]) == 4 and all(np.isfinite(m["value"]) for m in history["metrics"])
         status, run = get(f"{base}{API}/runs/get", run_id=stage1)
         metrics = {m["key"]: m["value"] for m in run["run"]["data"]["metrics"]}
-        assert metrics["val/mpjpe_mm"] > 0
+        assert metrics["val/mpjpe_root_aligned_mm"] > 0
 
         # Artifacts: stored by the server (proxied), none in the client's local artifact folder.
         status, listing = get(f"{base}{API}/artifacts/list", run_id=stage1, path="checkpoints")

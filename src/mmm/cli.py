@@ -247,6 +247,18 @@ def cmd_export(args: argparse.Namespace) -> None:
         print(f"wrote {out / name}")
 
 
+def cmd_dashboard(args: argparse.Namespace) -> None:
+    from mlflow.tracking import MlflowClient
+
+    from mmm.tracking import dashboard_links
+    from mmm.training.common import resolve_tracking_uri
+
+    base = args.url or f"http://{args.host}:{args.port}"
+    print(f"The MLflow dashboard (make mlflow-ui serves it on {base}); each experiment in its training view:")
+    for line in dashboard_links(MlflowClient(resolve_tracking_uri(args.tracking_uri)), base):
+        print(f"  {line}")
+
+
 def cmd_models(args: argparse.Namespace) -> None:
     from mlflow.tracking import MlflowClient
 
@@ -550,6 +562,13 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--out", required=True, help="folder for vq.pth ({'net': ...}) and trans.pth ({'trans': ...})")
     exp.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
     exp.set_defaults(func=cmd_export)
+
+    dash = sub.add_parser("dashboard", help="links into the MLflow dashboard: every experiment in its training view, its newest run, the models")
+    dash.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    dash.add_argument("--host", default="127.0.0.1")
+    dash.add_argument("--port", type=int, default=5000)
+    dash.add_argument("--url", default=None, help="the dashboard's address when it is served elsewhere (e.g. a team server)")
+    dash.set_defaults(func=cmd_dashboard)
 
     models = sub.add_parser("models", help="registered models").add_subparsers(dest="models_command", required=True)
     listing = models.add_parser("list", help="versions, aliases and metrics of the registered models")

@@ -25,30 +25,34 @@ log = logging.getLogger(__name__)
 
 class CodebookReset(L.Callback):
     """Every `every_n_steps` optimizer steps, replace the codes no latent used since the last
-    reset by latents of the current batch, in every codebook (0 disables). Logs
-    `codebook/codes_reset` (all codebooks) every step, and `codebook/<part>/codes_reset` when
-    there are several."""
+    reset by latents of the current batch, in every codebook (0 disables). Logs the running total
+    `codebook/codes_reset_total` at every step (`codebook/<part>/codes_reset_total` too when there
+    are several codebooks), so every logged step shows every reset so far whatever the logging
+    interval."""
 
     def __init__(self, every_n_steps: int = 20):
         self.every_n_steps = every_n_steps
         self.total_reset = 0
+        self.total_by_codebook: dict[str, int] = {}
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = trainer.global_step
         due = self.every_n_steps > 0 and step > 0 and step % self.every_n_steps == 0
-        reset = {name: q.reset_unused() if due else 0 for name, q in pl_module.quantizers.items()}
-        n = sum(reset.values())
-        self.total_reset += n
-        metrics = {"codebook/codes_reset": float(n)}
-        if len(reset) > 1:
-            metrics.update({metric_name("codebook", name, "codes_reset"): float(k) for name, k in reset.items()})
+        for name, q in pl_module.quantizers.items():
+            n = q.reset_unused() if due else 0
+            self.total_by_codebook[name] = self.total_by_codebook.get(name, 0) + n
+            self.total_reset += n
+        metrics = {"codebook/codes_reset_total": float(self.total_reset)}
+        if len(self.total_by_codebook) > 1:
+            metrics.update({metric_name("codebook", name, "codes_reset_total"): float(k) for name, k in self.total_by_codebook.items()})
         pl_module.log_dict(metrics, on_step=True, on_epoch=False)
 
     def state_dict(self) -> dict:
-        return {"total_reset": self.total_reset}
+        return {"total_reset": self.total_reset, "total_by_codebook": dict(self.total_by_codebook)}
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.total_reset = int(state_dict["total_reset"])
+        self.total_by_codebook = {k: int(v) for k, v in state_dict.get("total_by_codebook", {}).items()}
 
 
 class CodebookCollapseError(RuntimeError):
@@ -83,7 +87,8 @@ class CodebookHealth:
 
 class CollapseMonitor(L.Callback):
     """Detects codebook collapse: too few codes active over a window of steps, or the (smoothed)
-    perplexity far below its running peak, in any codebook. Acts per `action`: warn, stop (end
+    perplexity far below its peak since the warm-up (before it, the freshly seeded codebook's
+    perplexity is not what a healthy one keeps), in any codebook. Acts per `action`: warn, stop (end
     the run cleanly on all ranks) or fail (raise CodebookCollapseError). Logs `collapse/*`
     metrics (`collapse/<part>/*` when there are several codebooks) and the events, which name
     the codebook."""
@@ -110,7 +115,7 @@ class CollapseMonitor(L.Callback):
         """The lowest active fraction of any codebook over its last completed window."""
         return min((h.active_fraction for h in self.codebooks.values()), default=1.0)
 
-    def _update(self, health: CodebookHealth, quantizer, perplexity: float) -> None:
+    def _update(self, health: CodebookHealth, quantizer, perplexity: float, warm: bool) -> None:
         counts = quantizer.latest_counts
         if counts is None:
             return
@@ -121,7 +126,8 @@ class CollapseMonitor(L.Callback):
             health.usage.zero_()
             health.steps_in_window = 0
         health.perplexity = perplexity if health.perplexity == 0.0 else self.smoothing * health.perplexity + (1 - self.smoothing) * perplexity
-        health.peak = max(health.peak, health.perplexity)
+        if warm:
+            health.peak = max(health.peak, health.perplexity)
 
     def collapse_reason(self, health: CodebookHealth) -> str | None:
         if health.active_fraction < self.min_active_fraction:
@@ -135,8 +141,8 @@ class CollapseMonitor(L.Callback):
         metrics, reasons = {}, {}
         for name, quantizer in pl_module.quantizers.items():
             health = self.codebooks.setdefault(name, CodebookHealth())
-            self._update(health, quantizer, pl_module.last_perplexities[name])
-            metrics[metric_name("collapse", name, "active_fraction")] = health.active_fraction
+            self._update(health, quantizer, pl_module.last_perplexities[name], warm=step >= self.warmup_steps)
+            metrics[metric_name("collapse", name, "window_active_fraction")] = health.active_fraction
             metrics[metric_name("collapse", name, "perplexity_ratio")] = health.perplexity / health.peak if health.peak else 1.0
             reasons[name] = self.collapse_reason(health) if step >= self.warmup_steps else None
             health.strikes = health.strikes + 1 if reasons[name] else 0

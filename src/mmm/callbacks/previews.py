@@ -1,4 +1,11 @@
-"""Callbacks that let people look at a run: rendered motions and codebook usage, as MLflow artifacts."""
+"""Callbacks that let people look at a run: rendered motions and codebook usage, logged to MLflow.
+
+Motion previews are logged twice at each validation: as an image with the step
+(`previews/<kind>` in the run's Images, with a step slider: each clip's reference above its
+reconstruction or generation, a few frames each, captions and step written on it), and as a GIF
+artifact (`previews/<kind>_step<step>.gif`: references in the top row, the model's output under
+each).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +16,7 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 from lightning.pytorch.loggers import MLFlowLogger
+from PIL import Image
 
 log = logging.getLogger(__name__)
 
@@ -17,11 +25,36 @@ def _mlflow_loggers(trainer) -> list[MLFlowLogger]:
     return [lg for lg in trainer.loggers if isinstance(lg, MLFlowLogger)]
 
 
-class ReconstructionPreview(L.Callback):
-    """At each validation, a GIF of a few validation clips, reference beside reconstruction,
-    logged as `previews/reconstruction_step<step>.gif` (rank 0)."""
+def log_preview(trainer, kind: str, references: list, outputs: list, reference_captions: list[str], output_captions: list[str],
+                size: int = 320, frame_size: int = 160, num_frames: int = 6) -> None:
+    """Log `previews/<kind>` (an image with the step, for the slider) and
+    `previews/<kind>_step<step>.gif` (references above outputs) to every MLflow logger (rank 0)."""
+    from mmm.render import contact_sheet, render_gif
 
-    def __init__(self, num_clips: int = 3, size: int = 240):
+    step = trainer.global_step
+    loggers = _mlflow_loggers(trainer)
+    if not loggers or not references:
+        return
+    ref_caps = [f"step {step} · {c}" for c in reference_captions]
+    out_caps = [f"step {step} · {c}" for c in output_captions]
+    rows, row_caps = [], []
+    for ref, out, rc, oc in zip(references, outputs, ref_caps, out_caps):
+        rows += [ref, out]
+        row_caps += [rc, oc]
+    sheet = contact_sheet(rows, row_caps, num_frames=num_frames, size=(frame_size, frame_size))
+    with tempfile.TemporaryDirectory() as tmp:
+        gif = render_gif(list(references) + list(outputs), Path(tmp) / f"{kind}_step{step:07d}.gif", captions=ref_caps + out_caps,
+                         size=(size, size), columns=len(references))
+        for lg in loggers:
+            lg.experiment.log_image(lg.run_id, sheet, key=f"previews/{kind}", step=step)
+            lg.experiment.log_artifact(lg.run_id, str(gif), "previews")
+
+
+class ReconstructionPreview(L.Callback):
+    """At each validation, a few validation clips: each reference above its reconstruction
+    (`previews/reconstruction` image with the step, and a GIF), rank 0."""
+
+    def __init__(self, num_clips: int = 3, size: int = 320):
         self.num_clips, self.size = num_clips, size
 
     def on_validation_epoch_end(self, trainer, pl_module) -> None:
@@ -31,18 +64,12 @@ class ReconstructionPreview(L.Callback):
         loggers = _mlflow_loggers(trainer)
         if not loggers:
             return
-        from mmm.render import render_gif
-
-        motions, captions = [], []
         names = batch.get("names") or [str(i) for i in range(len(batch["lengths"]))]
-        for i in range(min(self.num_clips, len(batch["lengths"]))):
-            n = int(batch["lengths"][i])
-            motions += [batch["reference"][i, :n].numpy(), batch["reconstruction"][i, :n].numpy()]
-            captions += [f"{names[i]} reference", f"{names[i]} reconstruction"]
-        with tempfile.TemporaryDirectory() as tmp:
-            path = render_gif(motions, Path(tmp) / f"reconstruction_step{trainer.global_step:07d}.gif", captions=captions, size=(self.size, self.size))
-            for lg in loggers:
-                lg.experiment.log_artifact(lg.run_id, str(path), "previews")
+        count = min(self.num_clips, len(batch["lengths"]))
+        lengths = [int(batch["lengths"][i]) for i in range(count)]
+        log_preview(trainer, "reconstruction", [batch["reference"][i, :n].numpy() for i, n in enumerate(lengths)],
+                    [batch["reconstruction"][i, :n].numpy() for i, n in enumerate(lengths)],
+                    [f"clip {names[i]}: reference" for i in range(count)], [f"clip {names[i]}: reconstruction" for i in range(count)], self.size)
 
 
 def usage_histogram_png(counts: np.ndarray, out_path: Path, title: str) -> Path:
@@ -67,8 +94,9 @@ def usage_histogram_png(counts: np.ndarray, out_path: Path, title: str) -> Path:
 
 
 class CodebookUsagePlot(L.Callback):
-    """At each validation, a histogram of each codebook's EMA counts, `codebook/usage_step<step>.png`
-    (`codebook/<part>/usage_step<step>.png` for each codebook of a part-aware tokenizer)."""
+    """At each validation, a histogram of each codebook's EMA counts: the image `codebook/usage` with
+    the step (`codebook/<part>/usage` for each codebook of a part-aware tokenizer) and the artifact
+    `codebook/usage_step<step>.png`."""
 
     def on_validation_epoch_end(self, trainer, pl_module) -> None:
         if not trainer.is_global_zero or trainer.sanity_checking:
@@ -82,17 +110,21 @@ class CodebookUsagePlot(L.Callback):
             with tempfile.TemporaryDirectory() as tmp:
                 title = f"{name} codebook, step {step}" if name else f"step {step}"
                 path = usage_histogram_png(counts, Path(tmp) / f"usage_step{step:07d}.png", title)
+                key = f"codebook/{name}/usage" if name else "codebook/usage"
                 for lg in loggers:
+                    with Image.open(path) as image:
+                        lg.experiment.log_image(lg.run_id, image.convert("RGB"), key=key, step=step)
                     lg.experiment.log_artifact(lg.run_id, str(path), f"codebook/{name}" if name else "codebook")
 
 
 class GenerationPreview(L.Callback):
     """At each validation of stage 2, a few validation captions generated at their reference's
     length, beside the reference (decoded from its own codes), logged as
-    `previews/generation_step<step>.gif` (rank 0). A part-aware model shows the reference's lower
-    body with an upper body generated from the caption (half the lower-body codes hidden)."""
+    `previews/generation` (image with the step) and a GIF (rank 0). A part-aware model shows the
+    reference's lower body with an upper body generated from the caption (half the lower-body
+    codes hidden)."""
 
-    def __init__(self, tokenizer, text_encoder, num_captions: int = 3, seed: int = 0, size: int = 240):
+    def __init__(self, tokenizer, text_encoder, num_captions: int = 3, seed: int = 0, size: int = 320):
         self.tokenizer, self.text_encoder = tokenizer, text_encoder
         self.num_captions, self.seed, self.size = num_captions, seed, size
 
@@ -105,7 +137,6 @@ class GenerationPreview(L.Callback):
             return
         from mmm.generation.model import TextToMotion
         from mmm.generation.upper_body import DEFAULT_LOWER_MASK
-        from mmm.render import render_gif
 
         training = pl_module.transformer.training
         model = TextToMotion(self.tokenizer, pl_module.transformer, self.text_encoder, {}, device=pl_module.device)
@@ -122,11 +153,6 @@ class GenerationPreview(L.Callback):
                 generated = model.generate(list(batch["captions"][:n]), frames, seed=self.seed).joints
         finally:
             pl_module.transformer.train(training)
-        motions, captions = [], []
-        for i in range(n):
-            motions += [references[i], generated[i]]
-            captions += [f"reference: {batch['captions'][i]}", f"{'new upper body' if model.part_aware else 'generated'}: {batch['captions'][i]}"]
-        with tempfile.TemporaryDirectory() as tmp:
-            path = render_gif(motions, Path(tmp) / f"generation_step{trainer.global_step:07d}.gif", captions=captions, size=(self.size, self.size))
-            for lg in loggers:
-                lg.experiment.log_artifact(lg.run_id, str(path), "previews")
+        kind = "new upper body" if model.part_aware else "generated"
+        log_preview(trainer, "generation", references, list(generated), [f"reference: {c}" for c in batch["captions"][:n]],
+                    [f"{kind}: {c}" for c in batch["captions"][:n]], self.size)

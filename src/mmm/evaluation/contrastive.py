@@ -293,7 +293,7 @@ class ContrastiveEvaluatorModule(L.LightningModule):
             {
                 "feature_dim": int(feature_dim), "sentence_dim": int(sentence_dim), "model": asdict(model), "optim": asdict(optim),
                 "loss": asdict(loss), "text_encoder": dict(text_encoder or {}), "data": dict(data or {}),
-            }
+            }, logger=False
         )
         self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
         self.evaluator = ContrastiveEvaluator(feature_dim, sentence_dim, model, mean, std)
@@ -339,7 +339,7 @@ class ContrastiveEvaluatorModule(L.LightningModule):
             [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=tuple(cfg.betas),
         )
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"}}
 
 
 def load_contrastive_evaluator(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[ContrastiveEvaluator, dict]:

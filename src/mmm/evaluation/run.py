@@ -1,10 +1,14 @@
 """`mmm evaluate [key=value ...]`: the protocol for a text-to-motion model, reconstruction metrics
 for its tokenizer, and prompt adherence on a labelled dataset; logged to MLflow and printed.
 
-MLflow metrics: `generated/<metric>` and `real/<metric>` (mean over replications, and `_ci`:
-1.96·std/sqrt(n)), `recon/fid`, `recon/mpjpe_mm`, `recon/mpjpe_global_mm`, `adherence/rate`;
-artifacts `evaluation.md` (the table) and `evaluation.json`; tags: the model's and evaluator's
-identities and the data fingerprint (what promotion compares on).
+One MLflow run per evaluation (experiment mmm-evaluation), named `evaluate-<data>-<time>` unless
+`logger.run_name` is set, open while the evaluation works (its duration is the evaluation's; FAILED
+when it raises). Metrics: `generated/<metric>` and `real/<metric>` (the mean over replications),
+`recon/fid`, `recon/mpjpe_root_aligned_mm`, `recon/mpjpe_global_mm`, `adherence/rate`; the
+intervals (1.96·std/sqrt(n)) are in the table and evaluation.json, not charted. The run's
+description holds the table with links to the model's run and registered version; artifacts
+`evaluation.md` (the table) and `evaluation.json`; tags: the model's and evaluator's identities,
+the data fingerprint (also the run's dataset input) and the git commit.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -83,15 +88,33 @@ def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], b
             errors += float(local.sum()) * scale
             errors_global += float((j_real - j_rec).norm(dim=-1).mean(-1).sum()) * scale
             frames += local.numel()
-    result = {"mpjpe_mm": errors / frames, "mpjpe_global_mm": errors_global / frames, "clips": sum(len(g) for g in by_length.values())}
+    result = {"mpjpe_root_aligned_mm": errors / frames, "mpjpe_global_mm": errors_global / frames, "clips": sum(len(g) for g in by_length.values())}
     if evaluator is not None:
         result["fid"] = fid(torch.cat(real_emb), torch.cat(rec_emb))
     return result
 
 
 def evaluate(cfg_node: DictConfig) -> dict:
-    import mlflow
+    """Evaluate (see the module's docstring); returns the results with `table`, `metrics` (what is
+    charted), `intervals` (metric -> interval) and `run_id` (when logged)."""
+    cfg: EvaluateConfig = to_object(cfg_node)
+    unknown = set(cfg.what) - {"text2motion", "reconstruction", "adherence"}
+    if unknown:
+        raise ValueError(f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence")
+    tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
+    run = _EvaluationRun(cfg, tracking_uri) if cfg.logger.enabled else None
+    try:
+        results = _evaluate(cfg, tracking_uri, run)
+        if run is not None:
+            run.finish(results, Path(cfg.output_dir))
+    except BaseException as error:
+        if run is not None:
+            run.fail(error)
+        raise
+    return results
 
+
+def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | None") -> dict:
     from mmm.data.humanml3d import load_clips, load_items, load_stats
     from mmm.evaluation.adherence import prompt_adherence
     from mmm.evaluation.evaluators import load_evaluator
@@ -99,19 +122,18 @@ def evaluate(cfg_node: DictConfig) -> dict:
     from mmm.generation.model import TextToMotion
     from mmm.tokenizer.load import load_tokenizer
 
-    cfg: EvaluateConfig = to_object(cfg_node)
-    unknown = set(cfg.what) - {"text2motion", "reconstruction", "adherence"}
-    if unknown:
-        raise ValueError(f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence")
-    tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     model = TextToMotion.load(cfg.text2motion, tracking_uri, device=cfg.device)
     evaluator = load_evaluator(cfg.evaluator.reference, tracking_uri, cfg.device, cfg.evaluator.glove_dir, cfg.evaluator.norm_dir) \
         if {"text2motion", "reconstruction"} & set(cfg.what) else None
     root = Path(cfg.data.root)
     items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
                           length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
-    results: dict = {"text2motion_model": model.identity, "evaluator": getattr(evaluator, "identity", None), "split": cfg.split}
+    results: dict = {"text2motion_model": model.identity, "evaluator": getattr(evaluator, "identity", None), "split": cfg.split,
+                     "data_fingerprint": dataset_fingerprint(root)}
+    if run is not None:
+        run.started(results, root)
     metrics: dict[str, float] = {}
+    intervals: dict[str, float] = {}
     tables = []
     if "text2motion" in cfg.what:
         mean, std = load_stats(root, cfg.data.feature_dim)
@@ -120,7 +142,7 @@ def evaluate(cfg_node: DictConfig) -> dict:
         for which in ("generated", "real"):
             for metric, (value, ci) in proto[which].items():
                 if not math.isnan(value):
-                    metrics[f"{which}/{metric}"], metrics[f"{which}/{metric}_ci"] = value, ci
+                    metrics[f"{which}/{metric}"], intervals[f"{which}/{metric}"] = value, ci
         tables.append(results_table({"Real motion": proto["real"], "Generated": proto["generated"]},
                                     f"Text-to-motion on {cfg.data.name} {cfg.split}, {cfg.protocol.replications} replications, evaluator {evaluator.identity}"))
     if "reconstruction" in cfg.what:
@@ -129,7 +151,9 @@ def evaluate(cfg_node: DictConfig) -> dict:
         recon = reconstruction_metrics(tokenizer, evaluator, clips)
         results["reconstruction"] = recon
         metrics.update({f"recon/{k}": float(v) for k, v in recon.items() if k != "clips"})
-        tables.append(f"**Reconstruction ({recon['clips']} {cfg.split} clips)**: FID {recon['fid']:.4f}, MPJPE {recon['mpjpe_mm']:.1f} mm (root-aligned), {recon['mpjpe_global_mm']:.1f} mm (global)")
+        fid_text = f"FID {recon['fid']:.4f}, " if "fid" in recon else ""
+        tables.append(f"**Reconstruction ({recon['clips']} {cfg.split} clips)**: {fid_text}MPJPE {recon['mpjpe_root_aligned_mm']:.1f} mm (root-aligned), "
+                      f"{recon['mpjpe_global_mm']:.1f} mm (global)")
     if "adherence" in cfg.what and (root / "labels").is_dir():
         adherence = prompt_adherence(model, root, items, cfg.protocol.sampling, cfg.protocol.seed, max_items=cfg.adherence_max_items)
         results["adherence"] = adherence
@@ -143,21 +167,105 @@ def evaluate(cfg_node: DictConfig) -> dict:
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "evaluation.md").write_text(table + "\n")
     (out_dir / "evaluation.json").write_text(json.dumps(results, indent=2, default=str))
-    if cfg.logger.enabled:
-        mlflow.set_tracking_uri(tracking_uri)
-        experiment = mlflow.get_experiment_by_name(cfg.logger.experiment)
-        experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment(
-            cfg.logger.experiment, artifact_location=artifact_location(tracking_uri, cfg.logger.artifact_root))
-        with mlflow.start_run(experiment_id=experiment_id, run_name=cfg.logger.run_name) as run:
-            mlflow.set_tags({
-                "mmm.stage": "evaluation", "text2motion.reference": model.identity.get("reference"), "text2motion.run_id": model.identity.get("run_id") or "",
-                "evaluator": results["evaluator"] or "", "data.fingerprint": dataset_fingerprint(root), "split": cfg.split,
-            })
-            mlflow.log_params({"replications": cfg.protocol.replications, "what": ",".join(cfg.what), "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500]})
-            mlflow.log_metrics(metrics)
-            mlflow.log_artifact(str(out_dir / "evaluation.md"))
-            mlflow.log_artifact(str(out_dir / "evaluation.json"))
-            results["run_id"] = run.info.run_id
     results["table"] = table
     results["metrics"] = metrics
+    results["intervals"] = intervals
     return results
+
+
+class _EvaluationRun:
+    """The evaluation's MLflow run, created before the work starts (through the client: no
+    process-wide active run) and ended with it."""
+
+    def __init__(self, cfg: EvaluateConfig, tracking_uri: str):
+        from mlflow.tracking import MlflowClient
+
+        from mmm.tracking import GIT_COMMIT_TAG, git_commit, prepare_experiment, timestamp
+
+        self.cfg, self.client = cfg, MlflowClient(tracking_uri)
+        experiment_id = prepare_experiment(self.client, cfg.logger.experiment, artifact_location(tracking_uri, cfg.logger.artifact_root))
+        commit = git_commit()
+        run = self.client.create_run(experiment_id, run_name=cfg.logger.run_name or f"evaluate-{cfg.data.name}-{timestamp()}",
+                                     tags={"mmm.stage": "evaluation", "split": cfg.split, **({GIT_COMMIT_TAG: commit} if commit else {})})
+        self.run_id = run.info.run_id
+        params = {"replications": cfg.protocol.replications, "what": ",".join(cfg.what), "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500]}
+        for key, value in params.items():
+            self.client.log_param(self.run_id, key, value)
+
+    def started(self, results: dict, root: Path) -> None:
+        """The model, evaluator and data are known: tag them and record the dataset input."""
+        from mmm.tracking import log_dataset_input
+
+        identity = results["text2motion_model"]
+        for key, value in {"text2motion.reference": identity.get("reference") or "", "text2motion.run_id": identity.get("run_id") or "",
+                           "evaluator": results["evaluator"] or "", "data.fingerprint": results["data_fingerprint"]}.items():
+            self.client.set_tag(self.run_id, key, str(value))
+        log_dataset_input(self.client, self.run_id, self.cfg.data.name, root, results["data_fingerprint"], context="evaluation")
+
+    def finish(self, results: dict, out_dir: Path) -> None:
+        from mlflow.entities import Metric
+
+        from mmm.tracking import DESCRIPTION_TAG
+
+        now = int(time.time() * 1000)
+        metrics = [Metric(k, float(v), now, 0) for k, v in results["metrics"].items()]
+        for i in range(0, len(metrics), 500):
+            self.client.log_batch(self.run_id, metrics=metrics[i : i + 500])
+        self.client.log_artifact(self.run_id, str(out_dir / "evaluation.md"))
+        self.client.log_artifact(self.run_id, str(out_dir / "evaluation.json"))
+        self.client.set_tag(self.run_id, DESCRIPTION_TAG, self.description(results))
+        self.client.set_terminated(self.run_id, "FINISHED")
+        results["run_id"] = self.run_id
+
+    def fail(self, error: BaseException) -> None:
+        from mmm.tracking import DESCRIPTION_TAG
+
+        try:
+            message = " ".join(str(error).split())[:500] or type(error).__name__
+            self.client.set_tag(self.run_id, DESCRIPTION_TAG, f"### Evaluation failed\n\n`{type(error).__name__}`: {message}")
+            self.client.set_terminated(self.run_id, "FAILED")
+        except Exception:  # the store itself may be what failed: the original error matters
+            log.exception("could not mark evaluation run %s as failed", self.run_id)
+
+    def description(self, results: dict) -> str:
+        """Markdown: what was evaluated (with links to the model's run and registered version) and the table."""
+        identity = results["text2motion_model"]
+        model = self._model_links(identity)
+        evaluator = f", evaluator `{results['evaluator']}`" if results.get("evaluator") else ""
+        return "\n".join([
+            f"### Evaluation of {model}", "",
+            f"On {self.cfg.data.name} {self.cfg.split} (data `{results['data_fingerprint']}`){evaluator}; "
+            "± is the 95% confidence interval over the replications (1.96·std/sqrt(n)).", "",
+            results["table"],
+        ])
+
+    def _model_links(self, identity: dict) -> str:
+        from mlflow.exceptions import MlflowException
+
+        from mmm.tracking import run_link, version_link
+
+        parts = []
+        run_id = identity.get("run_id")
+        if run_id:
+            try:
+                run = self.client.get_run(run_id)
+                parts.append(f"the model of run {run_link(run.info.experiment_id, run_id, run.info.run_name or run_id)}")
+            except MlflowException:
+                parts.append(f"the model of run `{run_id}`")
+        else:
+            parts.append(f"`{identity.get('reference')}`")
+        versions = []
+        reference = identity.get("reference") or ""
+        if reference.startswith("models:/") and identity.get("version") is not None:
+            body = reference[len("models:/"):]
+            name = body.split("@", 1)[0] if "@" in body else body.rsplit("/", 1)[0]
+            versions.append((name, str(identity["version"])))
+        elif run_id:
+            try:
+                found = self.client.search_model_versions(f"run_id = '{run_id}'")
+            except MlflowException:
+                found = []
+            versions += [(v.name, str(v.version)) for v in found]
+        if versions:
+            parts.append("registered as " + ", ".join(version_link(n, v) for n, v in sorted(set(versions))))
+        return ", ".join(parts)

@@ -154,7 +154,7 @@ class LengthEstimatorModule(L.LightningModule):
             {
                 "sentence_dim": int(sentence_dim), "model": asdict(model), "optim": asdict(optim), "label_smoothing": float(label_smoothing),
                 "text_encoder": dict(text_encoder or {}), "stage1": dict(stage1 or {}),
-            }
+            }, logger=False
         )
         self.model_cfg, self.optim_cfg, self.label_smoothing = model, optim, float(label_smoothing)
         self.estimator = LengthEstimator(sentence_dim, model)
@@ -192,7 +192,7 @@ class LengthEstimatorModule(L.LightningModule):
         cfg = self.optim_cfg
         optimizer = torch.optim.AdamW(self.estimator.parameters(), lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay)
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"}}
 
 
 def load_length_estimator(path: str | Path, map_location: str | torch.device = "cpu") -> LengthEstimator:

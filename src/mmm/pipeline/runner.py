@@ -5,6 +5,14 @@ outputs it consumes); the key and the step's outputs are kept in a state file. A
 step whose key is unchanged and whose outputs still exist, and runs the rest: a failed pipeline
 restarts at the step that failed. Runs are created through the MLflow client, not the fluent
 API, so the steps' own runs (training, evaluation, promotion) start freely inside.
+
+In the dashboard: the parent run `pipeline-<name>-<time>` (tagged with the git commit, the data as
+its dataset input) has nested runs `01-<step>`, `02-<step>`, ... (tag `mmm.step.order`). At the end,
+failed or not, the parent's description lists the steps in order with their status, duration and
+links (the nested run, the step's own training or evaluation run, the version a promotion
+registered with its alias and reason), and the parent's metrics are the steps' reported metrics
+prefixed by the step (`stage1/val/...`, `evaluate/generated/fid`) with `pipeline/seconds` and
+`pipeline/steps_ran|skipped|failed`.
 """
 
 from __future__ import annotations
@@ -44,7 +52,9 @@ class StepReport:
     status: str  # ran | skipped | failed
     seconds: float
     outputs: dict
-    run_id: str | None = None
+    run_id: str | None = None  # the step's nested run
+    order: int = 0  # 1-based position in the pipeline
+    error: str | None = None  # failed: the exception, on one line
 
 
 def step_key(name: str, inputs: dict) -> str:
@@ -69,25 +79,129 @@ def _flat(outputs: dict) -> dict[str, str]:
     return {f"output.{k}": str(v)[:500] for k, v in outputs.items() if not isinstance(v, dict)}
 
 
-def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, force: set[str] = frozenset(), experiment: str = "mmm-pipeline", artifact_root: str = "mlartifacts") -> list[StepReport]:
+def _one_line(text: object, limit: int = 300) -> str:
+    """Text for a markdown table cell: one line, no column separators, at most `limit` characters."""
+    line = " ".join(str(text).split()).replace("|", "\\|")
+    return line if len(line) <= limit else line[: limit - 1] + "…"
+
+
+class _Links:
+    """Markdown links to runs and versions, each run looked up once (its experiment and name)."""
+
+    def __init__(self, client):
+        self.client, self.runs = client, {}
+
+    def run(self, run_id: str | None, text: str | None = None) -> str:
+        from mlflow.exceptions import MlflowException
+
+        from mmm.tracking import run_link
+
+        if not run_id:
+            return ""
+        if run_id not in self.runs:
+            try:
+                self.runs[run_id] = self.client.get_run(run_id).info
+            except MlflowException:
+                self.runs[run_id] = None
+        info = self.runs[run_id]
+        if info is None:
+            return f"`{run_id}` (deleted)"
+        return run_link(info.experiment_id, run_id, text or info.run_name or run_id)
+
+    @staticmethod
+    def version(outputs: dict) -> str:
+        from mmm.tracking import version_link
+
+        if outputs.get("version") in (None, ""):
+            return ""
+        return version_link(outputs["model"], outputs["version"]) if outputs.get("model") else f"version {outputs['version']}"
+
+
+def _step_description(report: StepReport, parent_link: str, links: _Links, finished: str | None) -> str:
+    """The nested step run's markdown: what the step did and where its result is."""
+    head = f"Step {report.order:02d} of pipeline {parent_link}: **{report.name}**"
+    if report.status == "failed":
+        lines = [f"{head}, failed after {report.seconds:.1f} s: {_one_line(report.error or '', 1000)} (the traceback is in `error.txt`)."]
+    elif report.status == "skipped":
+        lines = [f"{head}, skipped: its inputs are unchanged since {finished or 'an earlier run'} (`step.key`), its outputs are reused."]
+    else:
+        lines = [f"{head}, ran in {report.seconds:.1f} s."]
+    own = links.run(report.outputs.get("run_id"))
+    if own:
+        lines += ["", f"Its run: {own}"]
+    version = links.version(report.outputs)
+    if version:
+        lines += ["", f"Registered {version} with alias `{report.outputs.get('alias', '?')}`: {_one_line(report.outputs.get('reason', ''), 1000)}"]
+    return "\n".join(lines)
+
+
+def _pipeline_description(name: str, steps: list[Step], reports: list[StepReport], status: str, seconds: float, links: _Links) -> str:
+    """The parent run's markdown: a title line, then one row per step in execution order."""
+    counts = {s: sum(r.status == s for r in reports) for s in ("ran", "skipped", "failed")}
+    outcome = "finished" if status == "FINISHED" else "failed"
+    title = (f"### Pipeline `{name}` {outcome} in {seconds:.1f} s: {counts['ran']} ran, {counts['skipped']} skipped"
+             + (f", {counts['failed']} failed" if counts["failed"] else "") + f" of {len(steps)} steps")
+    lines = [title, "", "| # | step | status | seconds | run | registered version | alias | reason |", "|---|---|---|---|---|---|---|---|"]
+    for r in reports:
+        lines.append(f"| {r.order:02d} | {links.run(r.run_id, r.name)} | {r.status} | {r.seconds:.1f} | {links.run(r.outputs.get('run_id'))} | "
+                     f"{links.version(r.outputs)} | {r.outputs.get('alias') or ''} | {_one_line(r.outputs.get('reason') or '')} |")
+    for order, step in enumerate(steps[len(reports):], len(reports) + 1):
+        lines.append(f"| {order:02d} | {step.name} | not run | | | | | |")
+    failed = next((r for r in reports if r.status == "failed"), None)
+    if failed is not None:
+        lines += ["", f"**Failed at {failed.order:02d} {failed.name}**: {_one_line(failed.error or '', 1000)} (its run's `error.txt` has the traceback)."]
+    lines += ["", "The step column links each step's nested run; the run column the step's own training or evaluation run."]
+    return "\n".join(lines)
+
+
+def _headline_metrics(reports: list[StepReport], seconds: float) -> dict[str, float]:
+    """The steps' reported metrics prefixed by the step, and the pipeline's own counts."""
+    metrics = {}
+    for r in reports:
+        for k, v in (r.outputs.get("metrics") or {}).items():
+            if not k.endswith("_ci"):  # intervals belong to tables (an evaluation from an older state may report them)
+                metrics[f"{r.name}/{k}"] = float(v)
+    metrics["pipeline/seconds"] = seconds
+    for status in ("ran", "skipped", "failed"):
+        metrics[f"pipeline/steps_{status}"] = float(sum(r.status == status for r in reports))
+    return metrics
+
+
+def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, force: set[str] = frozenset(), experiment: str = "mmm-pipeline",
+              artifact_root: str = "mlartifacts", dataset: Callable[[Context], tuple[str, str, str] | None] | None = None) -> list[StepReport]:
+    """Run `steps` in order under one parent run. `dataset`: (name, root, fingerprint) of the data
+    the pipeline reads, recorded as the parent run's dataset input."""
+    from mlflow.entities import Metric
     from mlflow.tracking import MlflowClient
 
+    from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, git_commit, log_dataset_input, prepare_experiment, run_link, timestamp
     from mmm.training.common import artifact_location
 
     client = MlflowClient(ctx.tracking_uri)
-    found = client.get_experiment_by_name(experiment)
-    experiment_id = found.experiment_id if found else client.create_experiment(experiment, artifact_location=artifact_location(ctx.tracking_uri, artifact_root))
-    parent = client.create_run(experiment_id, run_name=f"pipeline-{name}", tags={"mmm.pipeline": name})
+    experiment_id = prepare_experiment(client, experiment, artifact_location(ctx.tracking_uri, artifact_root))
+    commit = git_commit()
+    parent = client.create_run(experiment_id, run_name=f"pipeline-{name}-{timestamp()}",
+                               tags={"mmm.pipeline": name, **({GIT_COMMIT_TAG: commit} if commit else {})})
+    parent_id = parent.info.run_id
+    parent_link = run_link(experiment_id, parent_id, parent.info.run_name)
+    links = _Links(client)
     state = _load_state(state_file)
     reports: list[StepReport] = []
     status = "FINISHED"
+    pipeline_started = time.perf_counter()
     try:
-        for step in steps:
+        data = dataset(ctx) if dataset is not None else None
+        if data is not None:
+            log_dataset_input(client, parent_id, *data, context="pipeline")
+        for order, step in enumerate(steps, 1):
             inputs = step.inputs(ctx)
             key = step_key(step.name, inputs)
             previous = state.get(step.name, {})
             reuse = step.name not in force and previous.get("key") == key and step.valid(ctx, previous.get("outputs", {}))
-            child = client.create_run(experiment_id, run_name=step.name, tags={"mlflow.parentRunId": parent.info.run_id, "mmm.pipeline": name, "step.key": key})
+            child = client.create_run(experiment_id, run_name=f"{order:02d}-{step.name}", tags={
+                "mlflow.parentRunId": parent_id, "mmm.pipeline": name, "mmm.step": step.name, "mmm.step.order": str(order), "step.key": key,
+            })
+            child_id = child.info.run_id
             started = time.perf_counter()
             try:
                 if reuse:
@@ -98,28 +212,45 @@ def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, forc
                     outputs = step.run(ctx)
                     state[step.name] = {"key": key, "outputs": outputs, "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
                     _save_state(state_file, state)
-            except BaseException:
-                client.set_tag(child.info.run_id, "step.status", "failed")
-                client.log_text(child.info.run_id, traceback.format_exc(), "error.txt")
-                client.set_terminated(child.info.run_id, "FAILED")
-                reports.append(StepReport(step.name, "failed", time.perf_counter() - started, {}, child.info.run_id))
+            except BaseException as error:
+                report = StepReport(step.name, "failed", time.perf_counter() - started, {}, child_id, order,
+                                    f"{type(error).__name__}: {' '.join(str(error).split())}")
+                reports.append(report)
+                client.set_tag(child_id, "step.status", "failed")
+                client.log_text(child_id, traceback.format_exc(), "error.txt")
+                client.set_tag(child_id, DESCRIPTION_TAG, _step_description(report, parent_link, links, None))
+                client.set_terminated(child_id, "FAILED")
                 raise
             seconds = time.perf_counter() - started
             ctx.outputs[step.name] = outputs
-            for k, v in {"step.status": "skipped" if reuse else "ran", **_flat(outputs)}.items():
-                client.set_tag(child.info.run_id, k, v)
+            report = StepReport(step.name, "skipped" if reuse else "ran", seconds, outputs, child_id, order)
+            for k, v in {"step.status": report.status, **_flat(outputs)}.items():
+                client.set_tag(child_id, k, v)
+            client.set_tag(child_id, DESCRIPTION_TAG, _step_description(report, parent_link, links, previous.get("finished") if reuse else None))
             for k, v in json.loads(json.dumps(inputs, default=str)).items():
-                client.log_param(child.info.run_id, f"input.{k}", str(v)[:500])
+                client.log_param(child_id, f"input.{k}", str(v)[:500])
             for k, v in (outputs.get("metrics") or {}).items():
-                client.log_metric(child.info.run_id, k, float(v))
-            client.log_metric(child.info.run_id, "seconds", seconds)
-            client.set_terminated(child.info.run_id, "FINISHED")
-            reports.append(StepReport(step.name, "skipped" if reuse else "ran", seconds, outputs, child.info.run_id))
+                client.log_metric(child_id, k, float(v))
+            client.log_metric(child_id, "seconds", seconds)
+            client.set_terminated(child_id, "FINISHED")
+            reports.append(report)
     except BaseException:
         status = "FAILED"
         raise
     finally:
-        summary = "\n".join(f"{r.name:22s} {r.status:8s} {r.seconds:8.1f} s" for r in reports)
-        client.log_text(parent.info.run_id, summary + "\n", "steps.txt")
-        client.set_terminated(parent.info.run_id, status)
+        seconds = time.perf_counter() - pipeline_started
+        try:
+            summary = "\n".join(f"{r.name:22s} {r.status:8s} {r.seconds:8.1f} s" for r in reports)
+            client.log_text(parent_id, summary + "\n", "steps.txt")
+            now = int(time.time() * 1000)
+            metrics = [Metric(k, v, now, 0) for k, v in _headline_metrics(reports, seconds).items()]
+            for i in range(0, len(metrics), 500):
+                client.log_batch(parent_id, metrics=metrics[i : i + 500])
+            client.set_tag(parent_id, DESCRIPTION_TAG, _pipeline_description(name, steps, reports, status, seconds, links))
+        except Exception:
+            if status == "FINISHED":
+                client.set_terminated(parent_id, "FAILED")
+                raise
+            log.exception("pipeline %s: could not record the failed run's summary", name)  # the step's error is what propagates
+        client.set_terminated(parent_id, status)
     return reports

@@ -78,6 +78,11 @@ def _data_fingerprint(ctx: Context) -> str:
     return ctx.outputs["data_fingerprint"]["value"]
 
 
+def _dataset(ctx: Context) -> tuple[str, str, str]:
+    """The pipeline's data as the parent run's dataset input: (name, root, fingerprint)."""
+    return ctx.cfg.data.name, ctx.cfg.data.root, _data_fingerprint(ctx)
+
+
 def _champion(ctx: Context, name: str) -> str | None:
     """'<name> v<version>' of the current champion, or None."""
     from mlflow.exceptions import MlflowException
@@ -104,8 +109,8 @@ def _trained(result) -> dict:
     return {"run_id": result.run_id, "checkpoint": result.best_checkpoint, "metrics": {k: v for k, v in result.metrics.items() if k.startswith(("val/", "test/"))}}
 
 
-def _promoted(decision) -> dict:
-    return {"version": decision.version, "alias": decision.alias, "reason": decision.reason}
+def _promoted(name: str, decision) -> dict:
+    return {"model": name, "version": decision.version, "alias": decision.alias, "reason": decision.reason}
 
 
 # -- the steps -------------------------------------------------------------------------------------
@@ -134,7 +139,7 @@ def _promote_step(kind: str, source_step: str | None) -> Step:
         from mmm.registry.promote import load_promote_config, promote
 
         chosen = candidate(ctx)
-        return _promoted(promote(kind, load_promote_config([*_common(ctx), *([f"candidate={chosen}"] if chosen else []), *ctx.cfg.overrides.promote])))
+        return _promoted(name, promote(kind, load_promote_config([*_common(ctx), *([f"candidate={chosen}"] if chosen else []), *ctx.cfg.overrides.promote])))
 
     return Step(f"promote-{kind}", inputs, run, lambda ctx, outputs: _champion(ctx, name) is not None)
 
@@ -254,4 +259,4 @@ def run_pipeline(name: str, cfg_node: DictConfig, force: list[str] = (), overrid
     ctx = Context(cfg, resolve_tracking_uri(cfg.logger.tracking_uri), shared_overrides(list(overrides)))
     steps = [STEPS[s]() for s in PIPELINES[name]]
     forced = set(PIPELINES[name]) if "all" in force else set(force)
-    return run_steps(name, steps, ctx, Path(cfg.state_file), forced, artifact_root=cfg.logger.artifact_root)
+    return run_steps(name, steps, ctx, Path(cfg.state_file), forced, artifact_root=cfg.logger.artifact_root, dataset=_dataset)

@@ -5,7 +5,10 @@ Candidates default to the newest finished run of the kind's experiment. Metrics 
 on the configured data (its fingerprint is recorded) with the champion evaluator (or the newest
 one): tokenizer: reconstruction MPJPE and FID on the split; text2motion: the protocol (reduced
 by conf/promote.yaml); evaluator: its own test retrieval numbers from training; upperbody (the
-part-aware model): upper-body editing adherence on labelled data (no evaluator needed).
+part-aware model): upper-body editing adherence on labelled data (no evaluator needed). The
+version is tagged with the criteria's metrics (and their intervals) and described in markdown:
+what it is, the criteria with its and the champion's values, the verdict and why, every measured
+number, and links to the model's run and the previous champion.
 """
 
 from __future__ import annotations
@@ -19,17 +22,27 @@ from omegaconf import DictConfig
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import ProtocolConfig
-from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, Criterion, Decision, promote_version, register_version, version_tags
+from mmm.registry.promotion import (
+    CI_SUFFIX, EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, Criterion, Decision, promote_version, register_version, version_tags,
+)
 from mmm.training.common import TrackingConfig, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 
 EXPERIMENTS = {"tokenizer": "mmm-stage1", "text2motion": "mmm-stage2", "evaluator": "mmm-evaluator", "upperbody": "mmm-stage2-parts"}
+# The registered models' own descriptions (each version's description says what that version is and why it has its alias).
+MODEL_DESCRIPTIONS = {
+    TOKENIZER: "Stage-1 motion tokenizers (VQ-VAE), promoted on reconstruction (conf/promote.yaml `criteria.tokenizer`).",
+    TEXT2MOTION: "Text-to-motion bundles (tokenizer, transformer, normalization, text encoder), promoted on the evaluation protocol "
+                 "(conf/promote.yaml `criteria.text2motion`); `@champion` is what generation uses by default.",
+    EVALUATOR: "Contrastive text-motion evaluators: the yardstick generators are promoted with (conf/promote.yaml `criteria.evaluator`).",
+    UPPERBODY: "Part-aware models for upper-body editing, promoted on editing adherence (conf/promote.yaml `criteria.upperbody`).",
+}
 
 
 @dataclass
 class Criteria:
-    tokenizer: list[Criterion] = field(default_factory=lambda: [Criterion("recon/mpjpe_mm", "min", 0.0)])
+    tokenizer: list[Criterion] = field(default_factory=lambda: [Criterion("recon/mpjpe_root_aligned_mm", "min", 0.0)])
     text2motion: list[Criterion] = field(default_factory=lambda: [Criterion("generated/fid", "min", 0.0)])
     evaluator: list[Criterion] = field(default_factory=lambda: [Criterion("test/r_precision_top1", "max", 0.0)])
     upperbody: list[Criterion] = field(default_factory=lambda: [Criterion("upper_body/both", "max", 0.0)])
@@ -94,6 +107,28 @@ def _evaluator(cfg: PromoteConfig, tracking_uri: str, required: bool):
         return None
 
 
+def _decision_metrics(metrics: dict[str, float], intervals: dict[str, float], criteria: list[Criterion]) -> dict[str, float]:
+    """The metrics a version is tagged with: the criteria's, each with its interval where it has one."""
+    chosen = {}
+    for c in criteria:
+        if c.metric in metrics:
+            chosen[c.metric] = metrics[c.metric]
+            if c.metric in intervals:
+                chosen[c.metric + CI_SUFFIX] = intervals[c.metric]
+        else:
+            log.warning("criterion %s was not measured (measured: %s): the candidate cannot beat a champion on it", c.metric,
+                        ", ".join(sorted(metrics)) or "nothing")
+    return chosen
+
+
+def _measurements(metrics: dict[str, float], intervals: dict[str, float]) -> str:
+    """Every measured number, for the version's description (its tags keep only the criteria's)."""
+    def value(k):
+        return f"{metrics[k]:.4g}" + (f" ± {intervals[k]:.2g}" if k in intervals else "")
+
+    return "; all measured: " + ", ".join(f"`{k}` {value(k)}" for k in sorted(metrics)) if metrics else ""
+
+
 def promote(kind: str, cfg_node: DictConfig) -> Decision:
     from mlflow.tracking import MlflowClient
 
@@ -110,18 +145,25 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     criteria = getattr(cfg.criteria, kind)
     config_hash = run.data.tags.get("config.hash")
     root = Path(cfg.data.root)
+    intervals: dict[str, float] = {}
     if kind == "evaluator":
         metrics = {k: v for k, v in run.data.metrics.items() if k.startswith("test/")}
         existing = [v for v in client.search_model_versions(f"name='{EVALUATOR}'") if v.run_id == run_id]
         fingerprint = run.data.tags.get("data.fingerprint", "")
-        tags = version_tags(metrics, fingerprint, None, config_hash, {"text_encoder": run.data.tags.get("text_encoder", "")})
+        tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, None, config_hash,
+                            {"text_encoder": run.data.tags.get("text_encoder", "")})
+        about = ("The package's own contrastive text-motion evaluator (motion encoder and text head over the frozen sentence embeddings of "
+                 f"`{tags['text_encoder'] or '?'}`): the yardstick generators are promoted with. Source: the checkpoints of its training run.")
         if existing:
             version = existing[0]
             for key, value in tags.items():
                 client.set_model_version_tag(EVALUATOR, version.version, key, value)
+            if version.description and not version.description.startswith("### "):
+                about += f" Registered by its training: {version.description}"
         else:
-            version = register_version(client, EVALUATOR, f"runs:/{run_id}/checkpoints", run_id, tags)
-        return promote_version(client, EVALUATOR, version.version, criteria, needs_evaluator=False)
+            version = register_version(client, EVALUATOR, f"runs:/{run_id}/checkpoints", run_id, tags, about, MODEL_DESCRIPTIONS[EVALUATOR])
+        measured = f"retrieval on the {run.data.tags.get('data.name', 'data')} test split, by its training run{_measurements(metrics, intervals)}"
+        return promote_version(client, EVALUATOR, version.version, criteria, needs_evaluator=False, about=about, measured=measured)
     fingerprint = dataset_fingerprint(root)
     checkpoint = download_artifact(uri, run_id, "checkpoints/best.ckpt", "outputs/cache/models")
     if kind == "tokenizer":
@@ -136,9 +178,17 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         recon = reconstruction_metrics(tokenizer, evaluator, clips)
         metrics = {f"recon/{k}": v for k, v in recon.items() if k != "clips"}
         metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
-        tags = version_tags(metrics, fingerprint, getattr(evaluator, "identity", None), config_hash, {"tokenizer.identity": tensors_fingerprint(tokenizer.state_dict())})
-        version = register_version(client, TOKENIZER, f"runs:/{run_id}/checkpoints", run_id, tags)
-        return promote_version(client, TOKENIZER, version.version, criteria, needs_evaluator=any(c.metric == "recon/fid" for c in criteria))
+        identity = tensors_fingerprint(tokenizer.state_dict())
+        tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, getattr(evaluator, "identity", None), config_hash,
+                            {"tokenizer.identity": identity})
+        about = (f"Stage-1 motion tokenizer (VQ-VAE: motion features to codes and back, with its feature normalization), weights `{identity}`. "
+                 "Source: the checkpoints of its training run.")
+        measured = (f"reconstruction of the {cfg.split} split ({recon['clips']} clips) by `mmm promote`"
+                    + (f", FID with evaluator `{evaluator.identity}`" if evaluator is not None else "") + "; `val/*` from the training run"
+                    + _measurements(metrics, intervals))
+        version = register_version(client, TOKENIZER, f"runs:/{run_id}/checkpoints", run_id, tags, about, MODEL_DESCRIPTIONS[TOKENIZER])
+        return promote_version(client, TOKENIZER, version.version, criteria, needs_evaluator=any(c.metric == "recon/fid" for c in criteria),
+                               about=about, measured=measured)
     # text2motion and upperbody: measure, bundle, register.
     import torch
 
@@ -160,10 +210,13 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         if (root / "labels").is_dir():
             result = upper_body_adherence(model, root, cfg.split, check.max_sources, check.lower_mask, check.seed)
             metrics = {f"upper_body/{k}": v for k, v in result.items() if isinstance(v, float)}
-            extra.update({"upper_body.edits": result["edits"], "upper_body.lower_mask": check.lower_mask})
+            extra["upper_body.edits"] = result["edits"]
+            measured = (f"upper-body editing adherence by `mmm promote` on the {cfg.split} split's labels: {result['edits']} edits of "
+                        f"{result['sources']} walking/squatting clips, lower-body mask {check.lower_mask}, checked by the synthetic action checker")
         else:  # no action labels to check edits against: only the run's validation numbers
             log.warning("%s has no labels/: upper-body adherence not measured; criteria on upper_body/* cannot be met", root)
             metrics = {}
+            measured = f"not measured: {root} has no labels/ to check edits against"
         evaluator_identity, name, description = None, UPPERBODY, "part-aware model for upper-body editing: tokenizer (lower/upper), transformer, text encoder"
     else:
         from mmm.data.humanml3d import load_items, load_stats
@@ -177,23 +230,37 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
                               length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
         mean, std = load_stats(root, cfg.data.feature_dim)
         result = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol, progress=False)
-        metrics = {f"generated/{m}": v[0] for m, v in result["generated"].items()}
-        metrics.update({f"real/{m}": v[0] for m, v in result["real"].items()})
+        metrics, intervals = {}, {}
+        for which in ("generated", "real"):
+            for m, (value, ci) in result[which].items():
+                metrics[f"{which}/{m}"], intervals[f"{which}/{m}"] = value, ci
         evaluator_identity, name, description = evaluator.identity, TEXT2MOTION, "text-to-motion bundle: tokenizer, transformer, normalization, text encoder"
-        extra["replications"] = cfg.protocol.replications
+        p = cfg.protocol
+        batches = "all the split's batches" if p.max_batches is None else f"at most {p.max_batches} batches"
+        measured = (f"the text-to-motion protocol on the {cfg.split} split by `mmm promote` with evaluator `{evaluator.identity}`: {p.replications} "
+                    f"replications over {batches} of {p.batch_size}")
     metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
     info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint)
-    tags = version_tags(metrics, fingerprint, evaluator_identity, config_hash, extra)
-    version = register_version(client, name, info.model_uri, run_id, tags, description)
-    return promote_version(client, name, version.version, criteria, needs_evaluator=kind == "text2motion")
+    tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, evaluator_identity, config_hash, extra)
+    about = (f"{description[0].upper()}{description[1:]}. An MLflow pyfunc model (`{info.model_uri}`, logged in the candidate's run as "
+             f"`bundle`); stage-1 weights `{extra['stage1.identity']}`, text encoder `{extra['text_encoder']}`.")
+    version = register_version(client, name, info.model_uri, run_id, tags, about, MODEL_DESCRIPTIONS[name])
+    return promote_version(client, name, version.version, criteria, needs_evaluator=kind == "text2motion", about=about,
+                           measured=measured + _measurements(metrics, intervals))
 
 
 def _log_bundle(uri: str, run_id: str, checkpoint: str, tokenizer_checkpoint: str):
-    """The bundle logged into the candidate's own run."""
+    """The bundle logged into the candidate's own run, whose status and end time are then put back:
+    its duration in the dashboard stays the training's, not training until promotion."""
     import mlflow
 
     from mmm.registry.bundle import log_bundle
 
     mlflow.set_tracking_uri(uri)
-    with mlflow.start_run(run_id=run_id):
-        return log_bundle(checkpoint, tokenizer_checkpoint, artifact_path="bundle")
+    before = mlflow.MlflowClient(uri).get_run(run_id).info
+    try:
+        with mlflow.start_run(run_id=run_id):
+            return log_bundle(checkpoint, tokenizer_checkpoint, artifact_path="bundle")
+    finally:
+        if before.end_time:
+            mlflow.MlflowClient(uri).set_terminated(run_id, before.status, end_time=before.end_time)

@@ -4,15 +4,21 @@ Three registered models (MLflow Model Registry, aliases rather than the deprecat
     mmm-tokenizer     stage-1 checkpoints  (source runs:/<stage-1 run>/checkpoints)
     mmm-text2motion   the pyfunc bundle    (tokenizer + transformer + normalization + text encoder)
     mmm-evaluator     the own evaluator    (source runs:/<evaluator run>/checkpoints)
-Every version is tagged with its metrics (`metric.<name>`), the config hash, the data
-fingerprint, the evaluator identity its metrics came from, and the code version. The alias
-`champion` moves to a candidate only when it beats the current champion on every configured
-metric by the configured margin, measured on the same data fingerprint with the same evaluator;
-otherwise the candidate gets `challenger` and the decision says why.
+Every version is tagged with what its decision needs: the criteria's metrics (`metric.<name>`,
+and `metric.<name>_ci` where the metric has a confidence interval), the data fingerprint, the
+evaluator identity its metrics came from, the config hash, the code version, the identities of
+its parts, and `promotion` (alias and reason). The alias `champion` moves to a candidate only when
+it beats the current champion on every configured metric by the configured margin, measured on the
+same data fingerprint with the same evaluator; otherwise the candidate gets `challenger`. The
+version's description (markdown, shown by the dashboard) says what the model is, the criteria,
+both values, the margin needed, the verdict with its reason, and links to the run that measured
+it and to the previous champion. A bundle version is linked to its logged model (the model's page
+shows its registered versions).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 from dataclasses import dataclass, field
@@ -37,6 +43,9 @@ class Decision:
     version: str
     previous_champion: str | None = None
     comparisons: list[str] = field(default_factory=list)
+
+
+CI_SUFFIX = "_ci"  # the protocol's interval of a metric (1.96·std/sqrt(n)), logged alongside it
 
 
 def code_version() -> str:
@@ -64,23 +73,60 @@ def version_tags(metrics: dict[str, float], data_fingerprint: str, evaluator: st
     return tags
 
 
-def register_version(client, name: str, source: str, run_id: str | None, tags: dict[str, str], description: str = ""):
+def register_version(client, name: str, source: str, run_id: str | None, tags: dict[str, str], description: str = "", model_description: str | None = None):
     """A new version of `name` (created if missing) with `tags`. `source` is runs:/ID/PATH or a
-    logged model's models:/m-ID (whose id a tracking server needs to be told as well)."""
+    logged model's models:/m-ID; for the latter the version is registered as the logged model's
+    (its id passed along) and the logged model records the version, as `mlflow.register_model`
+    does, so the model's page shows it as registered. `model_description`: the registered model's
+    own, when this creates it (default: `description`)."""
     from mlflow.exceptions import MlflowException
 
     try:
         client.get_registered_model(name)
     except MlflowException:
-        client.create_registered_model(name, tags={"mmm.kind": name.removeprefix("mmm-")}, description=description)
+        try:
+            client.create_registered_model(name, tags={"mmm.kind": name.removeprefix("mmm-")},
+                                          description=description if model_description is None else model_description)
+        except MlflowException as e:  # another process created it meanwhile
+            if "ALREADY_EXISTS" not in str(e.error_code):
+                raise
     model_id = source[len("models:/"):] if source.startswith("models:/m-") else None
     version = client.create_model_version(name, source, run_id=run_id, tags=tags, description=description, model_id=model_id)
+    if model_id:
+        link_logged_model(client, model_id, name, version.version)
     return version
+
+
+def link_logged_model(client, model_id: str, name: str, version) -> None:
+    """Record `name` `version` on logged model `model_id` the way `mlflow.register_model` does (its
+    `mlflow.modelVersions` tag, a JSON list of {name, version}), which the dashboard reads for the
+    model's "Registered" state. A tracking server already writes it when the version is created
+    with the model id; an entry already there is not added twice."""
+    from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
+
+    existing = client.get_logged_model(model_id).tags.get(MLFLOW_MODEL_VERSIONS)
+    entries = json.loads(existing) if existing else []
+    if any(e.get("name") == name and str(e.get("version")) == str(version) for e in entries):
+        return
+    client.set_logged_model_tags(model_id, {MLFLOW_MODEL_VERSIONS: json.dumps([*entries, {"name": name, "version": version}])})
 
 
 def _metric(version, name: str) -> float | None:
     value = version.tags.get(f"metric.{name}")
     return float(value) if value not in (None, "") else None
+
+
+def _target(c: Criterion, old: float) -> float:
+    return old - c.margin if c.mode == "min" else old + c.margin
+
+
+def _is_better(c: Criterion, new: float, old: float) -> bool:
+    # Strictly: a tie (the same model trained again) does not take the alias.
+    return new < _target(c, old) if c.mode == "min" else new > _target(c, old)
+
+
+def _relation(c: Criterion) -> str:
+    return "<" if c.mode == "min" else ">"
 
 
 def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool) -> tuple[bool, str, list[str]]:
@@ -99,11 +145,8 @@ def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool
         if new is None or old is None:
             failures.append(f"{c.metric} missing ({'candidate' if new is None else 'champion'})")
             continue
-        # Strictly: a tie (the same model trained again) does not take the alias.
-        better = new < old - c.margin if c.mode == "min" else new > old + c.margin
-        relation = "<" if c.mode == "min" else ">"
-        target = old - c.margin if c.mode == "min" else old + c.margin
-        line = f"{c.metric}: {new:.4g} vs champion {old:.4g} (needs {relation} {target:.4g}): {'better' if better else 'not better'}"
+        better = _is_better(c, new, old)
+        line = f"{c.metric}: {new:.4g} vs champion {old:.4g} (needs {_relation(c)} {_target(c, old):.4g}): {'better' if better else 'not better'}"
         comparisons.append(line)
         if not better:
             failures.append(line)
@@ -112,8 +155,11 @@ def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool
     return True, "beats the champion on " + ", ".join(c.metric for c in criteria), comparisons
 
 
-def promote_version(client, name: str, version: str, criteria: list[Criterion], needs_evaluator: bool = True) -> Decision:
-    """Give `version` of `name` the alias champion (if it beats the current one) or challenger."""
+def promote_version(client, name: str, version: str, criteria: list[Criterion], needs_evaluator: bool = True, about: str = "",
+                    measured: str = "") -> Decision:
+    """Give `version` of `name` the alias champion (if it beats the current one) or challenger, and
+    write why into its description. `about`: what the model is (default: the version's description
+    as registered); `measured`: how its metrics were measured (one sentence)."""
     from mlflow.exceptions import MlflowException
 
     candidate = client.get_model_version(name, version)
@@ -122,16 +168,117 @@ def promote_version(client, name: str, version: str, criteria: list[Criterion], 
     except MlflowException:
         champion = None
     if champion is not None and champion.version == candidate.version:
-        return Decision(True, "champion", "already the champion", candidate.version, champion.version)
-    promoted, reason, comparisons = decide(candidate, champion, criteria, needs_evaluator)
-    alias = "champion" if promoted else "challenger"
-    client.set_registered_model_alias(name, alias, candidate.version)
-    client.set_model_version_tag(name, candidate.version, "promotion", f"{alias}: {reason}")
-    return Decision(promoted, alias, reason, candidate.version, champion.version if champion else None, comparisons)
+        decision = Decision(True, "champion", "already the champion", candidate.version, champion.version)
+        if not _registered_about(candidate) and candidate.description:
+            return decision  # its promotion's tag and description still say why it is the champion
+        champion = None  # described as itself: there is no other version to compare with
+    else:
+        promoted, reason, comparisons = decide(candidate, champion, criteria, needs_evaluator)
+        alias = "champion" if promoted else "challenger"
+        client.set_registered_model_alias(name, alias, candidate.version)
+        client.set_model_version_tag(name, candidate.version, "promotion", f"{alias}: {reason}")
+        decision = Decision(promoted, alias, reason, candidate.version, champion.version if champion else None, comparisons)
+    text = describe_version(client, name, candidate, champion, criteria, decision, about or _registered_about(candidate), measured)
+    client.update_model_version(name, candidate.version, description=text)
+    if decision.promoted and champion is not None and champion.version != candidate.version:
+        _note_replaced(client, name, champion, candidate.version)
+    return decision
+
+
+def _note_replaced(client, name: str, previous, version) -> None:
+    """Tell the previous champion's description who took the alias, and when."""
+    import time
+
+    from mmm.tracking import version_link
+
+    note = f"- **Replaced** as champion by {version_link(name, version)} on {time.strftime('%Y-%m-%d %H:%M')}"
+    client.update_model_version(name, previous.version, description="\n".join(filter(None, [previous.description or "", note])))
+
+
+_DESCRIPTION_TITLE = "### "
+
+
+def _registered_about(version) -> str:
+    """The description a version was registered with, unless it is a promotion's own (re-promoted)."""
+    text = (version.description or "").strip()
+    return "" if text.startswith(_DESCRIPTION_TITLE) else text
+
+
+def _value(version, metric: str) -> str:
+    value = _metric(version, metric) if version is not None else None
+    if value is None:
+        return "not measured"
+    ci = _metric(version, metric + CI_SUFFIX)
+    return f"{value:.4g}" + (f" ± {ci:.2g}" if ci is not None else "")
+
+
+def describe_version(client, name: str, candidate, champion, criteria: list[Criterion], decision: Decision, about: str = "", measured: str = "") -> str:
+    """The version's markdown description: what it is, the criteria with both values and the
+    margin needed, the verdict and its reason, the run that measured it, the previous champion."""
+    from mlflow.exceptions import MlflowException
+
+    from mmm.tracking import run_link, version_link
+
+    tags = candidate.tags
+    verdict = "promoted to `champion`" if decision.promoted else "`challenger`, not promoted"
+    lines = [f"{_DESCRIPTION_TITLE}{name} v{candidate.version}: {verdict}", ""]
+    if about:
+        lines += [about, ""]
+    lines += [f"**Verdict: {decision.alias}.** {decision.reason[:1].upper()}{decision.reason[1:]}.", ""]
+    compared = champion is not None and not decision.reason.startswith("measured ")
+    champion_head = f"champion (v{champion.version})" if champion is not None else "champion"
+    lines += [f"| criterion | mode | margin | candidate (v{candidate.version}) | {champion_head} | needs | result |", "|---|---|---|---|---|---|---|"]
+    for c in criteria:
+        new, old = _metric(candidate, c.metric), _metric(champion, c.metric) if champion is not None else None
+        if champion is None:
+            needs, result = "-", "no champion to beat" if decision.reason == "no champion yet" else "-"
+        elif old is None:
+            needs, result = "-", "champion not measured"
+        else:
+            needs = f"{_relation(c)} {_target(c, old):.4g}"
+            if not compared:
+                result = "not compared"
+            elif new is None:
+                result = "candidate not measured"
+            else:
+                result = "better" if _is_better(c, new, old) else "not better"
+        mode = "min (lower is better)" if c.mode == "min" else "max (higher is better)"
+        lines.append(f"| `{c.metric}` | {mode} | {c.margin:g} | {_value(candidate, c.metric)} | "
+                     f"{_value(champion, c.metric) if champion is not None else '-'} | {needs} | {result} |")
+    lines.append("")
+    if any(_metric(candidate, c.metric + CI_SUFFIX) is not None for c in criteria):
+        lines += ["± : the 95% confidence interval over the protocol's replications (1.96·std/sqrt(n)).", ""]
+    facts = []
+    if measured:
+        facts.append(f"- **Measured**: {measured}")
+    facts.append(f"- **Data** `{tags.get('data.fingerprint') or '?'}`" + (f", evaluator `{tags['evaluator']}`" if tags.get("evaluator") else ""))
+    if candidate.run_id:
+        try:
+            run = client.get_run(candidate.run_id)
+            facts.append(f"- **Run**: {run_link(run.info.experiment_id, run.info.run_id, run.info.run_name or run.info.run_id)} "
+                         "(the model's own run: its training curves and files)")
+        except MlflowException:
+            facts.append(f"- **Run**: `{candidate.run_id}` (no longer in this store)")
+    if decision.reason == "already the champion":
+        facts.append("- **Previous champion**: this version itself (promoted again)")
+    elif decision.previous_champion is not None:
+        after = "replaced by this version" if decision.promoted else "stays champion"
+        facts.append(f"- **Previous champion**: {version_link(name, decision.previous_champion)} ({after})")
+    else:
+        facts.append("- **Previous champion**: none (the first version promoted)")
+    facts.append(f"- **Source** `{candidate.source}`; code `{tags.get('code.version') or '?'}`, config hash `{tags.get('config.hash') or '-'}`")
+    return "\n".join(lines + facts)
+
+
+def _verdict(version) -> str:
+    """`<alias>: <reason>` of the version's promotion, on one line."""
+    text = version.tags.get("promotion")
+    return " ".join(text.split()) if text else "not promoted (registered without a decision)"
 
 
 def list_models(client, names=(TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY)) -> str:
-    """A text table of every version of the package's registered models: aliases, metrics, data."""
+    """A text table of every version of the package's registered models: its aliases, then its
+    promotion's verdict and reason, then its metrics and data."""
     from mlflow.exceptions import MlflowException
 
     lines = []
@@ -147,9 +294,9 @@ def list_models(client, names=(TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY)) ->
         lines.append(f"{name}:")
         versions = sorted(client.search_model_versions(f"name='{name}'"), key=lambda v: int(v.version))
         for v in versions:
-            metrics = ", ".join(f"{k[7:]}={float(val):.4g}" for k, val in sorted(v.tags.items()) if k.startswith("metric."))
-            mark = ",".join(aliases.get(str(v.version), [])) or "-"
-            lines.append(f"  v{v.version:<3} {mark:<12} data {v.tags.get('data.fingerprint', '?')}  {metrics}")
-            if v.tags.get("promotion"):
-                lines.append(f"       {v.tags['promotion']}")
+            metrics = ", ".join(f"{k[7:]}={float(val):.4g}" for k, val in sorted(v.tags.items())
+                                if k.startswith("metric.") and not k.endswith(CI_SUFFIX) and val not in ("", None))
+            mark = ",".join(sorted(aliases.get(str(v.version), []))) or "-"
+            lines.append(f"  v{v.version:<3} {mark:<12} {_verdict(v)}")
+            lines.append(f"       data {v.tags.get('data.fingerprint') or '?'}  {metrics}")
     return "\n".join(lines)

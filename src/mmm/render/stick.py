@@ -595,8 +595,9 @@ def _prepare(motions, captions, size, names: list[str] | None = None):
 # ----------------------------------------------------------------------------------------------
 
 
-def frames(motions, captions=None, size=(320, 320), *, _names: list[str] | None = None) -> list[Image.Image]:
-    """One image per frame of the longest motion, the motions side by side (each `size` wide).
+def frames(motions, captions=None, size=(320, 320), *, columns: int | None = None, _names: list[str] | None = None) -> list[Image.Image]:
+    """One image per frame of the longest motion, the motions side by side (each `size` wide), or
+    in rows of `columns` panels (e.g. references above their reconstructions).
 
     Returns palette ("P") images sharing `PALETTE`; `.convert("RGB")` for RGB. A motion shorter
     than the longest holds its last frame, greyed and marked "done".
@@ -617,15 +618,19 @@ def frames(motions, captions=None, size=(320, 320), *, _names: list[str] | None 
             headers.append(None)
     T = max(p.T for p in panels)
     n = len(panels)
+    cols = max(1, min(columns or n, n))
+    rows = (n + cols - 1) // cols
     out = []
     for t in range(T):
-        frame = _new_image(width * n, height)
+        frame = _new_image(width * cols, height * rows)
         for i, (panel, header) in enumerate(zip(panels, headers)):
-            frame.paste(panel.render(t, header), (i * width, 0))
+            frame.paste(panel.render(t, header), ((i % cols) * width, (i // cols) * height))
         if n > 1:
             draw = ImageDraw.Draw(frame)
-            for i in range(1, n):
-                draw.line((i * width, 0, i * width, height), fill=COLOR["separator"], width=1)
+            for i in range(1, cols):
+                draw.line((i * width, 0, i * width, height * rows), fill=COLOR["separator"], width=1)
+            for r in range(1, rows):
+                draw.line((0, r * height, width * cols, r * height), fill=COLOR["separator"], width=1)
         out.append(frame)
     return out
 
@@ -661,9 +666,10 @@ def _save_gif(images: list[Image.Image], out_path, fps: float) -> Path:
     return _write_atomic(out_path, write)
 
 
-def render_gif(motions, out_path, captions=None, fps: float = 20.0, size=(320, 320)) -> Path:
-    """Write an animated GIF (looping forever, one frame per motion frame) of the motions side by side."""
-    return _save_gif(frames(motions, captions, size), out_path, fps)
+def render_gif(motions, out_path, captions=None, fps: float = 20.0, size=(320, 320), columns: int | None = None) -> Path:
+    """Write an animated GIF (looping forever, one frame per motion frame) of the motions side by
+    side, or in rows of `columns`."""
+    return _save_gif(frames(motions, captions, size, columns=columns), out_path, fps)
 
 
 _ffmpeg_missing_logged = False
@@ -751,17 +757,22 @@ def _sheet(loaded, captions, num_frames: int, size) -> Image.Image:
     return sheet
 
 
+def contact_sheet(motions, captions=None, num_frames: int = 6, size=(240, 240)) -> Image.Image:
+    """The `render_frames` sheet as an RGB image (one row per motion, evenly spaced frames)."""
+    if int(num_frames) < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    loaded, captions, _, _ = _prepare(motions, captions, size)
+    return _sheet(loaded, captions, int(num_frames), size).convert("RGB")
+
+
 def render_frames(motions, out_png, captions=None, num_frames: int = 6, size=(240, 240)) -> Path:
     """Write a PNG contact sheet: one row per motion, `num_frames` evenly spaced frames per row.
 
     The sheet is (num_frames · size[0]) × (motions · size[1]) pixels; each row's caption is
     drawn across the top of the row.
     """
-    if int(num_frames) < 1:
-        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
-    loaded, captions, _, _ = _prepare(motions, captions, size)
-    sheet = _sheet(loaded, captions, int(num_frames), size)
-    return _write_atomic(out_png, lambda tmp: sheet.convert("RGB").save(tmp, format="PNG"))
+    sheet = contact_sheet(motions, captions, num_frames, size)
+    return _write_atomic(out_png, lambda tmp: sheet.save(tmp, format="PNG"))
 
 
 def load_motion_file(path) -> np.ndarray:

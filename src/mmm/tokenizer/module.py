@@ -84,7 +84,7 @@ class TokenizerModule(L.LightningModule):
         mean = torch.as_tensor(mean if mean is not None else np.zeros(feature_dim), dtype=torch.float32)
         std = torch.as_tensor(std if std is not None else np.ones(feature_dim), dtype=torch.float32)
         # Plain dicts, so checkpoints load with torch.load(weights_only=True).
-        self.save_hyperparameters({"feature_dim": feature_dim, "model": asdict(model), "optim": asdict(optim), "loss": asdict(loss)})
+        self.save_hyperparameters({"feature_dim": feature_dim, "model": asdict(model), "optim": asdict(optim), "loss": asdict(loss)}, logger=False)
         self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
         self.tokenizer = PartAwareTokenizer(feature_dim, model) if model.part_aware else MotionTokenizer(feature_dim, model)
         self.skeleton = skeleton_for(feature_dim)
@@ -142,8 +142,9 @@ class TokenizerModule(L.LightningModule):
         for name, quantizer in self.quantizers.items():
             active = quantizer.window_active()
             metrics[metric_name("codebook", name, "perplexity")] = out.perplexities[name]
-            metrics[metric_name("codebook", name, "active_in_window")] = float(active)
-            metrics[metric_name("codebook", name, "active_fraction")] = active / quantizer.num_codes
+            # Codes used since the last reset (the collapse monitor's window is another: collapse/*).
+            metrics[metric_name("codebook", name, "used_since_reset")] = float(active)
+            metrics[metric_name("codebook", name, "used_since_reset_fraction")] = active / quantizer.num_codes
         self.log_dict(metrics, prog_bar=False, on_step=True, on_epoch=False)
         self.log("loss", loss, prog_bar=True, logger=False)
         return loss
@@ -177,7 +178,7 @@ class TokenizerModule(L.LightningModule):
         self.log_dict(
             {
                 "val/recon": self.val_recon.compute(),
-                "val/mpjpe_mm": self.val_mpjpe.compute(),
+                "val/mpjpe_root_aligned_mm": self.val_mpjpe.compute(),
                 "val/mpjpe_global_mm": self.val_mpjpe_global.compute(),
             },
             prog_bar=True,
@@ -190,4 +191,4 @@ class TokenizerModule(L.LightningModule):
         cfg = self.optim_cfg
         optimizer = torch.optim.AdamW(self.parameters(), lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=True)
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"}}

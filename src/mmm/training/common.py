@@ -1,4 +1,6 @@
-"""What both stages share: trainer and strategy from config, MLflow tracking, checkpoints, resume."""
+"""What the trainers share: trainer and strategy from config, MLflow tracking, checkpoints, resume,
+and `tracked_fit`, which runs a fit as one tracked MLflow run (each trainer only builds its data
+and module)."""
 
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.runs import shared_run_directory
 from mmm.transformer.network import TransformerConfig
 
 log = logging.getLogger(__name__)
@@ -64,7 +67,7 @@ class TrackingConfig:
 
 @dataclass
 class CheckpointConfig:
-    monitor: str = "val/mpjpe_mm"
+    monitor: str = "val/mpjpe_root_aligned_mm"
     mode: str = "min"
 
 
@@ -100,12 +103,12 @@ def artifact_location(tracking_uri: str, artifact_root: str) -> str | None:
     return Path(artifact_root).resolve().as_uri()
 
 
-def build_logger(cfg: TrackingConfig, run_id: str | None = None) -> MLFlowLogger | None:
+def build_logger(cfg: TrackingConfig, run_id: str | None = None, run_name: str | None = None) -> MLFlowLogger | None:
     if not cfg.enabled:
         return None
     return MLFlowLogger(
         experiment_name=cfg.experiment,
-        run_name=cfg.run_name,
+        run_name=cfg.run_name or run_name,
         tracking_uri=resolve_tracking_uri(cfg.tracking_uri),
         artifact_location=artifact_location(cfg.tracking_uri, cfg.artifact_root),
         run_id=run_id,
@@ -179,11 +182,14 @@ def read_checkpoint_meta(path: str | Path) -> dict:
     return {"mlflow_run_id": ckpt.get("mlflow_run_id"), "global_step": ckpt.get("global_step"), "hyper_parameters": ckpt.get("hyper_parameters")}
 
 
-def flatten_config(cfg: DictConfig) -> dict[str, str]:
-    """Dotted key -> value string of a resolved config, for MLflow params."""
+def flatten_config(cfg: DictConfig, exclude: tuple[str, ...] = ()) -> dict[str, str]:
+    """Dotted key -> value string of a resolved config, for MLflow params; keys in `exclude`
+    (dotted prefixes) are left out."""
     out: dict[str, str] = {}
 
     def walk(node, prefix: str) -> None:
+        if prefix and any(prefix == e or prefix.startswith(e + ".") for e in exclude):
+            return
         if isinstance(node, dict):
             for k, v in node.items():
                 walk(v, f"{prefix}.{k}" if prefix else str(k))
@@ -195,14 +201,22 @@ def flatten_config(cfg: DictConfig) -> dict[str, str]:
 
 
 @rank_zero_only
-def log_config(logger: MLFlowLogger | None, cfg: DictConfig, resumed: bool) -> None:
+def log_config(logger: MLFlowLogger | None, cfg: DictConfig, resumed: bool, exclude: tuple[str, ...] = ()) -> None:
+    """The resolved config as params (once, one spelling: the modules' own hyper-parameters are not
+    logged) and config.yaml; `exclude`: what this command does not use."""
     if logger is None:
         return
     from mmm.config import config_hash
 
     if not resumed:  # MLflow params are immutable: a resumed run keeps those it was started with
-        logger.log_hyperparams(flatten_config(cfg))
-        logger.experiment.set_tag(logger.run_id, "config.hash", config_hash(cfg))
+        params = flatten_config(cfg, exclude)
+        client, run_id = logger.experiment, logger.run_id
+        from mlflow.entities import Param
+
+        items = [Param(k, v) for k, v in params.items()]
+        for i in range(0, len(items), 100):  # the store's batch limit
+            client.log_batch(run_id, params=items[i : i + 100])
+        client.set_tag(run_id, "config.hash", config_hash(cfg))
     logger.experiment.log_text(logger.run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
 
 
@@ -224,6 +238,43 @@ def log_checkpoints(logger: MLFlowLogger | None, best: ModelCheckpoint, last: Mo
     return paths
 
 
+def model_label(model_cfg) -> str:
+    """`tiny`, `paper` or `custom`: which conf/model file the sizes are."""
+    from dataclasses import asdict, is_dataclass
+
+    from mmm.config import conf_dir
+
+    ours = asdict(model_cfg) if is_dataclass(model_cfg) else dict(model_cfg)
+    for path in sorted((conf_dir() / "model").glob("*.yaml")):
+        known = OmegaConf.to_container(OmegaConf.load(path))
+        if all(ours.get(part, {}) | dict(values) == ours.get(part, {}) for part, values in known.items() if isinstance(values, dict)):
+            return path.stem
+    return "custom"
+
+
+def run_name(kind: str, data_name: str, model_cfg=None) -> str:
+    """`<kind>-<sizes>-<data>-<time>`, e.g. stage1-tiny-synthetic-20261123-201500 (no sizes for
+    the length estimator and the evaluator)."""
+    from mmm.tracking import timestamp
+
+    parts = [kind] + ([model_label(model_cfg)] if model_cfg is not None else []) + [data_name, timestamp()]
+    return "-".join(parts)
+
+
+@dataclass
+class TrackedRun:
+    """What a trainer tells `tracked_fit` about its run besides the module and the data."""
+
+    kind: str  # stage1 | stage1-parts | stage2 | stage2-parts | length | evaluator
+    cfg_node: DictConfig  # the resolved config, logged as params and config.yaml
+    exclude: tuple[str, ...] = ()  # config keys this command does not use (not logged)
+    tags: dict = field(default_factory=dict)
+    dataset: tuple[str, str, str] | None = None  # (name, root, fingerprint): the MLflow dataset input
+    description: str = ""  # markdown shown on the run's page (links to what it was made from)
+    model_cfg: object = None  # the sizes, for the run name
+    metrics: dict[str, float] = field(default_factory=dict)  # logged at step 0 (baselines)
+
+
 @dataclass
 class TrainResult:
     run_id: str | None
@@ -232,6 +283,67 @@ class TrainResult:
     last_checkpoint: str | None
     metrics: dict[str, float] = field(default_factory=dict)
     stopped_early: bool = False
+
+
+def tracked_fit(run: TrackedRun, cfg, module: L.LightningModule, run_dir: Path, callbacks: list, *, datamodule=None,
+                loaders: dict | None = None, ckpt_path: Path | None = None, run_id: str | None = None, result_type: type = TrainResult, **fields):
+    """Fit `module` as one MLflow run and return (result, trainer, logger).
+
+    The run is named for what it is (`run_name`, unless logger.run_name is set), tagged with the
+    stage, the git commit and `run.tags`, records its dataset as an input and the resolved config
+    once; best.ckpt/last.ckpt are written to run_dir/checkpoints (and uploaded at the end), the
+    learning rate is charted (`train/lr`) and MLflow samples system metrics while it trains.
+    `run_id`/`ckpt_path` resume a run. Only rank 0 writes to MLflow.
+    """
+    from lightning.pytorch.callbacks import LearningRateMonitor
+
+    from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, git_commit, log_dataset_input, prepare_experiment
+
+    data_name = run.dataset[0] if run.dataset else cfg.data.name
+    logger = build_logger(cfg.logger, run_id=run_id, run_name=run_name(run.kind, data_name, run.model_cfg))
+    monitor = None
+    if logger is not None:
+        uri = resolve_tracking_uri(cfg.logger.tracking_uri)
+        if rank_zero_only.rank == 0:
+            from mlflow.tracking import MlflowClient
+
+            prepare_experiment(MlflowClient(uri), cfg.logger.experiment, artifact_location(uri, cfg.logger.artifact_root))
+        _ = logger.experiment  # create the run now, before any process is spawned
+        log_config(logger, run.cfg_node, resumed=run_id is not None, exclude=run.exclude)
+        commit = git_commit()
+        tag_run(logger, {"mmm.stage": run.kind, **({GIT_COMMIT_TAG: commit} if commit else {}), **run.tags,
+                         **({DESCRIPTION_TAG: run.description} if run.description else {})})
+        if rank_zero_only.rank == 0:
+            if run.dataset and run_id is None:
+                log_dataset_input(logger.experiment, logger.run_id, *run.dataset)
+            if run.metrics:
+                logger.log_metrics(run.metrics, step=0)
+            monitor = _system_metrics(logger.run_id, uri, resumed=run_id is not None)
+        callbacks = [*callbacks, LearningRateMonitor(logging_interval="step")]
+    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
+    trainer = build_trainer(cfg.trainer, [best, last, RunState(), *callbacks], logger, str(run_dir))
+    try:
+        with shared_run_directory(run_dir):
+            trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True, **(loaders or {}))
+    finally:
+        if monitor is not None:
+            monitor.finish()
+    result = train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps, result_type=result_type, **fields)
+    return result, trainer, logger
+
+
+def _system_metrics(run_id: str, tracking_uri: str, resumed: bool):
+    """MLflow's CPU/memory/disk/network (and GPU) sampler for the run (`system/*` charts), or None
+    where it cannot run (no psutil)."""
+    try:
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        monitor = SystemMetricsMonitor(run_id, sampling_interval=5, samples_before_logging=1, resume_logging=resumed, tracking_uri=tracking_uri)
+        monitor.start()
+        return monitor
+    except Exception as e:  # pragma: no cover - an optional chart, never a reason to stop training
+        log.warning("system metrics not recorded: %s", e)
+        return None
 
 
 def train_result(trainer: L.Trainer, logger: MLFlowLogger | None, log_to_mlflow: bool, best: ModelCheckpoint, last: ModelCheckpoint,

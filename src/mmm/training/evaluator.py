@@ -39,10 +39,9 @@ from mmm.evaluation.contrastive import (
 )
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (
-    CheckpointConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer, checkpoint_callbacks,
-    log_config, resolve_tracking_uri, tag_run, train_result,
+    CheckpointConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, resolve_tracking_uri, tag_run, tracked_fit,
 )
-from mmm.training.runs import run_directory, shared_run_directory
+from mmm.training.runs import run_directory
 from mmm.training.stage2 import TextConfig, build_text
 
 log = logging.getLogger(__name__)
@@ -235,18 +234,14 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
         "max_length": cfg.data.max_length, "unit_length": cfg.data.unit_length,
     }
     module = ContrastiveEvaluatorModule(cfg.data.feature_dim, text_encoder.sentence_dim, cfg.model, cfg.optim, cfg.loss, mean, std, text, data)
-    run_dir = run_directory(cfg.output_dir)
-    logger = build_logger(cfg.logger)
-    if logger is not None:
-        _ = logger.experiment
-        log_config(logger, cfg_node, resumed=False)
-        tag_run(logger, {
-            "mmm.stage": "evaluator", "text_encoder": text_encoder.identity, "data.fingerprint": fingerprint, "data.name": cfg.data.name,
-            "data.root": cfg.data.root, "evaluator.train_items": len(items["train"]), "evaluator.val_items": len(items["val"]),
-            "evaluator.test_items": len(items["test"]),
-        })
-    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
-    trainer = build_trainer(cfg.trainer, [best, last, RunState()], logger, str(run_dir))
+    run = TrackedRun(
+        "evaluator", cfg_node,
+        tags={"text_encoder": text_encoder.identity, "data.fingerprint": fingerprint, "data.name": cfg.data.name, "data.root": cfg.data.root,
+              "evaluator.train_items": len(items["train"]), "evaluator.val_items": len(items["val"]), "evaluator.test_items": len(items["test"])},
+        dataset=(cfg.data.name, cfg.data.root, fingerprint),
+        description=f"The package's own text-motion evaluator on {cfg.data.name} ({fingerprint}), text encoder {text_encoder.identity}: "
+                    "trained with InfoNCE, scored on the test split (`test/*`; `baseline/shuffled_*`: the same with shuffled captions).",
+    )
     loaders = {
         "train_dataloaders": ResumableDataLoader(
             train, cfg.data.batch_size, shuffle=True, seed=cfg.seed, drop_last=len(train) > cfg.data.batch_size, collate_fn=collate,
@@ -255,11 +250,9 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
         "val_dataloaders": ResumableDataLoader(val, val_batch, shuffle=False, seed=cfg.seed, drop_last=True, collate_fn=collate),
     }
     fit_started = time.perf_counter()
-    with shared_run_directory(run_dir):
-        trainer.fit(module, **loaders)
+    result, trainer, logger = tracked_fit(run, cfg, module, run_directory(cfg.output_dir), [], loaders=loaders, result_type=EvaluatorTrainResult,
+                                          data_fingerprint=fingerprint, text_encoder=text_encoder.identity)
     fit_seconds = time.perf_counter() - fit_started
-    result = train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps,
-                          result_type=EvaluatorTrainResult, data_fingerprint=fingerprint, text_encoder=text_encoder.identity)
     if not trainer.is_global_zero:
         return result
 

@@ -28,10 +28,9 @@ from mmm.data.sampling import ResumableDataLoader
 from mmm.generation.length import LengthEstimatorModule, LengthModelConfig, length_metrics
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (
-    CheckpointConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer, checkpoint_callbacks,
-    log_config, tag_run, train_result,
+    CheckpointConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, tracked_fit,
 )
-from mmm.training.runs import run_directory, shared_run_directory
+from mmm.training.runs import run_directory
 from mmm.training.stage2 import Stage2Config, TextConfig, prepare_stage2_data
 
 log = logging.getLogger(__name__)
@@ -140,28 +139,23 @@ def train_length(cfg_node: DictConfig) -> TrainResult:
     stage1 = {"reference": source.reference, "run_id": source.run_id, "identity": source.identity, "checkpoint": source.checkpoint}
     text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
     module = LengthEstimatorModule(text_encoder.sentence_dim, cfg.model, cfg.optim, cfg.label_smoothing, text, stage1)
-    run_dir = run_directory(cfg.output_dir)
-    logger = build_logger(cfg.logger)
-    if logger is not None:
-        _ = logger.experiment
-        log_config(logger, cfg_node, resumed=False)
-        tag_run(logger, {
-            "mmm.stage": "length", "stage1.reference": source.reference, "stage1.run_id": source.run_id,
-            "stage1.identity": source.identity, "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint,
-            "length.train_pairs": len(train), "length.val_pairs": len(val),
-        })
-        logger.log_metrics(baseline, step=0)
-    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
-    trainer = build_trainer(cfg.trainer, [best, last, RunState()], logger, str(run_dir))
+    run = TrackedRun(
+        "length", cfg_node, exclude=("stage1", "stage1_output_dir"),
+        tags={"stage1.reference": source.reference, "stage1.run_id": source.run_id, "stage1.identity": source.identity,
+              "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint,
+              "length.train_pairs": len(train), "length.val_pairs": len(val)},
+        dataset=(cfg.data.name, cfg.data.root, datamodule.data_fingerprint), metrics=baseline,
+        description=f"Length estimator (caption -> codes) over {text_encoder.identity} sentence embeddings, on the tokens of "
+                    f"`{source.reference}`; {len(train)} training pairs. `baseline/*`: always the most frequent length.",
+    )
     loaders = {
         "train_dataloaders": ResumableDataLoader(train, cfg.data.batch_size, shuffle=True, seed=cfg.seed, drop_last=len(train) > cfg.data.batch_size),
         "val_dataloaders": ResumableDataLoader(val, cfg.data.batch_size, shuffle=False, seed=cfg.seed),
     }
     fit_started = time.perf_counter()
-    with shared_run_directory(run_dir):
-        trainer.fit(module, **loaders)
-    fit_seconds = time.perf_counter() - fit_started
-    timing = {"time/fit_s": fit_seconds, "time/total_s": time.perf_counter() - started}
+    result, trainer, logger = tracked_fit(run, cfg, module, run_directory(cfg.output_dir), [], loaders=loaders)
+    timing = {"time/fit_s": time.perf_counter() - fit_started, "time/total_s": time.perf_counter() - started}
     if logger is not None and trainer.is_global_zero:
         logger.log_metrics(timing, step=trainer.global_step)
-    return train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps, {**baseline, **timing})
+    result.metrics.update({**baseline, **timing})
+    return result

@@ -16,10 +16,9 @@ from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.data.normalization import NormalizationConfig
 from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
 from mmm.training.common import (
-    CheckpointConfig, ModelConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer,
-    checkpoint_callbacks, log_config, read_checkpoint_meta, tag_run, train_result,
+    CheckpointConfig, ModelConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, read_checkpoint_meta, tracked_fit,
 )
-from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
+from mmm.training.runs import find_last_checkpoint, run_directory
 
 log = logging.getLogger(__name__)
 
@@ -63,19 +62,20 @@ def load_stage1_config(overrides: list[str] = (), parts: bool = False) -> DictCo
     return compose("train_stage1_parts" if parts else "train_stage1", list(overrides), schema=Stage1Config)
 
 
-def build_callbacks(cfg: Stage1Config, checkpoint_dir: Path) -> tuple[list[L.Callback], tuple]:
+def build_callbacks(cfg: Stage1Config) -> list[L.Callback]:
     cb = cfg.callbacks
-    checkpoints = checkpoint_callbacks(checkpoint_dir, cb.checkpoint)
-    callbacks: list[L.Callback] = [CodebookReset(cb.reset_every_n_steps), CollapseMonitor(**asdict(cb.collapse)), *checkpoints, RunState()]
+    callbacks: list[L.Callback] = [CodebookReset(cb.reset_every_n_steps), CollapseMonitor(**asdict(cb.collapse))]
     if cb.preview_clips > 0:
         callbacks.append(ReconstructionPreview(cb.preview_clips))
     if cb.usage_plot:
         callbacks.append(CodebookUsagePlot())
-    return callbacks, checkpoints
+    return callbacks
 
 
 def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
     """Train a tokenizer as configured; `resume` = "last" or a checkpoint path continues a run."""
+    from mmm.fingerprint import dataset_fingerprint
+
     cfg: Stage1Config = to_object(cfg_node)
     L.seed_everything(cfg.seed, workers=True)
     ckpt_path, run_id = None, None
@@ -90,13 +90,15 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     datamodule.prepare_data()
     datamodule.setup("fit")
     module = TokenizerModule(cfg.data.feature_dim, cfg.model.tokenizer, cfg.optim, cfg.loss, datamodule.mean, datamodule.std)
-    logger = build_logger(cfg.logger, run_id=run_id)
-    if logger is not None:
-        _ = logger.experiment  # create the run now, before any process is spawned
-        log_config(logger, cfg_node, resumed=run_id is not None)
-        tag_run(logger, {"mmm.stage": "stage1", "data.name": cfg.data.name, "data.root": cfg.data.root})
-    callbacks, (best, last) = build_callbacks(cfg, run_dir / "checkpoints")
-    trainer = build_trainer(cfg.trainer, callbacks, logger, str(run_dir))
-    with shared_run_directory(run_dir):
-        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True)
-    return train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps)
+    fingerprint = dataset_fingerprint(cfg.data.root)
+    kind = "stage1-parts" if cfg.model.tokenizer.part_aware else "stage1"
+    run = TrackedRun(
+        kind, cfg_node, exclude=("model.transformer",), model_cfg=cfg.model,
+        tags={"data.name": cfg.data.name, "data.root": cfg.data.root, "data.fingerprint": fingerprint},
+        dataset=(cfg.data.name, cfg.data.root, fingerprint),
+        description=f"Tokenizer ({'part-aware, ' if cfg.model.tokenizer.part_aware else ''}{cfg.model.tokenizer.num_codes} codes of "
+                    f"{cfg.model.tokenizer.code_dim} dims, width {cfg.model.tokenizer.width}) on {cfg.data.name} ({fingerprint}), "
+                    f"normalized with the {cfg.normalization.statistics} statistics.",
+    )
+    result, _, _ = tracked_fit(run, cfg, module, run_dir, build_callbacks(cfg), datamodule=datamodule, ckpt_path=ckpt_path, run_id=run_id)
+    return result

@@ -19,10 +19,10 @@ from mmm.data.datamodule import DataConfig, TokenTextDataModule
 from mmm.tokenizer.load import load_tokenizer
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (
-    CheckpointConfig, ModelConfig, RunState, TrackingConfig, TrainerConfig, TrainResult, build_logger, build_trainer,
-    checkpoint_callbacks, log_config, read_checkpoint_meta, resolve_tracking_uri, tag_run, train_result,
+    CheckpointConfig, ModelConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, read_checkpoint_meta, resolve_tracking_uri,
+    tracked_fit,
 )
-from mmm.training.runs import find_last_checkpoint, run_directory, shared_run_directory
+from mmm.training.runs import find_last_checkpoint, run_directory
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, stage2_codebooks
 
 log = logging.getLogger(__name__)
@@ -137,20 +137,42 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
         codebook, cfg.model.transformer, cfg.optim, cfg.corruption, text_encoder.sentence_dim, text_encoder.word_dim, stage1, text,
         condition_codebook=condition_codebook,
     )
-    logger = build_logger(cfg.logger, run_id=run_id)
-    if logger is not None:
-        _ = logger.experiment
-        log_config(logger, cfg_node, resumed=run_id is not None)
-        tag_run(logger, {
-            "mmm.stage": "stage2", "stage1.reference": source.reference, "stage1.run_id": source.run_id,
-            "stage1.identity": source.identity, "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint,
-        })
-    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
-    callbacks = [best, last, RunState()]
-    if cfg.callbacks.preview_captions > 0:
-        callbacks.append(GenerationPreview(tokenizer, text_encoder, cfg.callbacks.preview_captions, cfg.seed))
-    trainer = build_trainer(cfg.trainer, callbacks, logger, str(run_dir))
-    with shared_run_directory(run_dir):
-        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True)
-    return train_result(trainer, logger, cfg.logger.log_checkpoints, best, last, run_dir, cfg.trainer.max_steps)
+    callbacks = [GenerationPreview(tokenizer, text_encoder, cfg.callbacks.preview_captions, cfg.seed)] if cfg.callbacks.preview_captions > 0 else []
+    lineage = stage1_lineage(source, resolve_tracking_uri(cfg.logger.tracking_uri)) if cfg.logger.enabled else {}
+    run = TrackedRun(
+        "stage2-parts" if cfg.part_aware else "stage2", cfg_node, model_cfg=cfg.model,
+        # The stage-1 model is recorded once, resolved (tags below), not as the options that found it.
+        exclude=("model.tokenizer", "stage1", "stage1_output_dir", "stage1_experiment"),
+        tags={"stage1.reference": source.reference, "stage1.run_id": source.run_id, "stage1.identity": source.identity,
+              "stage1.version": lineage.get("version"), "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint},
+        dataset=(cfg.data.name, cfg.data.root, datamodule.data_fingerprint),
+        description=f"Masked transformer ({'part-aware, ' if cfg.part_aware else ''}{cfg.model.transformer.num_layers} layers of "
+                    f"{cfg.model.transformer.embed_dim}) on the tokens of {lineage.get('markdown', source.reference)} "
+                    f"(weights {source.identity}), text encoder {text_encoder.identity}, data {cfg.data.name} ({datamodule.data_fingerprint}).",
+    )
+    result, _, _ = tracked_fit(run, cfg, module, run_dir, callbacks, datamodule=datamodule, ckpt_path=ckpt_path, run_id=run_id)
+    return result
 
+
+def stage1_lineage(source, tracking_uri: str) -> dict:
+    """The stage-1 model as links: its run, and the exact registered version a models:/ alias
+    resolved to ({"version": "mmm-tokenizer/3", "markdown": ...})."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    from mmm.resolve import registered_version
+    from mmm.tracking import run_link, version_link
+
+    out, links = {}, []
+    if source.reference.startswith("models:/"):
+        version = registered_version(source.reference, tracking_uri)
+        out["version"] = f"{version.name}/{version.version}"
+        links.append(version_link(version.name, version.version) + (f" (`{source.reference}`)" if "@" in source.reference else ""))
+    if source.run_id:
+        try:
+            experiment = MlflowClient(tracking_uri).get_run(source.run_id).info.experiment_id
+            links.append("the stage-1 run " + run_link(experiment, source.run_id))
+        except MlflowException:
+            links.append(f"the stage-1 run {source.run_id}")
+    out["markdown"] = ", ".join(links) if links else f"`{source.reference}`"
+    return out

@@ -131,7 +131,7 @@ class MaskedTransformerModule(L.LightningModule):
                 "codebook_shape": list(codebook.shape), "model": asdict(model), "optim": asdict(optim), "corruption": asdict(corruption),
                 "sentence_dim": sentence_dim, "word_dim": word_dim, "stage1": stage1 or {}, "text_encoder": text_encoder or {},
                 "condition_codebook_shape": None if condition_codebook is None else list(condition_codebook.shape),
-            }
+            }, logger=False
         )
         self.model_cfg, self.optim_cfg, self.corruption_cfg = model, optim, corruption
         self.transformer = MaskedMotionTransformer(codebook, model, sentence_dim, word_dim, condition_codebook)
@@ -200,4 +200,4 @@ class MaskedTransformerModule(L.LightningModule):
         cfg = self.optim_cfg
         optimizer = torch.optim.AdamW(self.transformer.parameters(), lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=True)
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"}}

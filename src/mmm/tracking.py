@@ -1,0 +1,113 @@
+"""What every MLflow run of the package shares so the dashboard reads well: names that say what a
+run is, descriptions with links, the code version, dataset inputs, and experiment descriptions.
+
+Links are the dashboard's own hash routes (`#/experiments/<id>/runs/<id>`, `#/models/<name>/versions/<n>`),
+relative, so they work whatever host and port serve the store.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from pathlib import Path
+
+DESCRIPTION_TAG = "mlflow.note.content"  # the run's / experiment's / version's markdown description in the UI
+GIT_COMMIT_TAG = "mlflow.source.git.commit"
+# Experiments of a training package: the dashboard opens them in its classic (machine learning) view.
+EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"
+
+EXPERIMENT_DESCRIPTIONS = {
+    "mmm-stage1": "Stage 1: the motion tokenizer (VQ-VAE). Charts: `train/*` losses, `codebook/*` usage and resets, `collapse/*` "
+                  "(the collapse monitor), `val/mpjpe_root_aligned_mm` and `val/mpjpe_global_mm`. Images: `previews/reconstruction` "
+                  "(reference above reconstruction, one per validation: use the step slider).",
+    "mmm-stage1-parts": "Stage 1 of the part-aware model (upper-body editing): two codebooks, charts per codebook (`codebook/lower/*`, `codebook/upper/*`).",
+    "mmm-stage2": "Stage 2: the masked transformer. Charts: `train/*` loss and token accuracies, `val/*`. Images: `previews/generation` "
+                  "(reference above generated, one per validation). Tags link the stage-1 run and registered version it was trained on.",
+    "mmm-stage2-parts": "Stage 2 of the part-aware model: upper-body codes from the text given the lower body.",
+    "mmm-length": "The length estimator (caption -> number of codes), used when no length is given.",
+    "mmm-evaluator": "The package's own text-motion evaluator (contrastive), the yardstick promotion compares with.",
+    "mmm-evaluation": "`mmm evaluate` runs: the replicated protocol, reconstruction and prompt adherence; each run's description holds its table.",
+    "mmm-pipeline": "`mmm pipeline` runs: one parent run per pipeline (its description: the steps in order, with links), one nested run per step.",
+    "mmm-ablations": "`mmm ablate` sweeps (the supplementary's Tables 8-13): a parent run per sweep, one nested run per setting.",
+    "mmm-import": "The authors' released checkpoints imported with `mmm import released`.",
+}
+
+
+def run_link(experiment_id: str, run_id: str, text: str | None = None) -> str:
+    return f"[{text or run_id[:8]}](#/experiments/{experiment_id}/runs/{run_id})"
+
+
+def version_link(name: str, version: str | int, text: str | None = None) -> str:
+    return f"[{text or f'{name} v{version}'}](#/models/{name}/versions/{version})"
+
+
+def experiment_url(base: str, experiment_id: str) -> str:
+    """The experiment's page in the classic training view (MLflow 3 opens new stores in its GenAI view)."""
+    return f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+
+
+def timestamp() -> str:
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
+def git_commit() -> str | None:
+    """The commit of this package's source checkout, None outside one (an installed package)."""
+    root = Path(__file__).resolve().parents[2]
+    if not ((root / "pyproject.toml").is_file() and (root / "src" / "mmm" / "__init__.py").is_file()):
+        return None
+    try:
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def prepare_experiment(client, name: str, artifact_location: str | None = None) -> str:
+    """The id of experiment `name`, created when missing (another process creating it at the same
+    time is not an error), with its description and the classic-view kind set once."""
+    from mlflow.exceptions import MlflowException
+
+    found = client.get_experiment_by_name(name)
+    if found is None:
+        try:
+            experiment_id = client.create_experiment(name, artifact_location=artifact_location)
+        except MlflowException:
+            found = client.get_experiment_by_name(name)
+            if found is None:
+                raise
+            experiment_id = found.experiment_id
+    else:
+        experiment_id = found.experiment_id
+    tags = found.tags if found is not None else {}
+    if tags.get(EXPERIMENT_KIND_TAG) != EXPERIMENT_KIND:
+        client.set_experiment_tag(experiment_id, EXPERIMENT_KIND_TAG, EXPERIMENT_KIND)
+    if DESCRIPTION_TAG not in tags and name in EXPERIMENT_DESCRIPTIONS:
+        client.set_experiment_tag(experiment_id, DESCRIPTION_TAG, EXPERIMENT_DESCRIPTIONS[name])
+    return experiment_id
+
+
+def log_dataset_input(client, run_id: str, name: str, root: str | Path, fingerprint: str, context: str = "training") -> None:
+    """Record the dataset a run read as its MLflow dataset input (name, digest = content
+    fingerprint, source = the folder)."""
+    from mlflow.entities import Dataset, DatasetInput, InputTag
+
+    dataset = Dataset(name=name, digest=fingerprint, source_type="local", source=str(Path(root).resolve()),
+                      schema=None, profile=None)
+    client.log_inputs(run_id, datasets=[DatasetInput(dataset, tags=[InputTag("mlflow.data.context", context)])])
+
+
+def dashboard_links(client, base_url: str) -> list[str]:
+    """Where to look, as absolute dashboard URLs: each of the package's experiments in the classic
+    view (with its newest run), and the registered models."""
+    lines = []
+    for experiment in client.search_experiments(order_by=["name ASC"]):
+        if not experiment.name.startswith("mmm"):
+            continue
+        newest = client.search_runs([experiment.experiment_id], order_by=["attributes.start_time DESC"], max_results=1)
+        line = f"{experiment.name:18s} {experiment_url(base_url, experiment.experiment_id)}"
+        if newest:
+            run = newest[0].info
+            line += f"\n{'':18s} newest run {run.run_name}: {base_url.rstrip('/')}/#/experiments/{experiment.experiment_id}/runs/{run.run_id}"
+        lines.append(line)
+    lines.append(f"{'registered models':18s} {base_url.rstrip('/')}/#/models")
+    return lines
