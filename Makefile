@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui clean
+.PHONY: help setup test data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
@@ -78,6 +78,9 @@ bench-generate: $(STAMP) ## time per sentence against length, AITS and a 10.9-mi
 
 bench: bench-train bench-generate ## all speed measurements (training and generation), JSON and plots in outputs/bench/
 
+stress: $(STAMP) ## concurrency and crash test (not in make test): 50 generate calls on a cold cache, racing promotions, a training SIGKILLed during saves
+	$(BIN)/python benchmarks/stress.py $(ARGS)
+
 train-evaluator: $(STAMP) ## train the own text-motion evaluator (contrastive), register it in MLflow
 	$(BIN)/mmm train evaluator $(ARGS)
 
@@ -99,6 +102,18 @@ models: $(STAMP) ## registered models: versions, aliases, metrics
 mlflow-ui: $(STAMP) ## serve the MLflow dashboard for this project's store on http://127.0.0.1:5000 (prints where to look first)
 	@$(BIN)/mmm dashboard --tracking-uri sqlite:///$(CURDIR)/mlflow.db
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --default-artifact-root $(CURDIR)/mlartifacts --host 127.0.0.1 --port 5000
+
+# `mlflow models serve` starts its server as `bash -c "exec uvicorn ..."`: uvicorn has to be on PATH,
+# so the environment's bin goes first there. MODEL, PORT and MLFLOW_TRACKING_URI may come from the
+# environment or the command line. Serving never installs anything (no $(STAMP) prerequisite).
+MODEL ?= models:/mmm-text2motion@champion
+PORT ?= 5001
+MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlflow.db
+
+serve: ## serve MODEL (default: the text-to-motion champion) for /invocations on 127.0.0.1:PORT (5001); MODEL=models:/NAME@ALIAS PORT=N
+	@test -x $(BIN)/mlflow || { echo "no $(BIN)/mlflow: run make setup first" >&2; exit 2; }
+	PATH="$(abspath $(BIN)):$$PATH" MLFLOW_TRACKING_URI="$(MLFLOW_TRACKING_URI)" \
+		$(BIN)/mlflow models serve -m "$(MODEL)" --env-manager local -h 127.0.0.1 -p $(PORT)
 
 clean: ## remove generated data and outputs (keeps .venv and the MLflow store)
 	rm -rf data outputs

@@ -268,7 +268,12 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     # A registered model version pointing at the run's checkpoints, tagged with what it was made from.
     assert result.registered_model == "test-evaluator" and result.model_version == "1"
     version = client.get_model_version("test-evaluator", "1")
-    assert version.source == f"runs:/{result.run_id}/checkpoints" and version.run_id == result.run_id
+    # An immutable copy of the checkpoint (a later resume of the run rewrites checkpoints/, never this), its digest tagged.
+    import hashlib
+
+    digest = hashlib.sha256(open(result.best_checkpoint, "rb").read()).hexdigest()
+    assert version.source == f"runs:/{result.run_id}/registered/test-evaluator-{digest[:12]}" and version.run_id == result.run_id
+    assert version.tags["weights.sha256"] == digest
     assert version.tags["data.fingerprint"] == fingerprint and version.tags["text_encoder"] == tags["text_encoder"]
     assert version.tags["mmm.kind"] == "evaluator"
     for k in ("r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_distance"):

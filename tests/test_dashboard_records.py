@@ -14,9 +14,9 @@ from mlflow.tracking import MlflowClient
 from mmm.cli import main
 from mmm.pipeline.steps import PIPELINES
 from mmm.registry.promote import load_promote_config
-from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, git_commit
+from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, dashboard_links, git_commit
 
-RUN_LINK = re.compile(r"\]\(#/experiments/([^/)\s]+)/runs/([0-9a-f]+)\)")
+RUN_LINK = re.compile(r"\]\(#/experiments/([^/)\s]+)/runs/([0-9a-f]+)\?workflowType=machine_learning\)")
 VERSION_LINK = re.compile(r"\]\(#/models/([^/)\s]+)/versions/(\d+)\)")
 KINDS = {"promote-evaluator": "evaluator", "promote-tokenizer": "tokenizer", "promote-text2motion": "text2motion"}
 MARGIN = 0.01  # the second text-to-motion promotion's criterion: the same model again, a tie, needs 0.01 better
@@ -94,6 +94,7 @@ def test_parent_run_has_commit_dataset_and_headline_metrics(records):
     commit = git_commit()
     if commit is not None:  # a git checkout
         assert parent.data.tags[GIT_COMMIT_TAG] == commit
+    assert parent.data.tags["mlflow.source.name"] == "mmm pipeline full"
     fingerprint = records["client"].get_run(steps["stage1"].data.tags["output.run_id"]).data.tags["data.fingerprint"]
     assert dataset_contexts(parent) == {fingerprint: "pipeline"}
     metrics = parent.data.metrics
@@ -102,6 +103,17 @@ def test_parent_run_has_commit_dataset_and_headline_metrics(records):
     assert any(k.startswith("stage1/val/") for k in metrics) and any(k.startswith("evaluator/test/") for k in metrics)
     assert "evaluate/generated/fid" in metrics and "evaluate/recon/mpjpe_global_mm" in metrics
     assert not any(k.endswith("_ci") for k in metrics)
+
+
+def test_printed_links_open_the_training_view_and_the_pipeline_run(records):
+    client, parent = records["client"], records["parent"]
+    lines = "\n".join(dashboard_links(client, "http://127.0.0.1:5000/")).splitlines()
+    experiment = parent.info.experiment_id
+    assert f"mmm-pipeline       http://127.0.0.1:5000/#/experiments/{experiment}/runs?workflowType=machine_learning" in lines
+    # The newest top-level run, not the last step that started inside it.
+    pipeline_run = lines[lines.index(next(l for l in lines if l.startswith("mmm-pipeline"))) + 1]
+    assert pipeline_run.split() == ["newest", "run", f"{parent.info.run_name}:", f"http://127.0.0.1:5000/#/experiments/{experiment}/runs/{parent.info.run_id}?workflowType=machine_learning"]
+    assert lines[-1] == "registered models  http://127.0.0.1:5000/#/models"
 
 
 def test_step_runs_are_numbered_and_link_their_own_runs(records):
@@ -183,7 +195,7 @@ def test_the_logged_bundle_knows_its_registered_versions(records):
 def test_tokenizer_and_evaluator_versions_are_described(records):
     client = records["client"]
     tokenizer = client.get_model_version_by_alias("mmm-tokenizer", "champion")
-    assert tokenizer.source.endswith("/checkpoints") and "Stage-1 motion tokenizer" in tokenizer.description
+    assert f"/registered/mmm-tokenizer-{tokenizer.tags['weights.sha256'][:12]}" in tokenizer.source and "Stage-1 motion tokenizer" in tokenizer.description
     assert "tokenizer.identity" in tokenizer.tags and tokenizer.tags["tokenizer.identity"] in tokenizer.description
     evaluator = client.get_model_version_by_alias("mmm-evaluator", "champion")
     assert "contrastive text-motion evaluator" in evaluator.description and "test split, by its training run" in evaluator.description

@@ -136,6 +136,7 @@ def test_lineage_git_commit_dataset_input_and_stage1_version(stage1_runs):
     for key in ("first", "stage2"):
         run = client.get_run(stage1_runs[key].run_id)
         assert run.data.tags["mlflow.source.git.commit"] == commit
+        assert run.data.tags["mlflow.source.name"] == f"mmm train {run.data.tags['mmm.stage']}"
         inputs = run.inputs.dataset_inputs
         assert [i.dataset.digest for i in inputs] == [fingerprint] and inputs[0].dataset.name == "synthetic"
     stage2 = client.get_run(stage1_runs["stage2"].run_id)

@@ -3,7 +3,9 @@ checkpoints, and served by `mlflow models serve` as a real process on loopback."
 
 import json
 import os
+import re
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -138,7 +140,9 @@ def test_raw_input_forms_and_params(served_model):
         ({"text": ["a person walks", "  "], "length": [80, 80]}, "row 1: text is empty"),
         ({"text": ["a person walks"], "length": [10]}, "row 0: length 10 frames is outside 40..196"),
         ({"text": ["a person walks", "a person runs"], "length": [80, 500]}, "row 1: length 500 frames is outside 40..196"),
-        ({"text": ["a person walks"], "seed": [-3]}, "row 0: seed -3 is negative"),
+        ({"text": ["a person walks"], "seed": [-3]}, r"row 0: seed -3 is not allowed: an integer from 0 to 2\^63-1"),
+        ({"text": ["a person walks", "a person runs"], "seed": [1, 2**63]}, r"row 1: seed 9223372036854775808 is not allowed: an integer from 0 to 2\^63-1"),
+        ({"text": ["a person walks", "a person runs"], "seed": [1.5, None]}, "row 0: seed must be an integer, got 1.5"),
     ],
 )
 def test_bad_rows_are_refused_by_name(served_model, rows, message):
@@ -159,13 +163,46 @@ def test_bad_requests_never_reach_the_model(served_model):
     with pytest.raises(ValueError, match="row 0: length must be an integer"):
         served_model.unwrap_python_model().predict(None, [{"text": "a person walks", "length": "long"}])
     raw = served_model.unwrap_python_model()
-    with pytest.raises(ValueError, match="temperature must be >= 0"):
+    with pytest.raises(ValueError, match="temperature -1.0 is not allowed"):
         raw.predict(None, [{"text": "a person walks"}], params={"temperature": -1.0})
-    with pytest.raises(ValueError, match="top_p must be in"):
+    with pytest.raises(ValueError, match=r"top_p 2.0 is not allowed: a total probability in \(0, 1\]"):
         raw.predict(None, [{"text": "a person walks"}], params={"top_p": 2.0})
+    with pytest.raises(ValueError, match="max_iterations 1000 is not allowed: an integer from 1 to 100"):
+        raw.predict(None, [{"text": "a person walks"}], params={"max_iterations": 1000})
     # MLflow itself drops params outside the signature with a warning; the model refuses them.
     with pytest.raises(ValueError, match="unknown params steps"):
         raw.predict(None, [{"text": "a person walks"}], params={"steps": 3})
+
+
+def test_rows_may_mix_given_and_absent_seed_and_length(served_model):
+    """seed and length are optional per row: a request where some rows give them and others do
+    not is answered, each row as if it were alone with the defaults spelled out."""
+    texts = ["a person walks forward", "a person turns around", "a person jumps"]
+    mixed = served_model.predict(pd.DataFrame({"text": texts, "length": [80, None, 44], "seed": [7, None, np.nan]}))
+    assert [(o["length"], o["seed"]) for o in mixed] == [(80, 7), (120, 0), (44, 0)]
+    for row, (text, frames, seed) in zip(mixed, zip(texts, [80, 120, 44], [7, 0, 0])):
+        alone = served_model.predict(pd.DataFrame({"text": [text], "length": [frames], "seed": [seed]}))[0]
+        assert np.array_equal(np.asarray(row["joints"]), np.asarray(alone["joints"]))
+    records = served_model.predict([{"text": texts[0], "seed": 7, "length": 80}, {"text": texts[1]}])
+    assert [(o["length"], o["seed"]) for o in records] == [(80, 7), (120, 0)]
+    assert np.array_equal(np.asarray(records[0]["joints"]), np.asarray(mixed[0]["joints"]))
+
+
+def test_requests_are_bounded_in_rows(registered, served_model):
+    """More rows than the bundle's max_rows (64 unless the loader's model_config says otherwise)
+    are refused with HTTP 400 before anything is generated."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    rows = pd.DataFrame({"text": ["a person walks"] * 65, "length": [40] * 65})
+    t0 = time.perf_counter()
+    with pytest.raises(MlflowException, match="the request has 65 rows; at most 64 per request") as err:
+        served_model.predict(rows)
+    assert err.value.get_http_status_code() == 400 and time.perf_counter() - t0 < 5
+    small = mlflow.pyfunc.load_model(registered["uri"], model_config={"max_rows": 2})
+    with pytest.raises(MlflowException, match="the request has 3 rows; at most 2 per request"):
+        small.predict(rows.head(3))
+    assert [o["length"] for o in small.predict(rows.head(2))] == [40, 40]
 
 
 def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, store, tmp_path):
@@ -200,6 +237,7 @@ def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, sto
 def test_log_bundle_refuses_mismatched_checkpoints(registered, tmp_path):
     import mlflow
 
+    from mmm.fingerprint import tensors_fingerprint
     from mmm.registry.bundle import log_bundle
 
     with pytest.raises(RuntimeError, match="active MLflow run"):
@@ -207,6 +245,7 @@ def test_log_bundle_refuses_mismatched_checkpoints(registered, tmp_path):
     ckpt = torch.load(registered["stage1"], map_location="cpu", weights_only=True)
     name = next(k for k, v in ckpt["state_dict"].items() if v.is_floating_point())
     ckpt["state_dict"][name] = ckpt["state_dict"][name] + 1.0
+    ckpt["weights_fingerprint"] = tensors_fingerprint(ckpt["state_dict"])  # a retrained model: intact, other weights
     torch.save(ckpt, tmp_path / "retrained.ckpt")
     experiment = mlflow.get_experiment_by_name("mmm-bundle-test").experiment_id
     with mlflow.start_run(experiment_id=experiment) as run:
@@ -228,29 +267,71 @@ def test_localize_text_files_points_at_bundled_files(tmp_path):
 
 
 # -- a real server -----------------------------------------------------------------------------
-@pytest.mark.timeout(240)
-def test_mlflow_models_serve_answers_invocations(registered, store, tmp_path):
-    from servers import free_port, mlflow_command, post, running, server_env
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+SERVE_MARKER = "<!-- serve-command"
 
+
+def readme_serve_block() -> tuple[list[str], dict]:
+    """The README's serving instructions, as written: the shell lines of the fenced block right
+    after SERVE_MARKER up to its `curl` example (backslash continuations joined), and the JSON body
+    that example posts."""
+    text = README.read_text()
+    assert SERVE_MARKER in text, f"README.md has no {SERVE_MARKER} ...--> marker before its serving block"
+    after = text[text.index(SERVE_MARKER):]
+    block = after[after.index("```bash\n") + len("```bash\n"):]
+    block = block[: block.index("```")]
+    lines = block.replace("\\\n", " ").splitlines()
+    curl = next(i for i, line in enumerate(lines) if line.lstrip().startswith("curl "))
+    body = re.search(r"-d '(.*)'", lines[curl]).group(1)
+    return [line for line in lines[:curl] if line.strip()], json.loads(body)
+
+
+@pytest.mark.timeout(240)
+def test_readme_serve_command_answers_invocations(registered, store, tmp_path):
+    """The README's serve block run as written (entering the environment as it says, then its
+    serve command), in a shell whose PATH lacks the environment's bin, on the test's model and a
+    free port; queried with the README's request, then stopped."""
+    from servers import free_port, post, running
+
+    repo = REPO
+    lines, readme_request = readme_serve_block()
+    assert any("make serve" in line or "mlflow models serve" in line for line in lines), lines
+    venv_bins = {str(Path(sys.executable).parent), str(repo / ".venv" / "bin")}
+    path = os.pathsep.join(p for p in os.environ.get("PATH", "").split(os.pathsep) if p not in venv_bins)
     port = free_port()
-    command = [*mlflow_command(), "models", "serve", "-m", registered["uri"], "--env-manager", "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"]
+    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "MODEL", "PORT")}
+    env.update(PATH=path, MODEL=registered["uri"], PORT=str(port), MLFLOW_TRACKING_URI=store, MLFLOW_REGISTRY_URI=store,
+               HF_HUB_OFFLINE="1", TRANSFORMERS_OFFLINE="1")
     base = f"http://127.0.0.1:{port}"
-    env = server_env(MLFLOW_TRACKING_URI=store, MLFLOW_REGISTRY_URI=store)
-    with running(command, base, tmp_path / "server.log", tmp_path, env) as startup:
-        _report("mlflow models serve start-up (to /health 200)", startup)
+    with running(["bash", "-c", "set -e\n" + "\n".join(lines)], base, tmp_path / "server.log", repo, env) as startup:
+        _report("README serve command start-up (to /health 200)", startup)
         t0 = time.perf_counter()
-        status, answer = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
-        _report("POST /invocations, 1 row of 80 frames (first request)", time.perf_counter() - t0)
+        status, answer = post(f"{base}/invocations", readme_request)
+        _report("POST /invocations, the README's request (first request)", time.perf_counter() - t0)
         assert status == 200, answer
         predictions = answer["predictions"]
-        assert len(predictions) == 1 and predictions[0]["length"] == 80
-        assert np.asarray(predictions[0]["joints"]).shape == (80, 22, 3)
-        assert np.asarray(predictions[0]["features"]).shape == (80, 263)
+        asked = readme_request["dataframe_records"]
+        assert [p["text"] for p in predictions] == [r["text"] for r in asked]
+        for p, r in zip(predictions, asked):
+            frames = r.get("length", 120)
+            assert p["length"] == frames and p["seed"] == r.get("seed", 0)
+            assert np.asarray(p["joints"]).shape == (frames, 22, 3) and np.asarray(p["features"]).shape == (frames, 263)
 
         t0 = time.perf_counter()
-        status, again = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80}]})
+        status, again = post(f"{base}/invocations", readme_request)
         _report("POST /invocations, same request again", time.perf_counter() - t0)
         assert status == 200 and again["predictions"][0]["joints"] == predictions[0]["joints"]
 
+        # Rows that give a seed or a length and rows that do not, in one request.
+        status, mixed = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80, "seed": 3},
+                                                                           {"text": "a person jumps"}]})
+        assert status == 200, mixed
+        assert [(p["length"], p["seed"]) for p in mixed["predictions"]] == [(80, 3), (120, 0)]
+
         status, error = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "length": 80}, {"text": "", "length": 80}]})
         assert status == 400 and "row 1: text is empty" in error["message"], error
+        status, error = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "seed": 2**63}]})
+        assert status == 400 and "row 0: seed 9223372036854775808 is not allowed: an integer from 0 to 2^63-1" in error["message"], error
+        status, error = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks"}] * 65})
+        assert status == 400 and "the request has 65 rows; at most 64 per request" in error["message"], error

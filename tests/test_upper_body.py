@@ -133,7 +133,8 @@ def parts_model(walker_dataset, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("parts")
     stage1 = train_tiny_stage1(walker_dataset, out, "model.tokenizer.part_aware=true", "logger.experiment=mmm-stage1-parts")
-    overrides = stage2_overrides(walker_dataset, out, **{"stage1": stage1.best_checkpoint, "trainer.max_steps": 4, "trainer.val_check_interval": 4,
+    # The stage-1 model given as its run (recorded so; loading resolves it in the store, not by a path outside outputs/).
+    overrides = stage2_overrides(walker_dataset, out, **{"stage1": f"runs:/{stage1.run_id}", "trainer.max_steps": 4, "trainer.val_check_interval": 4,
                                                         "output_dir": f"{out}/s2p"})
     result = train_stage2(load_stage2_config(overrides, parts=True))
     return {"out": out, "stage1": stage1, "stage2": result, "uri": f"sqlite:///{out}/mlflow.db", "walker": walker_dataset}
@@ -221,19 +222,22 @@ def test_promotion_registers_the_part_aware_bundle_and_editing_defaults_to_it(pa
 
     monkeypatch.chdir(tmp_path)
     previous = mlflow.get_tracking_uri()
+    common = [f"data.root={parts_model['walker']}", "data.synthesize=null", f"logger.tracking_uri={parts_model['uri']}", f"candidate={parts_model['stage2'].run_id}"]
     try:
-        decision = promote("upperbody", load_promote_config([f"data.root={parts_model['walker']}", "data.synthesize=null", f"logger.tracking_uri={parts_model['uri']}",
-                                                             f"candidate={parts_model['stage2'].run_id}"]))
+        # No labels here: upper_body/both is not measured, and an unmeasured criterion never promotes, not even the first version.
+        unmeasured = promote("upperbody", load_promote_config(common))
+        decision = promote("upperbody", load_promote_config([*common, "criteria.upperbody=[{metric: val/acc_masked, mode: max, margin: 0.0}]"]))
     finally:
         mlflow.set_tracking_uri(previous)
-    assert (decision.promoted, decision.alias) == (True, "champion")  # the first one; no labels here, so only val/* metrics
+    assert (unmeasured.promoted, unmeasured.alias) == (False, "challenger") and "upper_body/both" in unmeasured.reason
+    assert (decision.promoted, decision.alias) == (True, "champion")
     with pytest.raises(ValueError, match="promote upperbody"):
         promote("text2motion", load_promote_config([f"data.root={parts_model['walker']}", "data.synthesize=null", f"logger.tracking_uri={parts_model['uri']}",
                                                     f"candidate={parts_model['stage2'].run_id}"]))
     mlflow.set_tracking_uri(previous)
     version = MlflowClient(parts_model["uri"]).get_model_version_by_alias("mmm-upperbody", "champion")
-    # Tags hold the criteria's metrics only (none measured without labels); the description all of them.
-    assert "metric.upper_body/both" not in version.tags and "val/acc_masked" in version.description
+    # Tags hold the criteria's metrics only; the description all of them.
+    assert "metric.upper_body/both" not in version.tags and "metric.val/acc_masked" in version.tags and "val/acc_unmasked" in version.description
     model = TextToMotion.load(None, tracking_uri=parts_model["uri"], parts=True)
     assert model.part_aware and model.identity["reference"] == "models:/mmm-upperbody@champion"
     # The bundle's pyfunc model: rows carry the source motion.

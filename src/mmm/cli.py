@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -20,13 +21,10 @@ class CLIError(Exception):
 
 
 def _load_npy(path: str) -> np.ndarray:
-    p = Path(path)
-    if not p.exists():
-        raise CLIError(f"{p}: no such file")
-    try:
-        return np.load(p, allow_pickle=False)
-    except Exception as e:
-        raise CLIError(f"{p}: cannot read as .npy ({e})") from None
+    """A motion .npy (numbers only, never unpickled); DataError naming the file otherwise."""
+    from mmm.data.arrays import load_array
+
+    return load_array(path, "motion (.npy of features or joints)", "give a .npy of features (T, 263) or joints (T, 22, 3) written with numpy.save")
 
 
 def _save_npy(path: str, array: np.ndarray) -> None:
@@ -58,12 +56,18 @@ def cmd_convert(args: argparse.Namespace) -> None:
 
 def cmd_data_synth(args: argparse.Namespace) -> None:
     from mmm.data.synthetic.generate import generate_dataset
+    from mmm.generation.sampler import SamplingValueError, check_seed
 
+    try:
+        check_seed(args.seed)
+    except SamplingValueError as e:
+        raise _option_error(e) from None
     summary = generate_dataset(args.out, num_clips=args.num_clips, seed=args.seed, overwrite=args.overwrite)
     print(summary)
 
 
 def cmd_data_stats(args: argparse.Namespace) -> None:
+    from mmm.data.arrays import load_array
     from mmm.data.humanml3d import compute_stats, save_array_atomic
     from mmm.data.normalization import evaluator_style_std
     from mmm.motion.features import FeatureLayout
@@ -91,8 +95,9 @@ def cmd_data_stats(args: argparse.Namespace) -> None:
             print(f"wrote {folder / 'mean.npy'} and {folder / 'std.npy'} (stage 1: normalization.statistics=files normalization.dir={folder})")
         return
     have = (root / "Mean.npy").exists() and (root / "Std.npy").exists()
-    old_mean = np.load(root / "Mean.npy") if have else None
-    old_std = np.load(root / "Std.npy") if have else None
+    fix = f"delete it and write it again with `mmm data stats {root} --write`"
+    old_mean = load_array(root / "Mean.npy", "saved Mean", fix) if have else None
+    old_std = load_array(root / "Std.npy", "saved Std", fix) if have else None
     print(f"{'group':14s} {'mean(avg)':>10s} {'std':>10s}" + (f" {'saved std':>10s} {'max|dmean|':>10s}" if have else ""))
     for name, sl in zip(names, layout.groups()):
         row = f"{name:14s} {mean[sl].mean():10.4f} {std[sl][0]:10.4f}"
@@ -123,6 +128,8 @@ def cmd_data_check(args: argparse.Namespace) -> None:
 def cmd_data_preview(args: argparse.Namespace) -> None:
     from mmm.data.preview import preview_dataset
 
+    if args.count < 1:
+        raise CLIError(f"--count {args.count} is not allowed: 1 or more clips to render")
     for path in preview_dataset(args.root, args.out, count=args.count, split=args.split):
         print(f"wrote {path}")
 
@@ -130,6 +137,8 @@ def cmd_data_preview(args: argparse.Namespace) -> None:
 def cmd_render(args: argparse.Namespace) -> None:
     from mmm.render import render_files
 
+    if args.fps is not None and not (math.isfinite(args.fps) and 0 < args.fps <= 1000):
+        raise CLIError(f"--fps {args.fps} is not allowed: frames per second, more than 0 and at most 1000")
     for path in render_files(args.inputs, args.out, captions=args.caption or None, fps=args.fps):
         print(f"wrote {path}")
 
@@ -279,11 +288,44 @@ def _sampling(args: argparse.Namespace):
     )
 
 
+# The command-line option of each range-checked value (SamplingValueError.field -> option).
+_OPTION_OF_FIELD = {
+    "max_iterations": "--iterations", "temperature": "--temperature", "top_k": "--top-k", "top_p": "--top-p",
+    "guidance_scale": "--guidance", "seed": "--seed", "num_samples": "--num-samples",
+}
+
+
+def _option_error(e) -> CLIError:
+    """A SamplingValueError in the command line's words: the option, the value, the allowed range."""
+    return CLIError(f"{_OPTION_OF_FIELD.get(e.field, e.field)} {e.value} is not allowed: {e.allowed}")
+
+
+def _check_generation_args(args: argparse.Namespace) -> None:
+    """Refuse out-of-range sampling settings, seeds, sample counts and placements before any model
+    is loaded or anything written. The ranges are those of mmm.generation.sampler, which the
+    served bundle checks its requests against too."""
+    from mmm.generation.sampler import SamplingValueError, check_count, check_seed
+
+    try:
+        _sampling(args)  # SamplingConfig checks its own fields
+        check_seed(args.seed)
+        if getattr(args, "num_samples", None) is not None:
+            check_count(args.num_samples, "num_samples")
+    except SamplingValueError as e:
+        raise _option_error(e) from None
+    if getattr(args, "place", 0) < 0:
+        raise CLIError(f"--place {args.place} is not allowed: the output frame where the source starts, 0 or more (a multiple of 4)")
+    if getattr(args, "transition_codes", 0) < 0:
+        raise CLIError(f"--transition-codes {args.transition_codes} is not allowed: 0 or more codes between neighbouring segments")
+
+
 def _load_model(args: argparse.Namespace):
     from mmm.generation.model import TextToMotion
 
+    text_files = {"weights": args.clip_weights, "vocab": args.clip_vocab}
     return TextToMotion.load(args.model, tracking_uri=args.tracking_uri, output_dir=args.stage2_dir, device=args.device, length_model=args.length_model,
-                             parts=getattr(args, "kind", None) == "upper-body")
+                             parts=getattr(args, "kind", None) == "upper-body", stage1=args.stage1,
+                             text_files={k: v for k, v in text_files.items() if v is not None})
 
 
 def _meta(args, model, out, kind: str, extra: dict) -> dict:
@@ -313,6 +355,7 @@ def _check_texts(texts: list[str]) -> None:
 def cmd_generate(args: argparse.Namespace) -> None:
     from mmm.generation.outputs import write_samples
 
+    _check_generation_args(args)
     _check_texts([args.text])
     model = _load_model(args)
     if args.length is not None:
@@ -337,6 +380,7 @@ def cmd_edit(args: argparse.Namespace) -> None:
     from mmm.generation.outputs import write_samples
     from mmm.motion.features import joints_to_features
 
+    _check_generation_args(args)
     if args.kind == "upper-body":
         from mmm.generation.upper_body import DEFAULT_LOWER_MASK
 
@@ -396,11 +440,17 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
     from mmm.generation.outputs import write_samples
     from mmm.generation.prompts import split_paragraph
 
+    _check_generation_args(args)
+    if args.paragraph is not None and not args.paragraph.strip():
+        raise CLIError("--paragraph is empty: describe the motions in order, e.g. --paragraph 'A person walks forward, then jumps.'")
     if bool(args.text) == bool(args.paragraph):
         raise CLIError("give the prompts either as --text ... --text ... or as one --paragraph '...'")
     texts = args.text or split_paragraph(args.paragraph)
     _check_texts(texts)
-    lengths = [int(x) for x in args.lengths.split(",")] if args.lengths else None
+    try:
+        lengths = [int(x) for x in args.lengths.split(",")] if args.lengths else None
+    except ValueError:
+        raise CLIError(f"--lengths {args.lengths!r}: write frames per segment as whole numbers, one for all or one per prompt, e.g. 80,120") from None
     if lengths is not None and len(lengths) not in (1, len(texts)):
         raise CLIError(f"--lengths has {len(lengths)} values for {len(texts)} prompts")
     if lengths is not None and len(lengths) == 1:
@@ -423,9 +473,14 @@ def _add_generation_options(p: argparse.ArgumentParser) -> None:
                    "stage-2 result; for upper-body: mmm-upperbody's champion, else the newest part-aware result)")
     p.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
     p.add_argument("--length-model", default=None, help="length estimator used when no length is given (default: the newest `make train-length` result)")
+    # Files a checkpoint records are read only from outputs/ (or its MLflow run): these name them otherwise.
+    p.add_argument("--stage1", default=None, help="the stage-1 model the --model was trained with (checkpoint, run id or models:/...), "
+                   "when the file its checkpoint records lies outside outputs/")
+    p.add_argument("--clip-weights", default=None, help="the CLIP weights file a CLIP model was trained with, when its recorded path lies outside outputs/")
+    p.add_argument("--clip-vocab", default=None, help="the CLIP vocabulary file (bpe_simple_vocab_16e6.txt.gz), likewise")
     p.add_argument("--stage2-dir", default="outputs/stage2", help=argparse.SUPPRESS)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--overwrite", action="store_true", help="replace existing sample folders")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder of earlier samples whole (never a mix of old and new)")
     g = p.add_argument_group("sampling")
     g.add_argument("--iterations", type=int, default=10, help="T_max (each sample runs ceil(T_max * L / 50))")
     g.add_argument("--schedule", choices=["cosine", "linear", "square"], default="cosine")
@@ -484,7 +539,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("stage", choices=["stage1", "stage2", "length", "evaluator", "stage1-parts", "stage2-parts"],
                        help="stage1-parts/stage2-parts: the part-aware model for upper-body editing")
     train.add_argument("overrides", nargs="*", help="e.g. trainer.max_steps=500 model=paper data=humanml3d")
-    train.add_argument("--resume", default=None, help="'last' (newest run of this stage) or a checkpoint path")
+    train.add_argument("--resume", default=None, help="'last' (newest run of this stage that no other process is writing) or a checkpoint "
+                       "path (one outside this stage's run folders is only read: the run goes on in a new run folder)")
     train.set_defaults(func=cmd_train)
 
     tokenize = sub.add_parser("tokenize", help="tokenize a dataset with a stage-1 model and cache caption embeddings (stage 2's inputs)")

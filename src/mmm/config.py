@@ -126,7 +126,10 @@ def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None
         if schema is not None:
             cfg = OmegaConf.merge(OmegaConf.structured(schema), cfg)
     except OmegaConfBaseException as e:
-        raise ConfigError(f"config {name!r} with overrides {list(overrides)}: {e}") from None
+        # OmegaConf's first line names the key (and a close match); the lines after it (full_key,
+        # reference_type, object_type) are its debugging context, which a one-line error leaves out.
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ConfigError(f"config {name!r} with overrides {list(overrides)}: {reason}") from None
     OmegaConf.set_struct(cfg, True)
     return cfg
 

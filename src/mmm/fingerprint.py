@@ -32,11 +32,14 @@ _DATA_PARTS = ("new_joint_vecs", "texts")
 _SPLITS = ("train.txt", "val.txt", "test.txt", "Mean.npy", "Std.npy")
 
 
-def dataset_fingerprint(root: str | Path) -> str:
-    """Short sha256 over the content of a dataset's features, captions, splits and statistics.
+def dataset_fingerprint(root: str | Path, extra_parts: tuple[str, ...] = ()) -> str:
+    """Short sha256 over the content of a dataset's features, captions, splits and statistics,
+    and of the folders `extra_parts` names (e.g. labels, new_joints) where they exist.
 
-    File hashes are remembered in <root>/.fingerprint-cache.json by (size, mtime), so a second
-    call only reads what changed.
+    File hashes are remembered in <root>/.fingerprint-cache.json by (size, mtime, ctime, inode),
+    so a second call only reads what changed: a rewrite that keeps the size and sets the mtime
+    back still changes the ctime (which no user call can set), and a file replaced by rename
+    has another inode.
     """
     root = Path(root)
     cache_path = root / ".fingerprint-cache.json"
@@ -45,7 +48,7 @@ def dataset_fingerprint(root: str | Path) -> str:
     except (OSError, ValueError):
         cache = {}
     files = [root / name for name in _SPLITS if (root / name).exists()]
-    for part in _DATA_PARTS:
+    for part in (*_DATA_PARTS, *extra_parts):
         if (root / part).is_dir():
             files += sorted((root / part).iterdir())
     total = hashlib.sha256()
@@ -53,7 +56,7 @@ def dataset_fingerprint(root: str | Path) -> str:
     for path in files:
         rel = str(path.relative_to(root))
         st = path.stat()
-        key = f"{st.st_size}:{st.st_mtime_ns}"
+        key = f"{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}:{st.st_ino}"
         digest = cache.get(rel, {}).get(key) if isinstance(cache.get(rel), dict) else None
         if digest is None:
             digest = hashlib.sha256(path.read_bytes()).hexdigest()

@@ -15,6 +15,7 @@ DESCRIPTION_TAG = "mlflow.note.content"  # the run's / experiment's / version's 
 GIT_COMMIT_TAG = "mlflow.source.git.commit"
 # Experiments of a training package: the dashboard opens them in its classic (machine learning) view.
 EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"
+TRAINING_VIEW = "?workflowType=machine_learning"  # without it MLflow 3.17 may open a page in its GenAI view
 
 EXPERIMENT_DESCRIPTIONS = {
     "mmm-stage1": "Stage 1: the motion tokenizer (VQ-VAE). Charts: `train/*` losses, `codebook/*` usage and resets, `collapse/*` "
@@ -34,7 +35,7 @@ EXPERIMENT_DESCRIPTIONS = {
 
 
 def run_link(experiment_id: str, run_id: str, text: str | None = None) -> str:
-    return f"[{text or run_id[:8]}](#/experiments/{experiment_id}/runs/{run_id})"
+    return f"[{text or run_id[:8]}](#/experiments/{experiment_id}/runs/{run_id}{TRAINING_VIEW})"
 
 
 def version_link(name: str, version: str | int, text: str | None = None) -> str:
@@ -43,7 +44,13 @@ def version_link(name: str, version: str | int, text: str | None = None) -> str:
 
 def experiment_url(base: str, experiment_id: str) -> str:
     """The experiment's page in the classic training view (MLflow 3 opens new stores in its GenAI view)."""
-    return f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+    return f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs{TRAINING_VIEW}"
+
+
+def source_tags(command: str) -> dict[str, str]:
+    """What the run page's "Source" shows: the command that made the run, and the git commit."""
+    commit = git_commit()
+    return {"mlflow.source.name": command, "mlflow.source.type": "LOCAL", **({GIT_COMMIT_TAG: commit} if commit else {})}
 
 
 def timestamp() -> str:
@@ -103,11 +110,13 @@ def dashboard_links(client, base_url: str) -> list[str]:
     for experiment in client.search_experiments(order_by=["name ASC"]):
         if not experiment.name.startswith("mmm"):
             continue
-        newest = client.search_runs([experiment.experiment_id], order_by=["attributes.start_time DESC"], max_results=1)
+        recent = client.search_runs([experiment.experiment_id], order_by=["attributes.start_time DESC"], max_results=50)
+        # A pipeline's steps start after it: the newest top-level run is the one to open.
+        newest = [r for r in recent if "mlflow.parentRunId" not in r.data.tags] or recent
         line = f"{experiment.name:18s} {experiment_url(base_url, experiment.experiment_id)}"
         if newest:
             run = newest[0].info
-            line += f"\n{'':18s} newest run {run.run_name}: {base_url.rstrip('/')}/#/experiments/{experiment.experiment_id}/runs/{run.run_id}"
+            line += f"\n{'':18s} newest run {run.run_name}: {base_url.rstrip('/')}/#/experiments/{experiment.experiment_id}/runs/{run.run_id}{TRAINING_VIEW}"
         lines.append(line)
     lines.append(f"{'registered models':18s} {base_url.rstrip('/')}/#/models")
     return lines

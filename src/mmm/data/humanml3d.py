@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,8 +111,12 @@ def parse_caption_line(line: str, path: str | Path = "<text>", lineno: int = 0) 
         end = float(end_s) if end_s.strip() else 0.0
     except ValueError:
         raise DataError(where, f"start/end {start_s!r}/{end_s!r} are not numbers", "write seconds, or 0.0#0.0 for the whole clip") from None
+    # NaN means "the whole clip" (the reference loader's rule, HumanML3D writes nan#nan); an
+    # infinite bound has no frame to cut at.
     start = 0.0 if math.isnan(start) else start
     end = 0.0 if math.isnan(end) else end
+    if math.isinf(start) or math.isinf(end):
+        raise DataError(where, f"caption span {start_s.strip()}..{end_s.strip()} s is not finite", "write the span in seconds, or 0.0#0.0 for the whole clip")
     if start < 0 or end < 0 or (end != 0.0 and end <= start):
         raise DataError(where, f"caption span {start}..{end} s is empty or negative", "use start < end, or 0.0#0.0 for the whole clip")
     return Caption(text.strip(), tuple(tokens.split()), start, end)
@@ -151,6 +154,8 @@ def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
         raise DataError(path, "motion file is missing", "remove the id from the split or restore new_joint_vecs/<id>.npy") from None
     except (OSError, ValueError, EOFError) as e:
         raise DataError(path, f"unreadable .npy file ({e})", "regenerate it, or remove it and its id from the splits") from None
+    if arr.dtype.kind not in "biuf":  # strings or bytes: np.isfinite below could not even look at them
+        raise DataError(path, f"holds {arr.dtype} values, not numbers", "regenerate it, or remove it and its id from the splits")
     if arr.ndim != 2 or arr.shape[1] != feature_dim:
         raise DataError(
             path,
@@ -170,7 +175,9 @@ def load_stats(root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarr
         path = root / name
         if not path.exists():
             raise DataError(path, "normalization statistics are missing", f"create them with `mmm data stats {root} --write`")
-        arr = np.load(path, allow_pickle=False).astype(np.float32)
+        from mmm.data.arrays import load_array  # (arrays.py imports DataError from here)
+
+        arr = load_array(path, "normalization statistics", f"recompute with `mmm data stats {root} --write`").astype(np.float32)
         if arr.shape != (feature_dim,):
             raise DataError(path, f"shape {arr.shape}, expected ({feature_dim},)", f"recompute with `mmm data stats {root} --write`")
         if not np.isfinite(arr).all():
@@ -211,11 +218,10 @@ def compute_stats(root: str | Path, num_joints: int, ids: list[str] | None = Non
 
 def save_array_atomic(path: str | Path, array: np.ndarray) -> None:
     """np.save to a temporary name in the same folder, then rename: never a half-written file."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
+    from mmm.atomic import atomic_write
+
+    with atomic_write(path) as f:
         np.save(f, array)
-    os.replace(tmp, path)
 
 
 def load_items(

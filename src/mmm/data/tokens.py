@@ -28,13 +28,21 @@ class TokenCache:
 
     def __init__(self, folder: str | Path):
         self.folder = Path(folder)
-        self.meta = json.loads((self.folder / "meta.json").read_text())
+        try:
+            self.meta = json.loads((self.folder / "meta.json").read_text())
+        except (OSError, ValueError) as e:
+            raise DataError(self.folder / "meta.json", f"unreadable token cache description ({e})", self._rebuild_hint()) from None
         self._tokens: dict[str, np.ndarray] | None = None
+
+    def _rebuild_hint(self) -> str:
+        return f"delete the folder {self.folder}: the next `mmm tokenize` (or stage-2 training) writes it again"
 
     def _load(self) -> dict[str, np.ndarray]:
         if self._tokens is None:
-            with np.load(self.folder / "tokens.npz") as data:
-                self._tokens = {k: data[k].astype(np.int64) for k in data.files}
+            from mmm.data.arrays import load_arrays
+
+            arrays = load_arrays(self.folder / "tokens.npz", "token cache", self._rebuild_hint())
+            self._tokens = {k: v.astype(np.int64) for k, v in arrays.items()}
         return self._tokens
 
     def __getitem__(self, motion_id: str) -> np.ndarray:
@@ -111,12 +119,14 @@ def tokenize_dataset(
     info = dict(meta or {})
     info.update({"splits": list(splits), "motions": len(tokens), "left_out_too_short": too_short, "num_codes": num_codes, "downsample": down})
     (tmp / "meta.json").write_text(json.dumps(info, indent=2))
-    if folder.exists():  # another process finished first: keep its identical result
+    try:
+        os.replace(tmp, folder)  # fails when the folder exists (a directory is not replaced by another)
+    except OSError:
+        if not ((folder / "meta.json").exists() and (folder / "tokens.npz").exists()):
+            raise
         import shutil
 
-        shutil.rmtree(tmp)
-    else:
-        os.replace(tmp, folder)
+        shutil.rmtree(tmp)  # another process finished first: keep its identical result
     if too_short:
         log.warning("tokenizing %s: left out %d motions shorter than %d frames (e.g. %s)", root, len(too_short), down, ", ".join(too_short[:3]))
     return TokenCache(folder)

@@ -119,8 +119,12 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     rows_spec = settings(kind, cfg.grids)
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     mlflow.set_tracking_uri(tracking_uri)
-    experiment = mlflow.get_experiment_by_name("mmm-ablations")
-    experiment_id = experiment.experiment_id if experiment else mlflow.create_experiment("mmm-ablations", artifact_location=artifact_location(tracking_uri, cfg.logger.artifact_root))
+    from mlflow.tracking import MlflowClient
+
+    from mmm.tracking import prepare_experiment
+
+    # Created when missing; another process creating it at the same time is not an error.
+    experiment_id = prepare_experiment(MlflowClient(tracking_uri), "mmm-ablations", artifact_location(tracking_uri, cfg.logger.artifact_root))
     items, _ = load_items(cfg.data.root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
                           length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
     mean, std = load_stats(cfg.data.root, cfg.data.feature_dim)

@@ -347,16 +347,20 @@ def load_contrastive_evaluator(path: str | Path, map_location: str | torch.devic
     loaded with weights_only=True.
 
     info: {"text_encoder": {"name", "identity", ...}, "data": {...}, "data_fingerprint",
-    "mean" (D,), "std" (D,), "feature_dim", "sentence_dim", "model": {...}, "global_step"}.
+    "mean" (D,), "std" (D,), "feature_dim", "sentence_dim", "model": {...}, "global_step", "path"}.
+    Anything but an intact evaluator checkpoint is a CheckpointError naming the file.
     """
-    ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    hp = ckpt.get("hyper_parameters") or {}
-    state = ckpt.get("state_dict") or {}
+    from mmm.checkpoints import CheckpointError, load_checkpoint, load_state
+
+    ckpt = load_checkpoint(path, "evaluator", map_location=map_location)
+    hp = ckpt["hyper_parameters"]
+    state = ckpt["state_dict"]
     prefix = "evaluator."
-    if not {"feature_dim", "sentence_dim", "model"} <= set(hp) or not any(k.startswith(prefix + "motion_encoder.") for k in state):
-        raise ValueError(f"{path}: not a contrastive evaluator checkpoint (no evaluator hyper-parameters or weights in it)")
-    evaluator = ContrastiveEvaluator(hp["feature_dim"], hp["sentence_dim"], hp["model"])
-    evaluator.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+    try:
+        evaluator = ContrastiveEvaluator(hp["feature_dim"], hp["sentence_dim"], hp["model"])
+    except (TypeError, ValueError, KeyError) as e:
+        raise CheckpointError(f"{path}: its hyper-parameters do not describe a contrastive evaluator ({e}); use the checkpoint as training wrote it") from None
+    load_state(evaluator, {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}, path, "evaluator")
     evaluator.eval()
     data = dict(hp.get("data") or {})
     info = {
@@ -369,6 +373,7 @@ def load_contrastive_evaluator(path: str | Path, map_location: str | torch.devic
         "sentence_dim": int(hp["sentence_dim"]),
         "model": dict(hp["model"]),
         "global_step": ckpt.get("global_step"),
+        "path": str(path),
     }
     return evaluator, info
 
@@ -415,12 +420,14 @@ class EvaluatorEmbedder:
         if self._encoder is None:
             from mmm.text import build_text_encoder
 
+            from mmm.checkpoints import text_encoder_options
+
             recorded = dict(self.info.get("text_encoder") or {})
-            name = recorded.pop("name", None)
-            recorded.pop("identity", None)
-            if not name:
+            if not recorded.get("name"):
                 raise ValueError("the evaluator records no text encoder name; pass text_encoder= to EvaluatorEmbedder")
-            encoder = build_text_encoder(name, **{k: v for k, v in recorded.items() if v is not None})
+            # Recorded file options (CLIP weights) are followed only inside outputs/: else pass text_encoder=.
+            name, options = text_encoder_options(recorded, None, self.info.get("path", "the evaluator checkpoint"))
+            encoder = build_text_encoder(name, **options)
             self._check_identity(encoder.identity, "text encoder")
             self._encoder = encoder
         return self._encoder

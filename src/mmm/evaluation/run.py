@@ -180,13 +180,12 @@ class _EvaluationRun:
     def __init__(self, cfg: EvaluateConfig, tracking_uri: str):
         from mlflow.tracking import MlflowClient
 
-        from mmm.tracking import GIT_COMMIT_TAG, git_commit, prepare_experiment, timestamp
+        from mmm.tracking import prepare_experiment, source_tags, timestamp
 
         self.cfg, self.client = cfg, MlflowClient(tracking_uri)
         experiment_id = prepare_experiment(self.client, cfg.logger.experiment, artifact_location(tracking_uri, cfg.logger.artifact_root))
-        commit = git_commit()
         run = self.client.create_run(experiment_id, run_name=cfg.logger.run_name or f"evaluate-{cfg.data.name}-{timestamp()}",
-                                     tags={"mmm.stage": "evaluation", "split": cfg.split, **({GIT_COMMIT_TAG: commit} if commit else {})})
+                                     tags={"mmm.stage": "evaluation", "split": cfg.split, **source_tags("mmm evaluate")})
         self.run_id = run.info.run_id
         params = {"replications": cfg.protocol.replications, "what": ",".join(cfg.what), "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500]}
         for key, value in params.items():

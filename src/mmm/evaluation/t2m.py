@@ -80,6 +80,10 @@ import torch
 from torch import nn
 from torch.nn.utils.rnn import pack_padded_sequence
 
+from mmm.checkpoints import CheckpointError
+from mmm.data.arrays import load_array
+from mmm.data.humanml3d import DataError
+
 # --------------------------------------------------------------------------------------------
 # Constants of the published evaluator
 # --------------------------------------------------------------------------------------------
@@ -182,8 +186,9 @@ class EvaluatorFilesMissing(FileNotFoundError):
         return self.args[0]
 
 
-class EvaluatorCheckpointError(RuntimeError):
-    """The evaluator checkpoint could not be read or does not match the published layout."""
+class EvaluatorCheckpointError(CheckpointError, RuntimeError):
+    """The evaluator checkpoint could not be read or does not match the published layout (a
+    CheckpointError: the CLI prints it and exits 2; a RuntimeError as it always was)."""
 
 
 class _RestrictedUnpickler(pickle.Unpickler):
@@ -208,6 +213,16 @@ def restricted_pickle_load(path_or_bytes: str | Path | bytes):
         return _RestrictedUnpickler(io.BytesIO(path_or_bytes)).load()
     with open(path_or_bytes, "rb") as f:
         return _RestrictedUnpickler(f).load()
+
+
+def _read_vocabulary(path: Path, fix: str):
+    """A GloVe vocabulary pickle through the restricted unpickler; any failure (a damaged file,
+    a class outside list/dict/str/int) a DataError naming the file."""
+    try:
+        return restricted_pickle_load(path)
+    except (pickle.UnpicklingError, EOFError, OSError, ValueError, TypeError, KeyError, IndexError, AttributeError, UnicodeDecodeError) as e:
+        detail = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+        raise DataError(path, f"not a readable vocabulary pickle ({detail})", fix) from None
 
 
 def load_checkpoint_dict(path: str | Path) -> dict:
@@ -277,14 +292,18 @@ class WordVectorizer:
 
     @classmethod
     def _from_paths(cls, data_path: Path, words_path: Path, idx_path: Path) -> "WordVectorizer":
-        vectors = np.load(data_path, allow_pickle=False)
-        words = restricted_pickle_load(words_path)
-        word2idx = restricted_pickle_load(idx_path)
+        fix = "download the GloVe files again: " + _WHERE_FROM
+        vectors = load_array(data_path, "GloVe word vectors", fix)
+        words = _read_vocabulary(words_path, fix)
+        word2idx = _read_vocabulary(idx_path, fix)
         if not isinstance(words, list) or not all(isinstance(w, str) for w in words):
-            raise ValueError(f"{words_path} must hold a list of words (str)")
+            raise DataError(words_path, "must hold a list of words (str)", fix)
         if not isinstance(word2idx, dict):
-            raise ValueError(f"{idx_path} must hold a dict word -> index")
-        return cls(vectors, words, word2idx)
+            raise DataError(idx_path, "must hold a dict word -> index", fix)
+        try:
+            return cls(vectors, words, word2idx)
+        except ValueError as e:
+            raise DataError(data_path.parent, f"the GloVe files do not fit together ({e})", fix) from None
 
     @staticmethod
     def pos_class(word: str, pos: str) -> str:
@@ -609,8 +628,9 @@ def load_mean_std(directory: str | Path) -> tuple[np.ndarray, np.ndarray]:
     directory = Path(directory)
     for m, s in (("mean.npy", "std.npy"), ("Mean.npy", "Std.npy")):
         if (directory / m).is_file() and (directory / s).is_file():
-            mean = np.load(directory / m, allow_pickle=False).astype(np.float64)
-            std = np.load(directory / s, allow_pickle=False).astype(np.float64)
+            fix = f"restore the evaluator's statistics in {directory}"
+            mean = load_array(directory / m, "evaluator normalization mean", fix).astype(np.float64)
+            std = load_array(directory / s, "evaluator normalization std", fix).astype(np.float64)
             return mean, std
     raise FileNotFoundError(
         f"no normalization statistics in {directory}: expected mean.npy and std.npy (or Mean.npy "

@@ -201,13 +201,16 @@ def load_length_estimator(path: str | Path, map_location: str | torch.device = "
     The returned network carries `.text_encoder` and `.stage1` (the identities it was trained
     with) so a caller can check it is used with the same text encoder.
     """
-    ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    hp = ckpt.get("hyper_parameters") or {}
-    if "sentence_dim" not in hp or "model" not in hp or not any(k.startswith("estimator.") for k in ckpt.get("state_dict", {})):
-        raise ValueError(f"{path}: not a length estimator checkpoint (no length estimator hyper-parameters or weights in it)")
-    estimator = LengthEstimator(hp["sentence_dim"], hp["model"])
+    from mmm.checkpoints import CheckpointError, load_checkpoint, load_state
+
+    ckpt = load_checkpoint(path, "length", map_location=map_location)
+    hp = ckpt["hyper_parameters"]
+    try:
+        estimator = LengthEstimator(hp["sentence_dim"], hp["model"])
+    except (TypeError, ValueError, KeyError) as e:
+        raise CheckpointError(f"{path}: its hyper-parameters do not describe a length estimator ({e}); use the checkpoint as training wrote it") from None
     prefix = "estimator."
-    estimator.load_state_dict({k[len(prefix):]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)})
+    load_state(estimator, {k[len(prefix):]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}, path, "length")
     estimator.text_encoder = dict(hp.get("text_encoder") or {})
     estimator.stage1 = dict(hp.get("stage1") or {})
     return estimator.eval()

@@ -26,7 +26,7 @@ import torch
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
 from mmm.motion.features import recover_from_ric
-from mmm.resolve import resolve_checkpoint
+from mmm.resolve import _RUN_ID, resolve_checkpoint
 from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint
 from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
 
@@ -91,6 +91,8 @@ class TextToMotion:
         device: str = "cpu",
         length_model: str | None = None,
         parts: bool = False,
+        stage1: str | None = None,
+        text_files: dict[str, str] | None = None,
     ) -> "TextToMotion":
         """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS; by default the champion
         (models:/mmm-text2motion@champion) when one was promoted, else the newest stage-2 run.
@@ -99,10 +101,19 @@ class TextToMotion:
 
         length_model: the length estimator used when no length is given (a reference like the
         model's; default: the newest `make train-length` result), loaded only when needed.
+        stage1: the stage-1 model the transformer was trained with (a checkpoint path, run id or
+        models:/ reference), when what the checkpoint records cannot be used (see `from_files`).
+        text_files: the text encoder's files ({"weights": PATH, "vocab": PATH} for CLIP), likewise.
+        A registered version's files come with it, and its recorded fingerprints are checked.
         """
         from mmm.training.common import resolve_tracking_uri
 
         tracking_uri = resolve_tracking_uri(tracking_uri)
+        tokenizer_checkpoint = None
+        if stage1 is not None:
+            from mmm.tokenizer.load import resolve_tokenizer
+
+            _, tokenizer_checkpoint, _ = resolve_tokenizer(stage1, tracking_uri)
         if reference is None:
             reference = champion_reference(tracking_uri, PARTS["registered"] if parts else REGISTERED_MODEL)
         if reference is not None and reference.startswith("models:/"):
@@ -112,15 +123,19 @@ class TextToMotion:
             version = registered_version(reference, tracking_uri)  # a clear error for an unknown name or alias
             # A registered version's files never change: one folder per (store, source) is reused.
             key = hashlib.sha256(f"{tracking_uri}|{version.source}".encode()).hexdigest()[:12]
-            stage2, stage1 = bundle_checkpoints(reference, tracking_uri, dst=Path("outputs/cache/bundles") / key)
-            model = cls.from_files(stage2, stage1, device, length_source=(length_model, tracking_uri))
+            stage2, bundled_stage1 = bundle_checkpoints(reference, tracking_uri, dst=Path("outputs/cache/bundles") / key)
+            # The version's tags (written when it was logged) name the weights it must hold.
+            expected = {"transformer": version.tags.get("mmm.transformer.identity"), "stage1": version.tags.get("mmm.stage1.identity")}
+            model = cls.from_files(stage2, tokenizer_checkpoint or bundled_stage1, device, length_source=(length_model, tracking_uri),
+                                   text_files=text_files, expected_identity=expected)
             model.identity.update({"reference": reference, "run_id": version.run_id, "version": version.version})
             return model
         resolved, checkpoint, run_id = resolve_checkpoint(
             reference, tracking_uri, PARTS["experiment"] if parts else STAGE2_EXPERIMENT, PARTS["output_dir"] if parts else output_dir,
             "part-aware model" if parts else "text-to-motion model", PARTS["train"] if parts else "make train-stage2", "--model",
         )
-        model = cls.from_files(checkpoint, None, device, tracking_uri=tracking_uri, length_source=(length_model, tracking_uri))
+        model = cls.from_files(checkpoint, tokenizer_checkpoint, device, tracking_uri=tracking_uri, length_source=(length_model, tracking_uri),
+                               text_files=text_files)
         model.identity.update({"reference": resolved, "run_id": run_id})
         return model
 
@@ -132,41 +147,87 @@ class TextToMotion:
         device: str = "cpu",
         tracking_uri: str | None = None,
         length_source: tuple | None = None,
+        text_files: dict[str, str] | None = None,
+        expected_identity: dict | None = None,
     ) -> "TextToMotion":
-        """From a stage-2 checkpoint file and its stage-1 checkpoint file (default: the one recorded
-        in the stage-2 checkpoint, or its MLflow reference). The stage-1 weights must have the
-        fingerprint the transformer was trained with, and the text encoder must be the same."""
+        """From a stage-2 checkpoint file, with the stage-1 model and text encoder it was trained with.
+
+        What the stage-2 checkpoint records is never followed blindly (mmm.checkpoints):
+        - the stage-1 model is `tokenizer_checkpoint` when given (the user's --stage1, or the file a
+          registry bundle carries); else the stage-1 file the checkpoint records, only when it lies
+          inside `outputs/` of the working directory; else, with `tracking_uri`, the MLflow run it
+          records (runs:/RUN_ID; a recorded models:/ alias may have moved since). A recorded file
+          elsewhere is refused with an error naming it: pass it as --stage1 PATH.
+        - the text encoder is built from the recorded name and plain options (activation,
+          precision, words); its files (CLIP weights, vocab) from `text_files` when given, else
+          from the recorded paths only inside `outputs/`; otherwise the error names the file and
+          the option that passes it (--clip-weights / --clip-vocab).
+        Fingerprints are checked before anything is used, a mismatch refused naming both: the
+        transformer's weights against the fingerprint recorded in the file at save time and
+        `expected_identity["transformer"]` (a registered version's tag); the stage-1 weights
+        against the identity the transformer was trained on (and `expected_identity["stage1"]`);
+        the text encoder's identity against the recorded one.
+        """
+        from mmm.checkpoints import (FINGERPRINT_KEY, CheckpointError, load_checkpoint, load_state, outside_outputs, text_encoder_options,
+                                     trusted_recorded_path)
         from mmm.text import build_text_encoder
 
-        ckpt = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        hp = ckpt.get("hyper_parameters") or {}
-        if "codebook_shape" not in hp:
-            raise ValueError(f"{checkpoint}: not a stage-2 (masked transformer) checkpoint")
-        stage1 = hp["stage1"]
-        local = tokenizer_checkpoint or stage1.get("checkpoint")
-        if local and Path(local).exists():
-            tokenizer = load_tokenizer_checkpoint(local)
-            identity = tensors_fingerprint(tokenizer.state_dict())
-        elif tracking_uri is not None:
-            tokenizer, source = load_tokenizer(stage1["reference"], tracking_uri)
-            identity = source.identity
+        expected_identity = expected_identity or {}
+        ckpt = load_checkpoint(checkpoint, "stage2", expected_identity.get("transformer"))
+        hp = ckpt["hyper_parameters"]
+        stage1 = dict(hp.get("stage1") or {})
+        trained_on = stage1.get("identity")
+        if not trained_on:
+            raise CheckpointError(f"{checkpoint}: records no stage-1 identity, so its tokens cannot be checked against a tokenizer; use a checkpoint written by `mmm train stage2`")
+        registered = expected_identity.get("stage1")
+        if registered and registered != trained_on:
+            raise CheckpointError(f"{checkpoint}: trained on stage-1 weights {trained_on}, but the registry records {registered} for this version; the files were mixed up")
+        recorded = stage1.get("checkpoint")
+        run_id = stage1.get("run_id")
+        reference = f"runs:/{run_id}" if run_id else str(stage1.get("reference") or "")
+        from_mlflow = tracking_uri is not None and (reference.startswith(("runs:/", "models:/")) or bool(_RUN_ID.match(reference)))
+        if tokenizer_checkpoint:
+            tokenizer = load_tokenizer_checkpoint(tokenizer_checkpoint)
+            identity, used = tensors_fingerprint(tokenizer.state_dict()), str(tokenizer_checkpoint)
+        elif trusted_recorded_path(recorded) is not None:
+            tokenizer = load_tokenizer_checkpoint(recorded)
+            identity, used = tensors_fingerprint(tokenizer.state_dict()), str(recorded)
+        elif from_mlflow:
+            tokenizer, source = load_tokenizer(reference, tracking_uri)
+            identity, used = source.identity, source.checkpoint
+        elif outside_outputs(recorded):
+            raise CheckpointError(
+                f"{checkpoint}: its stage-1 model is recorded as {recorded}, outside outputs/; a file a checkpoint names is read only "
+                f"from outputs/ or when you name it: pass --stage1 {recorded} (from Python: tokenizer_checkpoint=PATH) if you trust it"
+            )
         else:
-            raise FileNotFoundError(f"{checkpoint}: its stage-1 model {stage1.get('checkpoint')} is not here; pass its checkpoint file")
-        if identity != stage1["identity"]:
-            raise ValueError(
-                f"{checkpoint}: its stage-1 model {stage1['reference']} has weights {identity}, but the transformer was trained "
-                f"on {stage1['identity']}; the tokens would not mean the same codes"
+            raise FileNotFoundError(
+                f"{checkpoint}: its stage-1 model {recorded or stage1.get('reference')} is not on this machine"
+                + ("" if tracking_uri is None else f" nor an MLflow run in {tracking_uri}")
+                + "; pass its checkpoint with --stage1 PATH|RUN_ID|models:/NAME@ALIAS (from Python: tokenizer_checkpoint=PATH)"
+            )
+        if identity != trained_on:
+            raise CheckpointError(
+                f"{checkpoint}: its stage-1 model {used} has weights {identity}, but the transformer was trained "
+                f"on {trained_on}; the tokens would not mean the same codes. Pass the stage-1 checkpoint it was trained with (--stage1)"
             )
         codebook, condition_codebook = stage2_codebooks(tokenizer)
-        module = MaskedTransformerModule(codebook, hp["model"], hp["optim"], hp["corruption"], hp["sentence_dim"], hp["word_dim"],
-                                         condition_codebook=condition_codebook)
-        module.load_state_dict(ckpt["state_dict"])
-        text = hp["text_encoder"]
-        options = {k: v for k, v in text.items() if k not in ("name", "identity") and v is not None}
-        encoder = build_text_encoder(text["name"], **options)
-        if encoder.identity != text["identity"]:
-            raise ValueError(f"{checkpoint}: text encoder {encoder.identity} differs from the one it was trained with ({text['identity']})")
-        info = {"reference": str(checkpoint), "run_id": None, "checkpoint": str(checkpoint), "stage1": stage1, "text_encoder": text["identity"]}
+        try:
+            module = MaskedTransformerModule(codebook, hp["model"], hp["optim"], hp["corruption"], hp["sentence_dim"], hp["word_dim"],
+                                             condition_codebook=condition_codebook)
+        except (TypeError, ValueError, KeyError) as e:
+            raise CheckpointError(f"{checkpoint}: its hyper-parameters do not describe a masked transformer ({e}); use the checkpoint as training wrote it") from None
+        load_state(module, ckpt["state_dict"], checkpoint, "stage2")
+        text = dict(hp.get("text_encoder") or {})
+        name, options = text_encoder_options(text, text_files, checkpoint)
+        encoder = build_text_encoder(name, **options)
+        if encoder.identity != text.get("identity"):
+            raise ValueError(
+                f"{checkpoint}: text encoder {encoder.identity} differs from the one it was trained with ({text.get('identity')}); "
+                "give the files it was trained with (--clip-weights/--clip-vocab)"
+            )
+        info = {"reference": str(checkpoint), "run_id": None, "checkpoint": str(checkpoint), "stage1": stage1, "stage1_checkpoint": used,
+                "text_encoder": text["identity"], "transformer": ckpt.get(FINGERPRINT_KEY) or expected_identity.get("transformer")}
         return cls(tokenizer, module.transformer, encoder, info, None, device, length_source=length_source)
 
     # -- pieces ---------------------------------------------------------------------------------
@@ -330,8 +391,8 @@ class TextToMotion:
         started = time.perf_counter()
         if source.ndim != 2 or source.shape[1] != self.feature_dim:
             raise ValueError(f"source features have shape {source.shape}, expected (T, {self.feature_dim})")
-        if place % self.unit:
-            raise ValueError(f"place {place} must be a multiple of {self.unit} frames")
+        if place < 0 or place % self.unit:
+            raise ValueError(f"place {place} must be 0 or more and a multiple of {self.unit} frames")
         source_codes = self.encode_motion(source)
         frames = frames or source_codes.shape[0] * self.unit
         self.check_frames(frames, "output length")

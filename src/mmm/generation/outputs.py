@@ -6,8 +6,12 @@
     DIR/<k>/motion.bvh     skeleton animation (imports in Blender)
     DIR/<k>/meta.json      prompt, length, seed, model identity, sampling settings, timings
 
-Samples are written into a staging folder inside DIR and moved into place only when every one
-of them is complete, so an error leaves no partial sample folder behind.
+Samples are written into a temporary sibling folder (`.DIR.new-*`, beside DIR on the same file
+system) and put in place only when every one of them is complete, so an error or a kill leaves
+no partial sample folder behind. A new DIR appears whole, by one rename. `overwrite=True` replaces
+an existing DIR whole: the old folder is renamed away (`.DIR.old-*`), the new one renamed in, the
+old one deleted; a reader never sees old and new samples mixed, nor an old DIR/k beyond the new
+count. Only a folder of samples is replaced: one holding anything else is refused.
 """
 
 from __future__ import annotations
@@ -16,9 +20,12 @@ import json
 import logging
 import os
 import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from mmm.atomic import fsync_directory
 
 log = logging.getLogger(__name__)
 
@@ -46,24 +53,67 @@ def _jsonable(value):
     return str(value)
 
 
+# What the generation commands write into DIR besides the sample folders (DIR/k): --trace's plot.
+COMMAND_FILES = ("decoding_trace.png",)
+
+
+def _is_sample_folder(path: Path) -> bool:
+    return path.name.isdigit() and path.is_dir()
+
+
+def _replaceable(entry: Path) -> bool:
+    """Whether `entry` of an output folder is this package's: a sample folder, a command's file,
+    or an earlier version's staging folder left by a killed process."""
+    return _is_sample_folder(entry) or entry.name in COMMAND_FILES or entry.name.startswith(".partial-")
+
+
+def _swap_in(new: Path, target: Path) -> None:
+    """Put folder `new` at `target`, replacing target's old folder whole (it is renamed away
+    first and deleted after; if the second rename fails the old folder is put back)."""
+    old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+    os.rename(target, old / target.name)
+    try:
+        os.rename(new, target)
+    except BaseException:
+        os.rename(old / target.name, target)
+        shutil.rmtree(old, ignore_errors=True)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
 def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite: bool = False) -> list[Path]:
-    """samples: dicts with features, joints, caption, meta. Returns the sample folders DIR/0, DIR/1, ..."""
+    """samples: dicts with features, joints, caption, meta. Returns the sample folders DIR/0, DIR/1, ...
+
+    DIR may be absent (created whole), hold only this package's files (replaced whole, see the
+    module docstring; earlier samples only with `overwrite`), or hold other files and no sample
+    folder (the new sample folders are moved in beside them)."""
     out = Path(out_dir)
-    targets = [out / str(k) for k in range(len(samples))]
-    taken = [t for t in targets if t.exists()]
-    if taken and not overwrite:
-        raise FileExistsError(f"{taken[0]} already exists; choose another --out or pass --overwrite")
-    created = not out.exists()
-    staging = out / f".partial-{os.getpid()}"
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} is a file, not a folder; choose another --out")
+    entries = sorted(out.iterdir()) if out.exists() else []
+    earlier = [e for e in entries if _is_sample_folder(e)]
+    if earlier and not overwrite:
+        raise FileExistsError(f"{earlier[0]} already exists; choose another --out or pass --overwrite")
+    foreign = [e.name for e in entries if not _replaceable(e)]
+    if earlier and foreign:
+        raise FileExistsError(
+            f"{out} holds {', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''} besides samples; --overwrite replaces the whole "
+            "folder, so it only replaces a folder of samples: move those away or choose another --out"
+        )
+    target = Path(os.path.abspath(out))  # a name and a parent to rename in, also for `--out .`
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.new-", dir=target.parent))
     try:
         for k, sample in enumerate(samples):
             _write_sample(staging / str(k), sample["features"], sample["joints"], sample["caption"], sample["meta"], skeleton)
-        for k, target in enumerate(targets):
-            if target.exists():
-                shutil.rmtree(target)
-            os.replace(staging / str(k), target)
+        if not target.exists():
+            os.rename(staging, target)
+        elif not foreign:  # only this package's files (or none): replaced whole
+            _swap_in(staging, target)
+        else:  # a folder of other things and no samples: the new sample folders are moved in
+            for k in range(len(samples)):
+                os.rename(staging / str(k), target / str(k))
+        fsync_directory(target.parent)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-        if created and out.exists() and not any(out.iterdir()):
-            out.rmdir()
-    return targets
+    return [out / str(k) for k in range(len(samples))]

@@ -26,6 +26,7 @@ re-predicting one position per step. Same generator and logits as the release: t
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 import torch
@@ -38,6 +39,50 @@ SCHEDULES = {
 
 
 DECODINGS = ("package", "released")
+
+# The allowed ranges of the sampling settings and of the per-request counts. The CLI and the
+# pyfunc bundle both check their inputs here, so the two accept exactly the same values.
+MAX_ITERATIONS = 100  # T_max: the paper's grid ends at 30; more passes only cost time
+MIN_TEMPERATURE = 1e-3  # a positive temperature below this is greedy decoding in all but name
+MAX_TEMPERATURE = 100.0  # far past uniform sampling already
+MAX_GUIDANCE = 100.0  # larger scales only push the logits towards float overflow
+MAX_SEED = 2**63 - 1  # torch generators take 64 bits; one sign bit kept free so every tool agrees
+MAX_SAMPLES = 64  # samples of one command, rows of one served request (its default bound)
+
+
+class SamplingValueError(ValueError):
+    """A sampling setting (or a seed or a count) outside its allowed range.
+
+    `field` is the setting's name here (max_iterations, temperature, ...), so that a caller can
+    name it its own way (the CLI's --iterations, a request's params)."""
+
+    def __init__(self, field: str, value, allowed: str):
+        self.field, self.value, self.allowed = field, value, allowed
+        super().__init__(f"{field} {value!r} is not allowed: {allowed}")
+
+
+def _check_number(field: str, value, low: float, high: float, allowed: str) -> None:
+    """SamplingValueError unless value is a finite real number (not a bool) in [low, high]."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) or not low <= value <= high:
+        raise SamplingValueError(field, value, allowed)
+
+
+def _check_integer(field: str, value, low: int, high: int, allowed: str) -> None:
+    """SamplingValueError unless value is an int (not a bool) in [low, high]."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value <= high:
+        raise SamplingValueError(field, value, allowed)
+
+
+def check_seed(seed, field: str = "seed") -> int:
+    """The seed as an int in 0..2^63-1, or SamplingValueError."""
+    _check_integer(field, seed, 0, MAX_SEED, f"an integer from 0 to 2^63-1 ({MAX_SEED})")
+    return int(seed)
+
+
+def check_count(count, field: str, limit: int = MAX_SAMPLES) -> int:
+    """A number of samples (or rows) in 1..limit, or SamplingValueError."""
+    _check_integer(field, count, 1, limit, f"an integer from 1 to {limit}")
+    return int(count)
 
 
 @dataclass
@@ -52,8 +97,25 @@ class SamplingConfig:
     decoding: str = "package"  # package (this file's rule) | released (the authors' loop, see the module docstring)
 
     def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        """ValueError naming the field, its value and the allowed range (SamplingValueError for a
+        value out of range): NaN and infinities never reach the decoder, whose softmax and
+        multinomial draw would fail on them mid-generation."""
         if self.decoding not in DECODINGS:
             raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {self.decoding!r}")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        _check_integer("max_iterations", self.max_iterations, 1, MAX_ITERATIONS, f"an integer from 1 to {MAX_ITERATIONS}")
+        if self.temperature != 0:
+            _check_number("temperature", self.temperature, MIN_TEMPERATURE, MAX_TEMPERATURE,
+                          f"0 (always the most likely code) or a number from {MIN_TEMPERATURE:g} to {MAX_TEMPERATURE:g}")
+        _check_number("guidance_scale", self.guidance_scale, 0.0, MAX_GUIDANCE, f"a number from 0 to {MAX_GUIDANCE:g} (1: no guidance)")
+        if self.top_k is not None and not (isinstance(self.top_k, numbers.Real) and 0.0 < self.top_k <= 1.0):
+            raise SamplingValueError("top_k", self.top_k, "a fraction of the codebook in (0, 1] (1: all codes)")
+        if self.top_p is not None and not (isinstance(self.top_p, numbers.Real) and 0.0 < self.top_p <= 1.0):
+            raise SamplingValueError("top_p", self.top_p, "a total probability in (0, 1] (1: all codes)")
         if self.decoding == "released":
             unsupported = [f"{name}={value}" for name, value, default in (
                 ("schedule", self.schedule, "cosine"), ("top_k", self.top_k, None), ("top_p", self.top_p, None),
@@ -61,14 +123,6 @@ class SamplingConfig:
             if unsupported:
                 raise ValueError(f"the released decoding has a cosine schedule and no top-k, top-p or guidance; drop {', '.join(unsupported)} "
                                  "or use decoding=package")
-        if self.schedule not in SCHEDULES:
-            raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
-        if self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be at least 1, got {self.max_iterations}")
-        if self.top_k is not None and not 0.0 < self.top_k <= 1.0:
-            raise ValueError(f"top_k is a fraction of the codebook in (0, 1], got {self.top_k}")
-        if self.top_p is not None and not 0.0 < self.top_p <= 1.0:
-            raise ValueError(f"top_p must be in (0, 1], got {self.top_p}")
 
 
 @dataclass

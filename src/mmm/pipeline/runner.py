@@ -1,7 +1,8 @@
 """Run pipeline steps as one MLflow parent run with a nested run per step, skipping unchanged ones.
 
-A step's key is a hash of what determines its result (its overrides, the data fingerprint, the
-outputs it consumes); the key and the step's outputs are kept in a state file. A rerun skips a
+A step's key is a hash of what determines its result (its resolved config, the code version, the
+content fingerprint of the data it reads, the outputs it consumes); the key and the step's outputs
+are kept in a state file, which one pipeline at a time uses (a lock beside it). A rerun skips a
 step whose key is unchanged and whose outputs still exist, and runs the rest: a failed pipeline
 restarts at the step that failed. Runs are created through the MLflow client, not the fluent
 API, so the steps' own runs (training, evaluation, promotion) start freely inside.
@@ -17,12 +18,14 @@ prefixed by the step (`stage1/val/...`, `evaluate/generated/fid`) with `pipeline
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
 import os
 import time
 import traceback
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -73,6 +76,20 @@ def _save_state(path: Path, state: dict) -> None:
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps(state, indent=2, default=str))
     os.replace(tmp, path)
+
+
+@contextmanager
+def state_lock(state_file: Path):
+    """Serialize pipelines that share `state_file`: an exclusive flock on `<state_file>.lock`, held
+    for the whole run (a second pipeline waits, then sees the first one's state)."""
+    state_file.parent.mkdir(parents=True, exist_ok=True)
+    with open(state_file.with_name(state_file.name + ".lock"), "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.warning("another pipeline is running on %s: waiting for it to finish", state_file)
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        yield  # closing the file releases the lock
 
 
 def _flat(outputs: dict) -> dict[str, str]:
@@ -170,18 +187,24 @@ def _headline_metrics(reports: list[StepReport], seconds: float) -> dict[str, fl
 def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, force: set[str] = frozenset(), experiment: str = "mmm-pipeline",
               artifact_root: str = "mlartifacts", dataset: Callable[[Context], tuple[str, str, str] | None] | None = None) -> list[StepReport]:
     """Run `steps` in order under one parent run. `dataset`: (name, root, fingerprint) of the data
-    the pipeline reads, recorded as the parent run's dataset input."""
+    the pipeline reads, recorded as the parent run's dataset input. Pipelines on one state file
+    run one at a time (`state_lock`)."""
+    with state_lock(state_file):
+        return _run_steps(name, steps, ctx, state_file, force, experiment, artifact_root, dataset)
+
+
+def _run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, force: set[str], experiment: str, artifact_root: str,
+               dataset: Callable[[Context], tuple[str, str, str] | None] | None) -> list[StepReport]:
     from mlflow.entities import Metric
     from mlflow.tracking import MlflowClient
 
-    from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, git_commit, log_dataset_input, prepare_experiment, run_link, timestamp
+    from mmm.tracking import DESCRIPTION_TAG, log_dataset_input, prepare_experiment, run_link, source_tags, timestamp
     from mmm.training.common import artifact_location
 
     client = MlflowClient(ctx.tracking_uri)
     experiment_id = prepare_experiment(client, experiment, artifact_location(ctx.tracking_uri, artifact_root))
-    commit = git_commit()
     parent = client.create_run(experiment_id, run_name=f"pipeline-{name}-{timestamp()}",
-                               tags={"mmm.pipeline": name, **({GIT_COMMIT_TAG: commit} if commit else {})})
+                               tags={"mmm.pipeline": name, **source_tags(f"mmm pipeline {name}")})
     parent_id = parent.info.run_id
     parent_link = run_link(experiment_id, parent_id, parent.info.run_name)
     links = _Links(client)
@@ -194,16 +217,19 @@ def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, forc
         if data is not None:
             log_dataset_input(client, parent_id, *data, context="pipeline")
         for order, step in enumerate(steps, 1):
-            inputs = step.inputs(ctx)
-            key = step_key(step.name, inputs)
-            previous = state.get(step.name, {})
-            reuse = step.name not in force and previous.get("key") == key and step.valid(ctx, previous.get("outputs", {}))
             child = client.create_run(experiment_id, run_name=f"{order:02d}-{step.name}", tags={
-                "mlflow.parentRunId": parent_id, "mmm.pipeline": name, "mmm.step": step.name, "mmm.step.order": str(order), "step.key": key,
+                "mlflow.parentRunId": parent_id, "mmm.pipeline": name, "mmm.step": step.name, "mmm.step.order": str(order),
             })
             child_id = child.info.run_id
             started = time.perf_counter()
+            inputs, previous, reuse = {}, {}, False
             try:
+                # Inside the step's run: composing its config (part of its key) fails on a bad override like the step itself.
+                inputs = step.inputs(ctx)
+                key = step_key(step.name, inputs)
+                client.set_tag(child_id, "step.key", key)
+                previous = state.get(step.name, {})
+                reuse = step.name not in force and previous.get("key") == key and step.valid(ctx, previous.get("outputs", {}))
                 if reuse:
                     outputs = previous["outputs"]
                     log.info("pipeline %s: %s unchanged (key %s), skipped", name, step.name, key)

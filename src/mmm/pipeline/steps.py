@@ -15,6 +15,7 @@ champion tokenizer always agree. Every step writes to the same tracking store an
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,14 +69,53 @@ def _common(ctx: Context) -> list[str]:
     ]
 
 
-def _data_fingerprint(ctx: Context) -> str:
+def _data_fingerprint(ctx: Context, extra_parts: tuple[str, ...] = ()) -> str:
+    """The content fingerprint of the pipeline's data (features, captions, splits, statistics), with
+    `extra_parts` (labels, new_joints) for the steps that read them too."""
     from mmm.data.datamodule import TokenizerDataModule
     from mmm.fingerprint import dataset_fingerprint
 
-    if "data_fingerprint" not in ctx.outputs:
+    memo = f"data_fingerprint{'+' + '+'.join(extra_parts) if extra_parts else ''}"
+    if memo not in ctx.outputs:
         TokenizerDataModule(ctx.cfg.data).prepare_data()  # synthesize the default dataset when missing
-        ctx.outputs["data_fingerprint"] = {"value": dataset_fingerprint(ctx.cfg.data.root)}
-    return ctx.outputs["data_fingerprint"]["value"]
+        ctx.outputs[memo] = {"value": dataset_fingerprint(ctx.cfg.data.root, extra_parts)}
+    return ctx.outputs[memo]["value"]
+
+
+LABELLED = ("labels", "new_joints")  # what adherence checks read besides the features
+
+
+def code_key() -> str:
+    """The code a step runs: the package's version (the git commit, `+dirty` with changes, or the
+    installed version) and, for a dirty checkout, a digest of the changes to src/, so an edit
+    between two runs is noticed."""
+    import subprocess
+
+    from mmm.registry.promotion import code_version
+
+    version = code_version()
+    if version.endswith("+dirty"):
+        root = Path(__file__).resolve().parents[3]
+        try:
+            diff = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--", "src"], capture_output=True, timeout=30).stdout
+        except (OSError, subprocess.SubprocessError):
+            diff = b""
+        version += "-" + hashlib.sha256(diff).hexdigest()[:12]
+    return version
+
+
+def _code(ctx: Context) -> str:
+    if "code_version" not in ctx.outputs:
+        ctx.outputs["code_version"] = {"value": code_key()}
+    return ctx.outputs["code_version"]["value"]
+
+
+def _key(ctx: Context, config: DictConfig, extra_parts: tuple[str, ...] = (), **consumed) -> dict:
+    """A step's inputs: its resolved config (hash), the code version, the data's content
+    fingerprint and what it consumes from earlier steps."""
+    from mmm.config import config_hash
+
+    return {"config": config_hash(config), "code": _code(ctx), "data": _data_fingerprint(ctx, extra_parts), **consumed}
 
 
 def _dataset(ctx: Context) -> tuple[str, str, str]:
@@ -114,16 +154,23 @@ def _promoted(name: str, decision) -> dict:
 
 
 # -- the steps -------------------------------------------------------------------------------------
+# Each step's overrides build both its config (whose resolved hash is part of its key) and its run.
 def step_evaluator() -> Step:
+    from mmm.training.evaluator import load_evaluator_config
+
+    def config(ctx):
+        return load_evaluator_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.evaluator])
+
     def run(ctx):
-        from mmm.training.evaluator import load_evaluator_config, train_evaluator
+        from mmm.training.evaluator import train_evaluator
 
-        return _trained(train_evaluator(load_evaluator_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.evaluator])))
+        return _trained(train_evaluator(config(ctx)))
 
-    return Step("evaluator", lambda ctx: {"data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.evaluator}, run, _run_exists)
+    return Step("evaluator", lambda ctx: _key(ctx, config(ctx)), run, _run_exists)
 
 
 def _promote_step(kind: str, source_step: str | None) -> Step:
+    from mmm.registry.promote import load_promote_config
     from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY
 
     name = {"evaluator": EVALUATOR, "tokenizer": TOKENIZER, "text2motion": TEXT2MOTION, "upperbody": UPPERBODY}[kind]
@@ -131,15 +178,18 @@ def _promote_step(kind: str, source_step: str | None) -> Step:
     def candidate(ctx):
         return ctx.outputs.get(source_step, {}).get("run_id") if source_step else None
 
+    def config(ctx):
+        chosen = candidate(ctx)
+        return load_promote_config([*_common(ctx), *([f"candidate={chosen}"] if chosen else []), *ctx.cfg.overrides.promote])
+
     def inputs(ctx):
-        return {"candidate": candidate(ctx), "data": _data_fingerprint(ctx), "evaluator": _champion(ctx, EVALUATOR) if kind in ("tokenizer", "text2motion") else None,
-                "overrides": ctx.cfg.overrides.promote}
+        return _key(ctx, config(ctx), LABELLED if kind == "upperbody" else (), candidate=candidate(ctx),
+                    evaluator=_champion(ctx, EVALUATOR) if kind in ("tokenizer", "text2motion") else None)
 
     def run(ctx):
-        from mmm.registry.promote import load_promote_config, promote
+        from mmm.registry.promote import promote
 
-        chosen = candidate(ctx)
-        return _promoted(name, promote(kind, load_promote_config([*_common(ctx), *([f"candidate={chosen}"] if chosen else []), *ctx.cfg.overrides.promote])))
+        return _promoted(name, promote(kind, config(ctx)))
 
     return Step(f"promote-{kind}", inputs, run, lambda ctx, outputs: _champion(ctx, name) is not None)
 
@@ -152,87 +202,117 @@ def _stage2_options(ctx) -> list[str]:
 
 
 def step_stage1() -> Step:
+    from mmm.training.stage1 import load_stage1_config
+
+    def config(ctx):
+        return load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1])
+
     def run(ctx):
-        from mmm.training.stage1 import load_stage1_config, train_stage1
+        from mmm.training.stage1 import train_stage1
 
-        return _trained(train_stage1(load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1])))
+        return _trained(train_stage1(config(ctx)))
 
-    return Step("stage1", lambda ctx: {"data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.stage1}, run, _run_exists)
+    return Step("stage1", lambda ctx: _key(ctx, config(ctx)), run, _run_exists)
 
 
 def step_tokenize() -> Step:
     from mmm.registry.promotion import TOKENIZER
+    from mmm.training.stage2 import load_stage2_config
+
+    def config(ctx):
+        return load_stage2_config([*_stage2_options(ctx), *ctx.cfg.overrides.stage2])
 
     def run(ctx):
-        from mmm.training.stage2 import load_stage2_config, prepare_stage2_data
+        from mmm.training.stage2 import prepare_stage2_data
 
-        dm = prepare_stage2_data(load_stage2_config([*_stage2_options(ctx), *ctx.cfg.overrides.stage2]))
+        dm = prepare_stage2_data(config(ctx))
         return {"tokens": str(dm.tokens.folder), "motions": len(dm.tokens), "captions": len(dm.caption_cache), "tokenizer": dm.source.identity}
 
-    return Step("tokenize", lambda ctx: {"data": _data_fingerprint(ctx), "tokenizer": _champion(ctx, TOKENIZER) or ctx.outputs.get("stage1", {}).get("run_id"),
-                                         "overrides": ctx.cfg.overrides.stage2}, run, lambda ctx, outputs: Path(outputs.get("tokens", "")).is_dir())
+    return Step("tokenize", lambda ctx: _key(ctx, config(ctx), tokenizer=_champion(ctx, TOKENIZER) or ctx.outputs.get("stage1", {}).get("run_id")),
+                run, lambda ctx, outputs: Path(outputs.get("tokens", "")).is_dir())
 
 
 def step_stage2() -> Step:
+    from mmm.training.stage2 import load_stage2_config
+
+    def config(ctx):
+        return load_stage2_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage2])
+
     def run(ctx):
-        from mmm.training.stage2 import load_stage2_config, train_stage2
+        from mmm.training.stage2 import train_stage2
 
-        return _trained(train_stage2(load_stage2_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage2])))
+        return _trained(train_stage2(config(ctx)))
 
-    return Step("stage2", lambda ctx: {"tokens": ctx.outputs.get("tokenize", {}).get("tokenizer"), "data": _data_fingerprint(ctx),
-                                       "overrides": ctx.cfg.overrides.stage2}, run, _run_exists)
+    return Step("stage2", lambda ctx: _key(ctx, config(ctx), tokens=ctx.outputs.get("tokenize", {}).get("tokenizer")), run, _run_exists)
 
 
 def step_length() -> Step:
+    from mmm.training.length import load_length_config
+
+    def config(ctx):
+        return load_length_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.length])
+
     def run(ctx):
-        from mmm.training.length import load_length_config, train_length
+        from mmm.training.length import train_length
 
-        return _trained(train_length(load_length_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.length])))
+        return _trained(train_length(config(ctx)))
 
-    return Step("length", lambda ctx: {"tokens": ctx.outputs.get("tokenize", {}).get("tokenizer"), "data": _data_fingerprint(ctx),
-                                       "overrides": ctx.cfg.overrides.length}, run, _run_exists)
+    return Step("length", lambda ctx: _key(ctx, config(ctx), tokens=ctx.outputs.get("tokenize", {}).get("tokenizer")), run, _run_exists)
 
 
 def step_evaluate() -> Step:
+    from mmm.evaluation.run import load_evaluate_config
     from mmm.registry.promotion import EVALUATOR
 
     def model(ctx):
         return ctx.outputs.get("stage2", {}).get("run_id")
 
-    def run(ctx):
-        from mmm.evaluation.run import evaluate, load_evaluate_config
-
+    def config(ctx):
         chosen = model(ctx)
         evaluator = ["evaluator.reference=models:/mmm-evaluator@champion"] if _champion(ctx, EVALUATOR) else []
-        results = evaluate(load_evaluate_config([*_common(ctx), *([f"text2motion={chosen}"] if chosen else []), *evaluator, *ctx.cfg.overrides.evaluate]))
+        return load_evaluate_config([*_common(ctx), *([f"text2motion={chosen}"] if chosen else []), *evaluator, *ctx.cfg.overrides.evaluate])
+
+    def run(ctx):
+        from mmm.evaluation.run import evaluate
+
+        results = evaluate(config(ctx))
         return {"run_id": results.get("run_id"), "metrics": results["metrics"], "table": results["table"]}
 
-    return Step("evaluate", lambda ctx: {"model": model(ctx), "evaluator": _champion(ctx, EVALUATOR), "data": _data_fingerprint(ctx),
-                                         "overrides": ctx.cfg.overrides.evaluate}, run, _run_exists)
+    # Prompt adherence reads labels/ and new_joints/: they are part of its data.
+    return Step("evaluate", lambda ctx: _key(ctx, config(ctx), LABELLED, model=model(ctx), evaluator=_champion(ctx, EVALUATOR)), run, _run_exists)
 
 
 def step_stage1_parts() -> Step:
+    from mmm.training.stage1 import load_stage1_config
+
+    def config(ctx):
+        return load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1_parts], parts=True)
+
     def run(ctx):
-        from mmm.training.stage1 import load_stage1_config, train_stage1
+        from mmm.training.stage1 import train_stage1
 
-        return _trained(train_stage1(load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1_parts], parts=True)))
+        return _trained(train_stage1(config(ctx)))
 
-    return Step("stage1-parts", lambda ctx: {"data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.stage1_parts}, run, _run_exists)
+    return Step("stage1-parts", lambda ctx: _key(ctx, config(ctx)), run, _run_exists)
 
 
 def step_stage2_parts() -> Step:
+    from mmm.training.stage2 import load_stage2_config
+
     def tokenizer(ctx):
         return ctx.outputs.get("stage1-parts", {}).get("run_id")
 
-    def run(ctx):
-        from mmm.training.stage2 import load_stage2_config, train_stage2
-
+    def config(ctx):
         chosen = tokenizer(ctx)
-        overrides = [*_common(ctx), *([f"stage1={chosen}"] if chosen else []), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage2_parts]
-        return _trained(train_stage2(load_stage2_config(overrides, parts=True)))
+        return load_stage2_config([*_common(ctx), *([f"stage1={chosen}"] if chosen else []), "trainer.enable_progress_bar=false",
+                                   *ctx.cfg.overrides.stage2_parts], parts=True)
 
-    return Step("stage2-parts", lambda ctx: {"tokenizer": tokenizer(ctx), "data": _data_fingerprint(ctx), "overrides": ctx.cfg.overrides.stage2_parts},
-                run, _run_exists)
+    def run(ctx):
+        from mmm.training.stage2 import train_stage2
+
+        return _trained(train_stage2(config(ctx)))
+
+    return Step("stage2-parts", lambda ctx: _key(ctx, config(ctx), tokenizer=tokenizer(ctx)), run, _run_exists)
 
 
 STEPS = {

@@ -37,9 +37,10 @@ from mlflow.exceptions import MlflowException
 from mlflow.models import ModelSignature
 from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 from mlflow.types import ColSpec, ParamSchema, ParamSpec, Schema
-from mlflow.types.schema import Array
+from mlflow.types.schema import AnyType, Array
 
-from mmm.generation.sampler import SamplingConfig
+from mmm.atomic import atomic_write, atomic_write_text, file_lock, fsync_directory
+from mmm.generation.sampler import MAX_SAMPLES, SamplingConfig, SamplingValueError, check_count, check_seed
 from mmm.generation.upper_body import DEFAULT_LOWER_MASK, UPPER_BODY_GUIDANCE
 
 DEFAULT_FRAMES = 120  # length when a row gives none (clipped to the model's limits)
@@ -61,10 +62,13 @@ SAMPLING_PARAMS = {
     "decoding": _DEFAULTS.decoding,  # "released": the authors' decoding loop
 }
 
+# length and seed are optional per row: in a request where some rows give one and others do not,
+# the column holds nulls, which MLflow cannot cast to a "long" column (the whole request would be
+# refused). So they are typed Any here and checked row by row in `predict` (`_integer`).
 INPUT_SCHEMA = Schema([
     ColSpec("string", "text"),
-    ColSpec("long", "length", required=False),
-    ColSpec("long", "seed", required=False),
+    ColSpec(AnyType(), "length", required=False),
+    ColSpec(AnyType(), "seed", required=False),
 ])
 def _param_type(value) -> str:
     return "string" if isinstance(value, str) else "long" if isinstance(value, int) else "double"
@@ -78,7 +82,7 @@ PARTS_SCHEMA = Schema([
     ColSpec("string", "text"),
     ColSpec(Array(Array("double")), "source"),
     ColSpec("double", "lower_mask", required=False),
-    ColSpec("long", "seed", required=False),
+    ColSpec(AnyType(), "seed", required=False),  # Any: see INPUT_SCHEMA
 ])
 # MLflow fills absent params from the signature's defaults: the edit's own guidance default there.
 PARTS_PARAM_SCHEMA = ParamSchema([ParamSpec(k, _param_type(v), UPPER_BODY_GUIDANCE if k == "guidance_scale" else v)
@@ -111,26 +115,34 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         text (what the upper body does), source (T, 263) features as nested lists, optional
         lower_mask (share of the source's lower-body codes hidden, default 0.5) and seed (guidance
         defaults to 4 there); and the output adds "lower_mask".
-    model_config {"device": "cuda"} loads it on a GPU (default "cpu").
+    model_config {"device": "cuda"} loads it on a GPU (default "cpu"); {"max_rows": N} bounds the
+    rows of one request (default 64; more are refused, HTTP 400 when served). A served model takes
+    them from MLFLOW_PYFUNC_INFERENCE_CONFIG='{"max_rows": 16}'.
     """
 
     def load_context(self, context):
         from mmm.generation.model import TextToMotion
 
-        device = (context.model_config or {}).get("device", "cpu")
+        config = context.model_config or {}
+        device = config.get("device", "cpu")
+        self.max_rows = check_count(config.get("max_rows", MAX_SAMPLES), "max_rows", limit=10**6)
         transformer = context.artifacts[TRANSFORMER]
+        # The text encoder's files (CLIP) travel in the bundle: passed as given files, never read
+        # from the paths the checkpoint recorded on the training machine.
         text_files = {k[len("text_"):]: v for k, v in context.artifacts.items() if k.startswith("text_")}
-        if text_files:
-            transformer = localize_text_files(transformer, text_files, tempfile.mkdtemp(prefix="mmm-bundle-"))
-        self.model = TextToMotion.from_files(transformer, context.artifacts[TOKENIZER], device=device)
+        self.model = TextToMotion.from_files(transformer, context.artifacts[TOKENIZER], device=device, text_files=text_files)
 
     def predict(self, context, model_input, params=None):
         if self.model.part_aware and "guidance_scale" not in (params or {}):
             params = {**(params or {}), "guidance_scale": UPPER_BODY_GUIDANCE}  # as PARTS_PARAM_SCHEMA, for direct calls
         sampling = sampling_config(params)
+        rows = input_rows(model_input)
+        max_rows = getattr(self, "max_rows", MAX_SAMPLES)
+        if len(rows) > max_rows:
+            raise InvalidRequest(f"the request has {len(rows)} rows; at most {max_rows} per request (the model's max_rows): split it into several requests")
         if self.model.part_aware:
-            return [self._edit_upper_body(i, row, sampling) for i, row in enumerate(input_rows(model_input))]
-        requests = [self._request(i, row) for i, row in enumerate(input_rows(model_input))]
+            return [self._edit_upper_body(i, row, sampling) for i, row in enumerate(rows)]
+        requests = [self._request(i, row) for i, row in enumerate(rows)]
         out = []
         for text, frames, seed in requests:
             g = self.model.generate([text], [frames], sampling, seed)
@@ -150,8 +162,7 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
             raise InvalidRequest(f"row {i}: source has shape {source.shape}; expected finite (T, {m.feature_dim}) features, {m.min_frames}..{m.max_frames} frames")
         lower_mask = row.get("lower_mask")
         lower_mask = DEFAULT_LOWER_MASK if _missing(lower_mask) else float(lower_mask)
-        seed = _integer(row.get("seed"), i, "seed")
-        seed = 0 if seed is None else seed
+        seed = _seed(row.get("seed"), i)
         try:
             g = m.edit_upper_body(source, text, lower_mask=lower_mask, sampling=sampling, seed=seed)
         except ValueError as e:
@@ -173,10 +184,7 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                 f"row {i}: length {frames} frames is outside {m.min_frames}..{m.max_frames} "
                 f"({m.min_frames / m.fps:.1f}-{m.max_frames / m.fps:.1f} s at {m.fps:g} fps)"
             )
-        seed = _integer(row.get("seed"), i, "seed")
-        if seed is not None and seed < 0:
-            raise InvalidRequest(f"row {i}: seed {seed} is negative")
-        return text, frames, 0 if seed is None else seed
+        return text, frames, _seed(row.get("seed"), i)
 
 
 def input_rows(model_input) -> list[dict]:
@@ -208,14 +216,21 @@ def sampling_config(params: dict | None) -> SamplingConfig:
     if unknown:
         raise InvalidRequest(f"unknown params {', '.join(unknown)}; accepted: {', '.join(SAMPLING_PARAMS)}")
     values = {**SAMPLING_PARAMS, **{k: v for k, v in params.items() if v is not None}}
+    for key in ("temperature", "guidance_scale", "top_k", "top_p"):
+        try:
+            values[key] = float(values[key])
+        except (TypeError, ValueError):
+            raise InvalidRequest(f"params: {key} {values[key]!r} is not a number") from None
     for key in ("top_k", "top_p"):
-        values[key] = None if float(values[key]) == 1.0 else float(values[key])
-    if float(values["temperature"]) < 0:
-        raise InvalidRequest(f"params: temperature must be >= 0 (0: always the most likely code), got {values['temperature']}")
+        values[key] = None if values[key] == 1.0 else values[key]
+    iterations = values["max_iterations"]
+    if isinstance(iterations, float) and iterations.is_integer():  # JSON may carry 10 as 10.0
+        iterations = int(iterations)
+    # SamplingConfig checks the ranges: the same as the command line's.
     try:
         return SamplingConfig(
-            max_iterations=int(values["max_iterations"]), temperature=float(values["temperature"]),
-            guidance_scale=float(values["guidance_scale"]), top_k=values["top_k"], top_p=values["top_p"], decoding=str(values["decoding"]),
+            max_iterations=iterations, temperature=values["temperature"], guidance_scale=values["guidance_scale"],
+            top_k=values["top_k"], top_p=values["top_p"], decoding=str(values["decoding"]),
         )
     except ValueError as e:
         raise InvalidRequest(f"params: {e}") from None
@@ -223,6 +238,17 @@ def sampling_config(params: dict | None) -> SamplingConfig:
 
 def _missing(value) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value)) or value is pd.NA or value is pd.NaT
+
+
+def _seed(value, row: int) -> int:
+    """Row `row`'s seed: 0 when absent, else an integer in the command line's range (0..2^63-1)."""
+    seed = _integer(value, row, "seed")
+    if seed is None:
+        return 0
+    try:
+        return check_seed(seed)
+    except SamplingValueError as e:
+        raise InvalidRequest(f"row {row}: {e}") from None
 
 
 def _integer(value, row: int, name: str) -> int | None:
@@ -248,7 +274,8 @@ def localize_text_files(transformer_checkpoint: str | Path, files: dict[str, str
     for option, path in files.items():
         text[option] = str(path)
     out = Path(dst_dir) / "transformer.local.ckpt"
-    torch.save(ckpt, out)
+    with atomic_write(out) as fh:  # a shared cache folder: other processes may be loading this file
+        torch.save(ckpt, fh)
     return str(out)
 
 
@@ -284,10 +311,10 @@ def describe_checkpoints(stage2_checkpoint: str | Path, tokenizer_checkpoint: st
     from mmm.fingerprint import tensors_fingerprint
     from mmm.tokenizer.load import load_tokenizer_checkpoint
 
-    ckpt = torch.load(stage2_checkpoint, map_location="cpu", weights_only=True)
-    hp = ckpt.get("hyper_parameters") or {}
-    if "codebook_shape" not in hp:
-        raise ValueError(f"{stage2_checkpoint}: not a stage-2 (masked transformer) checkpoint")
+    from mmm.checkpoints import load_checkpoint
+
+    ckpt = load_checkpoint(stage2_checkpoint, "stage2")
+    hp = ckpt["hyper_parameters"]
     tokenizer = load_tokenizer_checkpoint(tokenizer_checkpoint)
     stage1 = tensors_fingerprint(tokenizer.state_dict())
     if stage1 != hp["stage1"]["identity"]:
@@ -335,6 +362,7 @@ def log_bundle(
     artifact_path: str = "bundle",
     registered_model_name: str | None = None,
     tags: dict | None = None,
+    max_rows: int = MAX_SAMPLES,
 ):
     """Log the bundle as an MLflow model from the active run; returns its ModelInfo.
 
@@ -343,9 +371,12 @@ def log_bundle(
     the model to infer them nor resolves anything over the network. MLflow does load the bundle
     once and predict its one-row input example (its serving-input check, which only warns).
     With `registered_model_name` it is registered as a new version, tagged with the identities.
+    `max_rows` bounds the rows of one request; it and the device are the model's model_config,
+    so that a loader (or MLFLOW_PYFUNC_INFERENCE_CONFIG for a server) can change them.
     """
     if mlflow.active_run() is None:
         raise RuntimeError("log_bundle logs into the active MLflow run: call it inside `with mlflow.start_run(...):`")
+    max_rows = check_count(max_rows, "max_rows", limit=10**6)
     about = describe_checkpoints(stage2_checkpoint, tokenizer_checkpoint)
     identities = {
         "mmm.text_encoder": about["text_encoder"],
@@ -374,6 +405,7 @@ def log_bundle(
             signature=PARTS_SIGNATURE if about["part_aware"] else SIGNATURE,
             input_example=_parts_example(tokenizer_checkpoint) if about["part_aware"] else INPUT_EXAMPLE,
             pip_requirements=bundle_requirements(about["text_encoder_name"]),
+            model_config={"device": "cpu", "max_rows": max_rows},
             metadata=metadata,
             tags={**identities, **(tags or {})},
             registered_model_name=registered_model_name,
@@ -408,22 +440,30 @@ COMPLETE = ".complete"  # in a download folder: the bundle's folder inside it, w
 
 def _download(artifact_uri: str, tracking_uri: str, dst: str | Path | None) -> Path:
     """Download into `dst` (a new temporary folder when None) all or nothing: into a sibling
-    first, renamed into place once complete."""
+    first, renamed into place once complete (with its COMPLETE marker inside).
+
+    Fills of one `dst` take turns under a lock file beside it (`.<name>.lock`); one that waited
+    finds the other's complete copy and uses it. A complete copy is never deleted or replaced, so
+    a process reading one is never disturbed; a `dst` without the marker was made by no fill
+    (complete copies appear only by the rename) and is replaced."""
     if dst is None:
         return Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, tracking_uri=tracking_uri))
     dst = Path(dst).resolve()  # MLflow answers with absolute paths
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
-    try:
-        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, dst_path=str(tmp), tracking_uri=tracking_uri))
-        inside = str(local.relative_to(tmp))
-        (tmp / COMPLETE).write_text(inside)
-        if not (dst / COMPLETE).is_file():  # else another process finished first: keep its copy
-            if dst.exists():  # an older, incomplete attempt
-                shutil.rmtree(dst)
-            os.replace(tmp, dst)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with file_lock(dst.parent / f".{dst.name}.lock"):
+        if not (dst / COMPLETE).is_file():  # else another process filled it while this one waited
+            tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
+            try:
+                local = Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, dst_path=str(tmp), tracking_uri=tracking_uri))
+                atomic_write_text(tmp / COMPLETE, str(local.relative_to(tmp)))
+                if dst.exists():  # not a fill's copy (see above): moved away whole, then deleted
+                    stale = Path(tempfile.mkdtemp(prefix=f".{dst.name}.stale-", dir=dst.parent))
+                    os.replace(dst, stale / dst.name)
+                    shutil.rmtree(stale, ignore_errors=True)
+                os.replace(tmp, dst)
+                fsync_directory(dst.parent)
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
     return dst / (dst / COMPLETE).read_text().strip()
 
 

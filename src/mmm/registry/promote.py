@@ -14,16 +14,18 @@ number, and links to the model's run and the previous champion.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from omegaconf import DictConfig
 
+from mmm.atomic import sha256_file
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import ProtocolConfig
 from mmm.registry.promotion import (
-    CI_SUFFIX, EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, Criterion, Decision, promote_version, register_version, version_tags,
+    CI_SUFFIX, EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, WEIGHTS_SHA256, Criterion, Decision, criteria_errors, freeze_weights,
+    promote_version, register_version, version_tags,
 )
 from mmm.training.common import TrackingConfig, resolve_tracking_uri
 
@@ -69,7 +71,19 @@ class PromoteConfig:
 
 
 def load_promote_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("promote", list(overrides), schema=PromoteConfig)
+    """conf/promote.yaml with `overrides`; ConfigError naming the key when a criterion is invalid."""
+    from mmm.config import ConfigError
+
+    cfg_node = compose("promote", list(overrides), schema=PromoteConfig)
+    criteria: Criteria = to_object(cfg_node.criteria)
+    problems = [p for kind in EXPERIMENTS for p in criteria_errors(getattr(criteria, kind), f"criteria.{kind}")]
+    if problems:
+        raise ConfigError("conf/promote.yaml (with the command line's overrides): " + "; ".join(problems))
+    return cfg_node
+
+
+def _length_rules(data: DataConfig) -> dict:
+    return {"data.fps": data.fps, "data.min_length": data.min_length, "data.length_limit": data.length_limit, "data.on_invalid": data.on_invalid}
 
 
 def _newest_run(client, experiment: str) -> str:
@@ -150,10 +164,15 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         metrics = {k: v for k, v in run.data.metrics.items() if k.startswith("test/")}
         existing = [v for v in client.search_model_versions(f"name='{EVALUATOR}'") if v.run_id == run_id]
         fingerprint = run.data.tags.get("data.fingerprint", "")
+        params = run.data.params
+        protocol = {"split": "test", "measured_by": "training run", **{k: params.get(k) for k in sorted(params) if k.startswith("retrieval.")},
+                    "data.min_length": params.get("data.min_length"), "data.length_limit": params.get("data.length_limit"),
+                    "data.max_length": params.get("data.max_length")}
         tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, None, config_hash,
-                            {"text_encoder": run.data.tags.get("text_encoder", "")})
+                            {"text_encoder": run.data.tags.get("text_encoder", "")}, protocol=protocol)
         about = ("The package's own contrastive text-motion evaluator (motion encoder and text head over the frozen sentence embeddings of "
-                 f"`{tags['text_encoder'] or '?'}`): the yardstick generators are promoted with. Source: the checkpoints of its training run.")
+                 f"`{tags['text_encoder'] or '?'}`): the yardstick generators are promoted with. Source: a copy of its best checkpoint kept "
+                 "in its training run under `registered/` (a resumed run never rewrites it).")
         if existing:
             version = existing[0]
             for key, value in tags.items():
@@ -161,7 +180,9 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
             if version.description and not version.description.startswith("### "):
                 about += f" Registered by its training: {version.description}"
         else:
-            version = register_version(client, EVALUATOR, f"runs:/{run_id}/checkpoints", run_id, tags, about, MODEL_DESCRIPTIONS[EVALUATOR])
+            local = download_artifact(uri, run_id, "checkpoints/best.ckpt", "outputs/cache/models")
+            source, digest = freeze_weights(client, run_id, local, EVALUATOR)
+            version = register_version(client, EVALUATOR, source, run_id, {**tags, WEIGHTS_SHA256: digest}, about, MODEL_DESCRIPTIONS[EVALUATOR])
         measured = f"retrieval on the {run.data.tags.get('data.name', 'data')} test split, by its training run{_measurements(metrics, intervals)}"
         return promote_version(client, EVALUATOR, version.version, criteria, needs_evaluator=False, about=about, measured=measured)
     fingerprint = dataset_fingerprint(root)
@@ -179,34 +200,36 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         metrics = {f"recon/{k}": v for k, v in recon.items() if k != "clips"}
         metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
         identity = tensors_fingerprint(tokenizer.state_dict())
+        needs_fid = any(c.metric == "recon/fid" for c in criteria)  # MPJPE needs no evaluator: then which one was around does not matter
+        protocol = {"split": cfg.split, "reconstruction": "whole clips", "data.min_length": cfg.data.min_length,
+                    "data.on_invalid": cfg.data.on_invalid, "evaluator": getattr(evaluator, "identity", None) if needs_fid else "not used"}
         tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, getattr(evaluator, "identity", None), config_hash,
-                            {"tokenizer.identity": identity})
+                            {"tokenizer.identity": identity}, protocol=protocol)
         about = (f"Stage-1 motion tokenizer (VQ-VAE: motion features to codes and back, with its feature normalization), weights `{identity}`. "
-                 "Source: the checkpoints of its training run.")
+                 "Source: a copy of its best checkpoint kept in its training run under `registered/` (a resumed run never rewrites it).")
         measured = (f"reconstruction of the {cfg.split} split ({recon['clips']} clips) by `mmm promote`"
                     + (f", FID with evaluator `{evaluator.identity}`" if evaluator is not None else "") + "; `val/*` from the training run"
                     + _measurements(metrics, intervals))
-        version = register_version(client, TOKENIZER, f"runs:/{run_id}/checkpoints", run_id, tags, about, MODEL_DESCRIPTIONS[TOKENIZER])
+        source, digest = freeze_weights(client, run_id, checkpoint, TOKENIZER)
+        version = register_version(client, TOKENIZER, source, run_id, {**tags, WEIGHTS_SHA256: digest}, about, MODEL_DESCRIPTIONS[TOKENIZER])
         return promote_version(client, TOKENIZER, version.version, criteria, needs_evaluator=any(c.metric == "recon/fid" for c in criteria),
                                about=about, measured=measured)
     # text2motion and upperbody: measure, bundle, register.
-    import torch
-
     from mmm.generation.model import TextToMotion
-    from mmm.tokenizer.load import load_tokenizer
 
-    hp = torch.load(checkpoint, map_location="cpu", weights_only=True)["hyper_parameters"]
-    tokenizer_checkpoint = hp["stage1"].get("checkpoint")
-    if not tokenizer_checkpoint or not Path(tokenizer_checkpoint).exists():
-        tokenizer_checkpoint = load_tokenizer(hp["stage1"]["reference"], uri)[1].checkpoint
-    model = TextToMotion.from_files(checkpoint, tokenizer_checkpoint, cfg.device)
-    extra = {"stage1.identity": hp["stage1"]["identity"], "text_encoder": hp["text_encoder"]["identity"]}
+    # The stage-1 file the checkpoint records is followed only inside outputs/, else its MLflow run
+    # is used (TextToMotion.from_files); the bundle carries the file that was used and checked.
+    model = TextToMotion.from_files(checkpoint, None, cfg.device, tracking_uri=uri)
+    tokenizer_checkpoint = model.identity["stage1_checkpoint"]
+    extra = {"stage1.identity": model.identity["stage1"]["identity"], "text_encoder": model.identity["text_encoder"]}
     if kind == "upperbody":
         from mmm.evaluation.upper_body import upper_body_adherence
 
         if not model.part_aware:
             raise ValueError(f"run {run_id} is a whole-body model; `promote upperbody` takes part-aware runs (mmm-stage2-parts)")
         check = cfg.upper_body
+        protocol = {"split": cfg.split, "upper_body.max_sources": check.max_sources, "upper_body.lower_mask": check.lower_mask,
+                    "upper_body.seed": check.seed, "labels": (root / "labels").is_dir(), **_length_rules(cfg.data)}
         if (root / "labels").is_dir():
             result = upper_body_adherence(model, root, cfg.split, check.max_sources, check.lower_mask, check.seed)
             metrics = {f"upper_body/{k}": v for k, v in result.items() if isinstance(v, float)}
@@ -236,12 +259,18 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
                 metrics[f"{which}/{m}"], intervals[f"{which}/{m}"] = value, ci
         evaluator_identity, name, description = evaluator.identity, TEXT2MOTION, "text-to-motion bundle: tokenizer, transformer, normalization, text encoder"
         p = cfg.protocol
+        # Everything the numbers depend on besides the model and the data fingerprint: the split, the protocol (replications, batches,
+        # seed, the retrieval batch size, diversity and multimodality sizes, sampling), the length rules, the crop and the evaluator.
+        protocol = {"split": cfg.split, "evaluator": evaluator.identity, "model.max_frames": model.max_frames, "model.unit": model.unit,
+                    **{f"protocol.{k}": v for k, v in asdict(p).items()}, **_length_rules(cfg.data)}
         batches = "all the split's batches" if p.max_batches is None else f"at most {p.max_batches} batches"
         measured = (f"the text-to-motion protocol on the {cfg.split} split by `mmm promote` with evaluator `{evaluator.identity}`: {p.replications} "
                     f"replications over {batches} of {p.batch_size}")
     metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
     info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint)
-    tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, evaluator_identity, config_hash, extra)
+    # The bundle holds copies of both checkpoints (logged with the model); their digests say which files they are.
+    extra.update({"weights.transformer.sha256": sha256_file(checkpoint), "weights.tokenizer.sha256": sha256_file(tokenizer_checkpoint)})
+    tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, evaluator_identity, config_hash, extra, protocol=protocol)
     about = (f"{description[0].upper()}{description[1:]}. An MLflow pyfunc model (`{info.model_uri}`, logged in the candidate's run as "
              f"`bundle`); stage-1 weights `{extra['stage1.identity']}`, text encoder `{extra['text_encoder']}`.")
     version = register_version(client, name, info.model_uri, run_id, tags, about, MODEL_DESCRIPTIONS[name])

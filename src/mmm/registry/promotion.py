@@ -18,11 +18,16 @@ shows its registered versions).
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
 import math
 import subprocess
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from mmm.atomic import sha256_file
 
 TOKENIZER, TEXT2MOTION, EVALUATOR = "mmm-tokenizer", "mmm-text2motion", "mmm-evaluator"
 UPPERBODY = "mmm-upperbody"  # the part-aware model (upper-body editing)
@@ -33,6 +38,25 @@ class Criterion:
     metric: str
     mode: str = "min"  # min: lower is better; max: higher is better
     margin: float = 0.0  # the candidate must be better by at least this much
+
+
+def criteria_errors(criteria: list[Criterion], key: str) -> list[str]:
+    """What is wrong with `criteria` (configured under `key`, e.g. criteria.text2motion), one
+    line per problem naming the key; empty when they are valid."""
+    errors = []
+    for i, c in enumerate(criteria):
+        at = f"{key}[{i}]"
+        if not isinstance(c.metric, str) or not c.metric.strip():
+            errors.append(f"{at}.metric is empty; name a metric, e.g. generated/fid")
+        if c.mode not in ("min", "max"):
+            errors.append(f"{at}.mode={c.mode!r} must be min (lower is better) or max (higher is better)")
+        try:
+            margin = float(c.margin)
+        except (TypeError, ValueError):
+            margin = math.nan
+        if not math.isfinite(margin) or margin < 0:
+            errors.append(f"{at}.margin={c.margin!r} must be a finite number >= 0 (how much better a candidate must be)")
+    return errors
 
 
 @dataclass
@@ -66,11 +90,46 @@ def code_version() -> str:
     return (commit + ("+dirty" if dirty else "")) if commit else fallback
 
 
-def version_tags(metrics: dict[str, float], data_fingerprint: str, evaluator: str | None, config_hash: str | None, extra: dict | None = None) -> dict[str, str]:
-    tags = {f"metric.{k}": repr(float(v)) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
+PROTOCOL_HASH, PROTOCOL_SETTINGS = "protocol.hash", "protocol.settings"
+WEIGHTS_SHA256 = "weights.sha256"
+
+
+def protocol_hash(settings: dict) -> str:
+    """Short sha256 of how metrics were measured (split, protocol, length rules, evaluator, ...)."""
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def version_tags(metrics: dict[str, float], data_fingerprint: str, evaluator: str | None, config_hash: str | None, extra: dict | None = None,
+                 protocol: dict | None = None) -> dict[str, str]:
+    """A version's tags: its finite metrics (NaN and infinite values are left out: not measured),
+    what they were measured on and with, and `protocol` (how: `protocol.hash`, and the settings
+    as JSON in `protocol.settings`)."""
+    tags = {f"metric.{k}": repr(float(v)) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
     tags.update({"data.fingerprint": data_fingerprint, "evaluator": evaluator or "", "config.hash": config_hash or "", "code.version": code_version()})
+    if protocol is not None:
+        tags[PROTOCOL_HASH] = protocol_hash(protocol)
+        tags[PROTOCOL_SETTINGS] = json.dumps(protocol, sort_keys=True, default=str)[:4900]  # the store's tag limit is 5000
     tags.update({k: str(v) for k, v in (extra or {}).items()})
     return tags
+
+
+def freeze_weights(client, run_id: str, checkpoint: str | Path, name: str) -> tuple[str, str]:
+    """(source, sha256) of an immutable copy of `checkpoint` for a version of `name`: logged into
+    run `run_id` as `registered/<name>-<sha256[:12]>/best.ckpt`, a path no training writes (a
+    resumed run re-uploads `checkpoints/`, never this). The same file registered twice shares it."""
+    digest = sha256_file(checkpoint)
+    folder = f"registered/{name}-{digest[:12]}"
+    if not any(f.path == f"{folder}/best.ckpt" for f in client.list_artifacts(run_id, folder)):
+        import shutil
+        import tempfile
+
+        from mmm.resolve import log_artifact_with_digest
+
+        with tempfile.TemporaryDirectory() as tmp:  # the artifact keeps its name best.ckpt whatever the local file's
+            local = Path(tmp) / "best.ckpt"
+            shutil.copyfile(checkpoint, local)
+            log_artifact_with_digest(client, run_id, local, folder)  # the run records its digest too (the download cache's key)
+    return f"runs:/{run_id}/{folder}", digest
 
 
 def register_version(client, name: str, source: str, run_id: str | None, tags: dict[str, str], description: str = "", model_description: str | None = None):
@@ -129,8 +188,41 @@ def _relation(c: Criterion) -> str:
     return "<" if c.mode == "min" else ">"
 
 
+def _unmeasured(candidate, criteria: list[Criterion]) -> list[str]:
+    """The criteria's metrics the candidate has no finite value for."""
+    missing = []
+    for c in criteria:
+        raw = candidate.tags.get(f"metric.{c.metric}")
+        try:
+            value = float(raw)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not math.isfinite(value):
+            missing.append(f"{c.metric} {'missing' if raw in (None, '') else f'is {raw}'}")
+    return missing
+
+
+def _protocol_difference(candidate, champion) -> str | None:
+    """Why the two versions' metrics were measured otherwise, or None when the same way."""
+    ours, theirs = candidate.tags.get(PROTOCOL_HASH), champion.tags.get(PROTOCOL_HASH)
+    if ours == theirs:
+        return None
+    try:
+        a, b = json.loads(candidate.tags.get(PROTOCOL_SETTINGS) or "{}"), json.loads(champion.tags.get(PROTOCOL_SETTINGS) or "{}")
+    except ValueError:
+        a, b = {}, {}
+    differing = [f"{k} {a.get(k, '-')} vs {b.get(k, '-')}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+    detail = "; ".join(differing[:6]) if differing else f"protocol {ours or 'not recorded'} vs {theirs or 'not recorded'}"
+    return (f"measured with another protocol than the champion ({detail}): re-evaluate both with the same split, protocol, length "
+            "rules and evaluator to compare")
+
+
 def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool) -> tuple[bool, str, list[str]]:
-    """(promote?, reason, per-metric comparisons) for a candidate version against the champion."""
+    """(promote?, reason, per-metric comparisons) for a candidate version against the champion.
+    A candidate without a finite value for every criterion never promotes, champion or not."""
+    unmeasured = _unmeasured(candidate, criteria)
+    if unmeasured:
+        return False, "not measured: " + "; ".join(unmeasured) + " (a missing, NaN or infinite metric never promotes)", []
     if champion is None:
         return True, "no champion yet", []
     if candidate.tags.get("data.fingerprint") != champion.tags.get("data.fingerprint"):
@@ -139,6 +231,9 @@ def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool
     if needs_evaluator and candidate.tags.get("evaluator") != champion.tags.get("evaluator"):
         return False, (f"measured with another evaluator ({candidate.tags.get('evaluator')} vs the champion's "
                        f"{champion.tags.get('evaluator')}): re-evaluate both with the same evaluator to compare"), []
+    protocol = _protocol_difference(candidate, champion)
+    if protocol:
+        return False, protocol, []
     comparisons, failures = [], []
     for c in criteria:
         new, old = _metric(candidate, c.metric), _metric(champion, c.metric)
@@ -160,13 +255,56 @@ def promote_version(client, name: str, version: str, criteria: list[Criterion], 
     """Give `version` of `name` the alias champion (if it beats the current one) or challenger, and
     write why into its description. `about`: what the model is (default: the version's description
     as registered); `measured`: how its metrics were measured (one sentence)."""
+    problems = criteria_errors(criteria, "criteria")
+    if problems:
+        raise ValueError("; ".join(problems))
+    with promotion_lock(client, name):
+        return _promote_locked(client, name, version, criteria, needs_evaluator, about, measured)
+
+
+def _store_folder(client) -> Path | None:
+    """The folder of a local tracking/registry store (sqlite file, file store), None for a server."""
+    from urllib.parse import urlparse
+
+    uri = getattr(client, "_registry_uri", None) or client.tracking_uri
+    if uri.startswith("sqlite:///"):
+        return Path(uri[len("sqlite:///"):]).resolve().parent
+    parsed = urlparse(uri)
+    if parsed.scheme == "file":
+        return Path(parsed.path).resolve()
+    if parsed.scheme == "" and uri:
+        return Path(uri).resolve()
+    return None
+
+
+@contextmanager
+def promotion_lock(client, name: str):
+    """Serialize promotions of `name` on one local store: read the champion, decide and move the
+    alias as one step (fcntl.flock on `<store folder>/.mmm-promote-<name>.lock`), so two promotions
+    at once cannot leave the worse model champion. Against a tracking server it does nothing
+    (`promote_version` re-checks the champion after moving the alias)."""
+    folder = _store_folder(client)
+    if folder is None:
+        yield
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f".mmm-promote-{name}.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)  # released when the file is closed
+        yield
+
+
+def _champion(client, name: str):
     from mlflow.exceptions import MlflowException
 
-    candidate = client.get_model_version(name, version)
     try:
-        champion = client.get_model_version_by_alias(name, "champion")
+        return client.get_model_version_by_alias(name, "champion")
     except MlflowException:
-        champion = None
+        return None
+
+
+def _promote_locked(client, name: str, version: str, criteria: list[Criterion], needs_evaluator: bool, about: str, measured: str) -> Decision:
+    candidate = client.get_model_version(name, version)
+    champion = _champion(client, name)
     if champion is not None and champion.version == candidate.version:
         decision = Decision(True, "champion", "already the champion", candidate.version, champion.version)
         if not _registered_about(candidate) and candidate.description:
@@ -176,6 +314,17 @@ def promote_version(client, name: str, version: str, criteria: list[Criterion], 
         promoted, reason, comparisons = decide(candidate, champion, criteria, needs_evaluator)
         alias = "champion" if promoted else "challenger"
         client.set_registered_model_alias(name, alias, candidate.version)
+        if promoted and _store_folder(client) is None:
+            # A server store has no lock: if another promotion moved the alias meanwhile, decide
+            # again against the version that now holds it and give it back when that one is better.
+            now = _champion(client, name)
+            if now is not None and now.version != candidate.version:
+                if decide(candidate, now, criteria, needs_evaluator)[0]:
+                    client.set_registered_model_alias(name, "champion", candidate.version)
+                else:
+                    promoted, alias = False, "challenger"
+                    reason = f"another promotion made v{now.version} champion meanwhile, which this version does not beat"
+                    client.set_registered_model_alias(name, alias, candidate.version)
         client.set_model_version_tag(name, candidate.version, "promotion", f"{alias}: {reason}")
         decision = Decision(promoted, alias, reason, candidate.version, champion.version if champion else None, comparisons)
     text = describe_version(client, name, candidate, champion, criteria, decision, about or _registered_about(candidate), measured)
@@ -252,6 +401,16 @@ def describe_version(client, name: str, candidate, champion, criteria: list[Crit
     if measured:
         facts.append(f"- **Measured**: {measured}")
     facts.append(f"- **Data** `{tags.get('data.fingerprint') or '?'}`" + (f", evaluator `{tags['evaluator']}`" if tags.get("evaluator") else ""))
+    if tags.get(PROTOCOL_HASH):
+        try:
+            settings = json.loads(tags.get(PROTOCOL_SETTINGS) or "{}")
+        except ValueError:
+            settings = {}
+        readable = ", ".join(f"{k} `{v}`" for k, v in sorted(settings.items()))
+        facts.append(f"- **Protocol** `{tags[PROTOCOL_HASH]}`" + (f": {readable}" if readable else "")
+                     + " (only versions measured with the same protocol are compared)")
+    if tags.get(WEIGHTS_SHA256):
+        facts.append(f"- **Weights** sha256 `{tags[WEIGHTS_SHA256]}` (checked when the version is loaded)")
     if candidate.run_id:
         try:
             run = client.get_run(candidate.run_id)

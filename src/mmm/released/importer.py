@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mmm.atomic import atomic_write, sha256_file
 from mmm.released.keys import ReleasedKeyError, tokenizer_from_released, transformer_from_released
 
 log = logging.getLogger(__name__)
@@ -53,14 +53,6 @@ class ImportedModels:
     text2motion_version: str | None = None
     alias: str | None = None
     reused: bool = False
-
-
-def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def read_released(path: str | Path, key: str, what: str) -> dict[str, torch.Tensor]:
@@ -98,17 +90,8 @@ def read_stats(folder: str | Path, feature_dim: int) -> tuple[np.ndarray, np.nda
 
 
 def _save_atomic(obj: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(obj, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_write(path) as fh:
+        torch.save(obj, fh)
 
 
 def build_tokenizer(net: dict[str, torch.Tensor], source: str, mean: np.ndarray, std: np.ndarray):
@@ -207,7 +190,7 @@ def import_released(
     except KeyError:
         raise ImportRefused(f"{vq}: not a released stage-1 (VQ-VAE) checkpoint: missing vqvae.encoder.model.0.weight") from None
     mean, std, stats_sha = read_stats(stats, feature_dim)
-    sources = {"source.vq.sha256": file_sha256(vq), "source.stats.sha256": stats_sha}
+    sources = {"source.vq.sha256": sha256_file(vq), "source.stats.sha256": stats_sha}
     # Everything is read, mapped and checked before anything is written.
     tokenizer = build_tokenizer(net, str(vq), mean, std)
     tokenizer_identity = tensors_fingerprint(tokenizer.state_dict())
@@ -216,7 +199,7 @@ def import_released(
     imported = {"from": "released", "vq": str(Path(vq).resolve()), "stats": str(Path(stats).resolve()), **sources}
     module = None
     if trans is not None:
-        sources.update({"source.transformer.sha256": file_sha256(transformer), "source.clip.sha256": file_sha256(clip)})
+        sources.update({"source.transformer.sha256": sha256_file(transformer), "source.clip.sha256": sha256_file(clip)})
         encoder, text = released_text_encoder(clip, clip_vocab)
         stage1 = {"reference": str(tokenizer_path), "run_id": None, "identity": tokenizer_identity, "checkpoint": str(tokenizer_path.resolve())}
         module = build_transformer(trans, str(transformer), tokenizer, stage1, encoder, text, heads)
@@ -247,8 +230,9 @@ def _register(result: ImportedModels, sources: dict[str, str], tokenizer_identit
 
     uri = resolve_tracking_uri(tracking_uri)
     client = MlflowClient(uri)
-    experiment = client.get_experiment_by_name(EXPERIMENT)
-    experiment_id = experiment.experiment_id if experiment else client.create_experiment(EXPERIMENT, artifact_location(uri, artifact_root))
+    from mmm.tracking import prepare_experiment
+
+    experiment_id = prepare_experiment(client, EXPERIMENT, artifact_location(uri, artifact_root))  # another process creating it too is fine
     mlflow.set_tracking_uri(uri)
     base_tags = {IMPORTED_TAG: "released", **sources}
 
@@ -266,11 +250,13 @@ def _register(result: ImportedModels, sources: dict[str, str], tokenizer_identit
         client.set_registered_model_alias(name, result.alias, version.version)
         return str(version.version)
 
+    from mmm.resolve import log_artifact_with_digest
+
     def log_tokenizer(run_id: str) -> str:
         with tempfile.TemporaryDirectory() as tmp:
             staged = Path(tmp) / "best.ckpt"
             shutil.copyfile(result.tokenizer_checkpoint, staged)
-            mlflow.log_artifact(str(staged), "checkpoints")
+            log_artifact_with_digest(client, run_id, staged, "checkpoints")  # its sha256 keys the download cache
         return f"runs:/{run_id}/checkpoints"
 
     result.tokenizer_version = registered(TOKENIZER, ["source.vq.sha256", "source.stats.sha256"], log_tokenizer,
@@ -282,7 +268,7 @@ def _register(result: ImportedModels, sources: dict[str, str], tokenizer_identit
             with tempfile.TemporaryDirectory() as tmp:
                 staged = Path(tmp) / "best.ckpt"
                 shutil.copyfile(result.transformer_checkpoint, staged)
-                mlflow.log_artifact(str(staged), "checkpoints")
+                log_artifact_with_digest(client, run_id, staged, "checkpoints")
             return log_bundle(result.transformer_checkpoint, result.tokenizer_checkpoint, artifact_path="bundle").model_uri
 
         result.text2motion_version = registered(TEXT2MOTION, list(base_tags.keys() - {IMPORTED_TAG}), log_text2motion,

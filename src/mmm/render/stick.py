@@ -246,25 +246,55 @@ def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
         return ImageFont.load_default()
 
 
+def _fitting_prefix(text: str, font, width: float) -> int:
+    """How many leading characters of `text` fit in `width` pixels (at least 1; all when the whole
+    text fits). A galloping search: prefixes of 1, 2, 4, ... characters until one is too wide,
+    then bisection, so no prefix longer than twice the answer is ever measured and a
+    20,000-character word costs about as much as a short one."""
+    fits, too_wide = 0, None
+    n = 1
+    while n < len(text):
+        if font.getlength(text[:n]) > width:
+            too_wide = n
+            break
+        fits, n = n, n * 2
+    if too_wide is None:
+        if font.getlength(text) <= width:
+            return len(text)
+        too_wide = len(text)
+    while too_wide - fits > 1:
+        middle = (fits + too_wide) // 2
+        if font.getlength(text[:middle]) <= width:
+            fits = middle
+        else:
+            too_wide = middle
+    return max(fits, 1)
+
+
 def _wrap(text: str, font, width: float, max_lines: int) -> list[str]:
-    """Greedy word wrap to `width` pixels; the last line ends with an ellipsis when cut."""
-    words = text.split()
+    """Greedy word wrap to `width` pixels, a word wider than that broken by characters; at most
+    `max_lines` lines, the last ending with an ellipsis when the text is cut. Wrapping stops once
+    a line past `max_lines` is known to exist, so the text's length beyond what is shown costs
+    nothing."""
     lines: list[str] = []
     line = ""
-    for word in words:
+    for word in text.split():
+        if len(lines) > max_lines:
+            break
         trial = f"{line} {word}" if line else word
-        if font.getlength(trial) <= width or not line:
+        if font.getlength(trial) <= width:
             line = trial
-            while font.getlength(line) > width and len(line) > 1:  # a single over-long word
-                cut = len(line) - 1
-                while cut > 1 and font.getlength(line[:cut]) > width:
-                    cut -= 1
-                lines.append(line[:cut])
-                line = line[cut:]
-        else:
+            continue
+        if line:
             lines.append(line)
-            line = word
-    if line:
+        line = word
+        while len(lines) <= max_lines:  # a word too wide for a line of its own: cut by characters
+            cut = _fitting_prefix(line, font, width)
+            if cut >= len(line):
+                break
+            lines.append(line[:cut])
+            line = line[cut:]
+    if line and len(lines) <= max_lines:
         lines.append(line)
     if len(lines) > max_lines:
         last = lines[max_lines - 1]
@@ -790,6 +820,8 @@ def load_motion_file(path) -> np.ndarray:
     if not isinstance(arr, np.ndarray):  # .npz archives
         raise ValueError(f"{p}: is an archive with arrays {list(arr.keys())}, not a single array; "
                          f"expected a .npy file holding {_JOINT_SHAPES}")
+    if arr.dtype.kind not in "biuf":  # strings or bytes are no motion
+        raise ValueError(f"{p}: holds {arr.dtype} values, not numbers; expected a .npy file holding {_JOINT_SHAPES}")
     return arr
 
 

@@ -19,12 +19,13 @@ import os
 import re
 import shutil
 import tempfile
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 import torch
+
+from mmm.atomic import atomic_write, file_lock
 
 from .base import TextEmbedding, TextEncoder
 
@@ -39,30 +40,14 @@ def sanitize_identity(identity: str) -> str:
     return safe
 
 
-@contextmanager
 def _locked(folder: Path):
     """An exclusive lock on the folder while building (several ranks may build at once)."""
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX
-        yield
-        return
-    with open(folder / ".lock", "a+") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+    return file_lock(folder / ".lock")
 
 
 def _write_json_atomic(path: Path, obj) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+    with atomic_write(path, "w", encoding="utf-8") as fh:
         json.dump(obj, fh, ensure_ascii=False)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
 
 
 class CaptionEmbeddingCache:
@@ -125,14 +110,23 @@ class CaptionEmbeddingCache:
         arr = self._arrays.get(kind)
         if arr is None:
             try:
-                arr = np.load(self._file(kind, self._meta["generation"]), mmap_mode="r")
+                arr = self._open(kind)
             except FileNotFoundError:
                 # Another process built a newer generation and removed this one. Rows only ever
                 # get appended, so row numbers from the older index stay valid in the new arrays.
                 self._load_meta()
-                arr = np.load(self._file(kind, self._meta["generation"]), mmap_mode="r")
+                arr = self._open(kind)
             self._arrays[kind] = arr
         return arr
+
+    def _open(self, kind: str) -> np.ndarray:
+        """The memory-mapped array file of the current generation; a damaged one a ValueError naming it."""
+        path = self._file(kind, self._meta["generation"])
+        if not path.exists():
+            raise FileNotFoundError(path)
+        from mmm.data.arrays import load_array
+
+        return load_array(path, "caption embedding cache", f"delete the folder {self.folder}: it is rebuilt on the next use", mmap_mode="r")
 
     def __contains__(self, caption) -> bool:
         return caption in self.index

@@ -15,8 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
+from mmm.checkpoints import CheckpointError, load_checkpoint, load_state
 from mmm.fingerprint import tensors_fingerprint
 from mmm.resolve import ModelNotFound, resolve_checkpoint
 from mmm.tokenizer.module import TokenizerModule
@@ -42,15 +41,18 @@ def resolve_tokenizer(reference: str | None, tracking_uri: str, output_dir: str 
     return resolve_checkpoint(reference, tracking_uri, experiment, output_dir, "stage-1 model", hint, "stage1", cache_dir)
 
 
-def load_tokenizer_checkpoint(path: str | Path) -> TokenizerModule:
+def load_tokenizer_checkpoint(path: str | Path, expected_fingerprint: str | None = None) -> TokenizerModule:
     """A TokenizerModule in eval mode from a stage-1 checkpoint (weights_only load); its
-    hyper-parameters say whether the tokenizer is plain or part-aware (`model.part_aware`)."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    hp = ckpt.get("hyper_parameters") or {}
-    if "model" not in hp or "feature_dim" not in hp:
-        raise ValueError(f"{path}: not a stage-1 tokenizer checkpoint (no tokenizer hyper-parameters in it)")
-    module = TokenizerModule(hp["feature_dim"], hp["model"], hp["optim"], hp["loss"])
-    module.load_state_dict(ckpt["state_dict"])
+    hyper-parameters say whether the tokenizer is plain or part-aware (`model.part_aware`).
+    Anything but an intact stage-1 checkpoint (weights with the fingerprint recorded at save time,
+    and `expected_fingerprint` when given) is a CheckpointError naming the file."""
+    ckpt = load_checkpoint(path, "stage1", expected_fingerprint)
+    hp = ckpt["hyper_parameters"]
+    try:
+        module = TokenizerModule(hp["feature_dim"], hp["model"], hp.get("optim") or {}, hp.get("loss") or {})
+    except (TypeError, ValueError, KeyError) as e:
+        raise CheckpointError(f"{path}: its stage-1 hyper-parameters do not describe a tokenizer ({e}); use the checkpoint as training wrote it") from None
+    load_state(module, ckpt["state_dict"], path, "stage1")
     return module.eval()
 
 

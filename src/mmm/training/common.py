@@ -21,6 +21,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.checkpoint_io import AtomicCheckpointIO
 from mmm.training.runs import shared_run_directory
 from mmm.transformer.network import TransformerConfig
 
@@ -51,6 +52,9 @@ class TrainerConfig:
     num_sanity_val_steps: int = 0
     enable_progress_bar: bool = True
     deterministic: bool = False
+    # A resume continues mid-epoch at the batch it stopped at, which is only the same data position
+    # with the same batch size and number of processes; true: start the interrupted epoch over instead.
+    resume_restart_epoch: bool = False
 
 
 @dataclass
@@ -135,6 +139,7 @@ def build_trainer(cfg: TrainerConfig, callbacks: list, logger, default_root_dir:
         logger=logger if logger is not None else False,
         default_root_dir=default_root_dir,
         use_distributed_sampler=False,  # our loaders shard by rank and resume themselves
+        plugins=[AtomicCheckpointIO()],  # a save never leaves a partial last.ckpt/best.ckpt (see checkpoint_io.py)
     )
 
 
@@ -149,10 +154,21 @@ def checkpoint_callbacks(directory: Path, cfg: CheckpointConfig) -> tuple[ModelC
     return best, last
 
 
+# Optimizer settings the restored optimizer state would silently override (warmup, milestones and
+# gamma take effect: the schedule is rebuilt from the config).
+RESTORED_OPTIM_KEYS = ("lr", "betas", "weight_decay")
+
+
 class RunState(L.Callback):
     """Keeps in every checkpoint what Lightning does not: the MLflow run id (a resumed run goes on
-    logging to the same run) and the random generators' states (it goes on drawing the same
-    numbers), in types that load with weights_only=True."""
+    logging to the same run), the random generators' states (it goes on drawing the same
+    numbers) and the data position's meaning (batch size, world size), in types that load with
+    weights_only=True. On resume it refuses what would silently change the run: another batch
+    size or world size (unless `restart_epoch`), or optimizer settings the restored optimizer
+    state would override."""
+
+    def __init__(self, batch_size: int | None = None, restart_epoch: bool = False):
+        self.batch_size, self.restart_epoch = batch_size, restart_epoch
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         for logger in trainer.loggers:
@@ -164,8 +180,20 @@ class RunState(L.Callback):
             "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]), int(np_state[3]), float(np_state[4])],
             "python": random.getstate(),
         }
+        checkpoint["data_position"] = {"batch_size": self.batch_size, "world_size": trainer.world_size}
+        # The weights' own fingerprint: every load checks it (mmm.checkpoints.load_checkpoint).
+        from mmm.checkpoints import FINGERPRINT_KEY
+        from mmm.fingerprint import tensors_fingerprint
+
+        checkpoint[FINGERPRINT_KEY] = tensors_fingerprint(checkpoint.get("state_dict") or {})
+
+    def check_resume(self, trainer, pl_module, checkpoint: dict) -> None:
+        """Raise ValueError when resuming `checkpoint` would silently change the run (see the class)."""
+        self._check_optimizer(pl_module, checkpoint)
+        self._check_data_position(trainer, checkpoint)
 
     def on_load_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        self.check_resume(trainer, pl_module, checkpoint)
         rng = checkpoint.get("rng")
         if rng is None:
             return
@@ -175,11 +203,64 @@ class RunState(L.Callback):
         version, state, gauss = rng["python"]
         random.setstate((version, tuple(state), gauss))
 
+    @staticmethod
+    def _check_optimizer(pl_module, checkpoint: dict) -> None:
+        saved = (checkpoint.get("hyper_parameters") or {}).get("optim") or {}
+        ours = (getattr(pl_module, "hparams", None) or {}).get("optim") or {}
+        changed = [f"optim.{k}: {saved[k]} in the checkpoint, {ours[k]} now" for k in RESTORED_OPTIM_KEYS
+                   if k in saved and k in ours and list(np.atleast_1d(saved[k])) != list(np.atleast_1d(ours[k]))]
+        if changed:
+            raise ValueError(
+                f"cannot resume with changed optimizer settings ({'; '.join(changed)}): the checkpoint's optimizer state would override "
+                "them silently; resume with the checkpoint's values, or start a new run (without --resume) to train with new ones"
+            )
+
+    def _check_data_position(self, trainer, checkpoint: dict) -> None:
+        saved = checkpoint.get("data_position")
+        if not saved:
+            return  # a checkpoint from before the data position was recorded
+        now = {"batch_size": self.batch_size, "world_size": trainer.world_size}
+        changed = [f"{k} {saved[k]} in the checkpoint, {now[k]} now" for k in ("batch_size", "world_size")
+                   if saved.get(k) is not None and now[k] is not None and saved[k] != now[k]]
+        if not changed:
+            return
+        if not self.restart_epoch:
+            raise ValueError(
+                f"cannot resume mid-epoch with a changed {' and '.join(c.split(' ')[0] for c in changed)} ({'; '.join(changed)}): the "
+                "position in the epoch would point at other batches; resume with the same data.batch_size and devices/num_nodes, or "
+                "add trainer.resume_restart_epoch=true to start the interrupted epoch over"
+            )
+        fit_state = checkpoint.get("loops", {}).get("fit_loop", {}).get("state_dict", {})
+        for loader_state in fit_state.get("combined_loader", []):
+            if isinstance(loader_state, dict) and "batches" in loader_state:
+                loader_state["batches"] = 0  # the epoch restarts at its first batch
+        log.warning("resuming with %s: trainer.resume_restart_epoch=true, the interrupted epoch starts over", "; ".join(changed))
+
 
 def read_checkpoint_meta(path: str | Path) -> dict:
-    """The few fields a resume needs, read with weights_only=True (no code runs on load)."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    """The few fields a resume needs, read with weights_only=True (no code runs on load); a file
+    that is not an intact checkpoint of this package is a CheckpointError naming it."""
+    from mmm.checkpoints import load_checkpoint
+
+    ckpt = load_checkpoint(path, None)
     return {"mlflow_run_id": ckpt.get("mlflow_run_id"), "global_step": ckpt.get("global_step"), "hyper_parameters": ckpt.get("hyper_parameters")}
+
+
+def resumable_run_id(run_id: str | None, cfg: TrackingConfig) -> str | None:
+    """The MLflow run a resumed training goes on logging to: the checkpoint's, when this store has
+    it (a checkpoint from another store starts a new run, said so)."""
+    if not run_id or not cfg.enabled:
+        return run_id
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    uri = resolve_tracking_uri(cfg.tracking_uri)
+    try:
+        MlflowClient(uri).get_run(run_id)
+        return run_id
+    except MlflowException:
+        log.warning("the checkpoint's MLflow run %s is not in %s: the resumed training logs to a new run", run_id, uri)
+        return None
 
 
 def flatten_config(cfg: DictConfig, exclude: tuple[str, ...] = ()) -> dict[str, str]:
@@ -229,12 +310,16 @@ def tag_run(logger: MLFlowLogger | None, tags: dict[str, object]) -> None:
 
 @rank_zero_only
 def log_checkpoints(logger: MLFlowLogger | None, best: ModelCheckpoint, last: ModelCheckpoint) -> dict[str, str]:
-    """Upload best.ckpt and last.ckpt to the run's `checkpoints/` artifacts; returns their paths."""
+    """Upload best.ckpt and last.ckpt to the run's `checkpoints/` artifacts, each with its sha256
+    as a run tag (what the download cache keys by: a resumed run uploads new files under the same
+    names); returns their paths."""
+    from mmm.resolve import log_artifact_with_digest
+
     paths = {name: cb.best_model_path for name, cb in (("best", best), ("last", last)) if cb.best_model_path}
     if logger is not None:
         for path in paths.values():
             if os.path.exists(path):
-                logger.experiment.log_artifact(logger.run_id, path, "checkpoints")
+                log_artifact_with_digest(logger.experiment, logger.run_id, path, "checkpoints")
     return paths
 
 
@@ -297,10 +382,17 @@ def tracked_fit(run: TrackedRun, cfg, module: L.LightningModule, run_dir: Path, 
     """
     from lightning.pytorch.callbacks import LearningRateMonitor
 
-    from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, git_commit, log_dataset_input, prepare_experiment
+    from mmm.tracking import DESCRIPTION_TAG, log_dataset_input, prepare_experiment, source_tags
 
     data_name = run.dataset[0] if run.dataset else cfg.data.name
     logger = build_logger(cfg.logger, run_id=run_id, run_name=run_name(run.kind, data_name, run.model_cfg))
+    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
+    run_state = RunState(getattr(getattr(cfg, "data", None), "batch_size", None), cfg.trainer.resume_restart_epoch)
+    if logger is not None:
+        callbacks = [*callbacks, LearningRateMonitor(logging_interval="step")]
+    trainer = build_trainer(cfg.trainer, [best, last, run_state, *callbacks], logger, str(run_dir))
+    if ckpt_path:  # refuse a resume that would silently change the run before the MLflow run is touched
+        run_state.check_resume(trainer, module, torch.load(ckpt_path, map_location="cpu", weights_only=True))
     monitor = None
     if logger is not None:
         uri = resolve_tracking_uri(cfg.logger.tracking_uri)
@@ -310,8 +402,7 @@ def tracked_fit(run: TrackedRun, cfg, module: L.LightningModule, run_dir: Path, 
             prepare_experiment(MlflowClient(uri), cfg.logger.experiment, artifact_location(uri, cfg.logger.artifact_root))
         _ = logger.experiment  # create the run now, before any process is spawned
         log_config(logger, run.cfg_node, resumed=run_id is not None, exclude=run.exclude)
-        commit = git_commit()
-        tag_run(logger, {"mmm.stage": run.kind, **({GIT_COMMIT_TAG: commit} if commit else {}), **run.tags,
+        tag_run(logger, {"mmm.stage": run.kind, **source_tags(f"mmm train {run.kind}"), **run.tags,
                          **({DESCRIPTION_TAG: run.description} if run.description else {})})
         if rank_zero_only.rank == 0:
             if run.dataset and run_id is None:
@@ -319,9 +410,6 @@ def tracked_fit(run: TrackedRun, cfg, module: L.LightningModule, run_dir: Path, 
             if run.metrics:
                 logger.log_metrics(run.metrics, step=0)
             monitor = _system_metrics(logger.run_id, uri, resumed=run_id is not None)
-        callbacks = [*callbacks, LearningRateMonitor(logging_interval="step")]
-    best, last = checkpoint_callbacks(run_dir / "checkpoints", cfg.callbacks.checkpoint)
-    trainer = build_trainer(cfg.trainer, [best, last, RunState(), *callbacks], logger, str(run_dir))
     try:
         with shared_run_directory(run_dir):
             trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None, weights_only=True, **(loaders or {}))

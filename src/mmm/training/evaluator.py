@@ -176,9 +176,10 @@ def evaluate_retrieval(
 # ---------------------------------------------------------------------------------------- registry
 
 
-def register_evaluator(tracking_uri: str, name: str, run_id: str, tags: dict[str, object], description: str = ""):
-    """A new version of registered model `name` (created when missing) whose source is the run's
-    checkpoints/ artifacts; returns the ModelVersion."""
+def register_evaluator(tracking_uri: str, name: str, run_id: str, tags: dict[str, object], description: str = "", checkpoint: str | None = None):
+    """A new version of registered model `name` (created when missing); returns the ModelVersion.
+    Its source is an immutable copy of `checkpoint` in the run (`registered/<name>-<sha256[:12]>/`,
+    its digest tagged `weights.sha256`), or without one the run's checkpoints/ artifacts."""
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
 
@@ -194,9 +195,14 @@ def register_evaluator(tracking_uri: str, name: str, run_id: str, tags: dict[str
         except MlflowException as e:  # another process created it meanwhile
             if "RESOURCE_ALREADY_EXISTS" not in str(e.error_code):
                 raise
+    source = f"runs:/{run_id}/checkpoints"
+    if checkpoint:
+        from mmm.registry.promotion import WEIGHTS_SHA256, freeze_weights
+
+        source, digest = freeze_weights(client, run_id, checkpoint, name)
+        tags = {**tags, WEIGHTS_SHA256: digest}
     return client.create_model_version(
-        name, source=f"runs:/{run_id}/checkpoints", run_id=run_id, tags={k: "" if v is None else str(v) for k, v in tags.items()},
-        description=description,
+        name, source=source, run_id=run_id, tags={k: "" if v is None else str(v) for k, v in tags.items()}, description=description,
     )
 
 
@@ -287,9 +293,9 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
                 resolve_tracking_uri(cfg.logger.tracking_uri), cfg.registry.name, logger.run_id, tags,
                 description=f"{cfg.data.name} ({fingerprint}), text encoder {text_encoder.identity}: test R-precision top-1/2/3 "
                 f"{scores['r_precision_top1']:.3f}/{scores['r_precision_top2']:.3f}/{scores['r_precision_top3']:.3f}, "
-                f"matching distance {scores['matching_distance']:.3f}",
+                f"matching distance {scores['matching_distance']:.3f}", checkpoint=checkpoint,
             )
             result.registered_model, result.model_version = cfg.registry.name, str(version.version)
             tag_run(logger, {"registered_model": cfg.registry.name, "registered_version": version.version})
-            log.info("registered %s version %s (runs:/%s/checkpoints)", cfg.registry.name, version.version, logger.run_id)
+            log.info("registered %s version %s (%s)", cfg.registry.name, version.version, version.source)
     return result

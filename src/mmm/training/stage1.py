@@ -16,9 +16,9 @@ from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.data.normalization import NormalizationConfig
 from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
 from mmm.training.common import (
-    CheckpointConfig, ModelConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, read_checkpoint_meta, tracked_fit,
+    CheckpointConfig, ModelConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, read_checkpoint_meta, resumable_run_id, tracked_fit,
 )
-from mmm.training.runs import find_last_checkpoint, run_directory
+from mmm.training.runs import claim_run_directory, resume_target, run_directory
 
 log = logging.getLogger(__name__)
 
@@ -73,19 +73,28 @@ def build_callbacks(cfg: Stage1Config) -> list[L.Callback]:
 
 
 def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
-    """Train a tokenizer as configured; `resume` = "last" or a checkpoint path continues a run."""
-    from mmm.fingerprint import dataset_fingerprint
-
+    """Train a tokenizer as configured; `resume` = "last" or a checkpoint path continues a run
+    (a checkpoint outside this stage's run folders is only read: the run goes on in a new folder)."""
     cfg: Stage1Config = to_object(cfg_node)
     L.seed_everything(cfg.seed, workers=True)
     ckpt_path, run_id = None, None
     if resume:
-        ckpt_path = find_last_checkpoint(cfg.output_dir) if resume == "last" else Path(resume)
-        run_id = read_checkpoint_meta(ckpt_path)["mlflow_run_id"]
-        run_dir = ckpt_path.parent.parent
-        log.info("resuming %s (MLflow run %s)", ckpt_path, run_id)
+        ckpt_path, run_dir = resume_target(resume, cfg.output_dir)
+        run_id = resumable_run_id(read_checkpoint_meta(ckpt_path)["mlflow_run_id"], cfg.logger)
+        log.info("resuming %s in %s (MLflow run %s)", ckpt_path, run_dir, run_id)
     else:
         run_dir = run_directory(cfg.output_dir)
+    lock = claim_run_directory(run_dir, resuming=ckpt_path is not None)
+    try:
+        return _fit_stage1(cfg, cfg_node, run_dir, ckpt_path, run_id)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _fit_stage1(cfg: Stage1Config, cfg_node: DictConfig, run_dir: Path, ckpt_path: Path | None, run_id: str | None) -> TrainResult:
+    from mmm.fingerprint import dataset_fingerprint
+
     datamodule = TokenizerDataModule(cfg.data, seed=cfg.seed, normalization=cfg.normalization)
     datamodule.prepare_data()
     datamodule.setup("fit")

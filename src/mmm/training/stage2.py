@@ -20,9 +20,9 @@ from mmm.tokenizer.load import load_tokenizer
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (
     CheckpointConfig, ModelConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, read_checkpoint_meta, resolve_tracking_uri,
-    tracked_fit,
+    resumable_run_id, tracked_fit,
 )
-from mmm.training.runs import find_last_checkpoint, run_directory
+from mmm.training.runs import claim_run_directory, resume_target, run_directory
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, stage2_codebooks
 
 log = logging.getLogger(__name__)
@@ -96,6 +96,18 @@ def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:
         )
 
 
+def check_stage1_identity(checkpoint: Path, source) -> None:
+    """Refuse to resume a transformer on other stage-1 weights than it was trained on: a codebook
+    of the same shape with other codes would silently change what every token means."""
+    recorded = (read_checkpoint_meta(checkpoint)["hyper_parameters"] or {}).get("stage1") or {}
+    if recorded.get("identity") and recorded["identity"] != source.identity:
+        raise ValueError(
+            f"{checkpoint}: this transformer was trained on stage-1 model {recorded.get('reference', '?')} (weights {recorded['identity']}), "
+            f"but stage1= resolves to {source.reference} (weights {source.identity}); resume with stage1={recorded.get('reference', '...')} "
+            "(the model it was trained with), or start a new run without --resume"
+        )
+
+
 def prepare_stage2_data(cfg_node: DictConfig) -> TokenTextDataModule:
     """Resolve the stage-1 model, tokenize the dataset and cache the caption embeddings."""
     cfg: Stage2Config = to_object(cfg_node)
@@ -121,16 +133,28 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     cfg: Stage2Config = to_object(cfg_node)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = prepare_stage2_data(cfg_node)
-    tokenizer, source, text_encoder = datamodule.tokenizer, datamodule.source, datamodule.text_encoder
+    tokenizer, source = datamodule.tokenizer, datamodule.source
     codebook, condition_codebook = stage2_codebooks(tokenizer)
     ckpt_path, run_id = None, None
     if resume:
-        ckpt_path = find_last_checkpoint(cfg.output_dir) if resume == "last" else Path(resume)
+        ckpt_path, run_dir = resume_target(resume, cfg.output_dir)
         check_codebook(ckpt_path, list(codebook.shape))
-        run_id = read_checkpoint_meta(ckpt_path)["mlflow_run_id"]
-        run_dir = ckpt_path.parent.parent
+        check_stage1_identity(ckpt_path, source)
+        run_id = resumable_run_id(read_checkpoint_meta(ckpt_path)["mlflow_run_id"], cfg.logger)
+        log.info("resuming %s in %s (MLflow run %s)", ckpt_path, run_dir, run_id)
     else:
         run_dir = run_directory(cfg.output_dir)
+    lock = claim_run_directory(run_dir, resuming=ckpt_path is not None)
+    try:
+        return _fit_stage2(cfg, cfg_node, datamodule, codebook, condition_codebook, run_dir, ckpt_path, run_id)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _fit_stage2(cfg: Stage2Config, cfg_node: DictConfig, datamodule, codebook, condition_codebook, run_dir: Path, ckpt_path: Path | None,
+                run_id: str | None) -> TrainResult:
+    tokenizer, source, text_encoder = datamodule.tokenizer, datamodule.source, datamodule.text_encoder
     stage1 = {"reference": source.reference, "run_id": source.run_id, "identity": source.identity, "checkpoint": source.checkpoint}
     text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
     module = MaskedTransformerModule(

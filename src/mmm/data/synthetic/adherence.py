@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mmm.data.arrays import load_array
 from mmm.motion.skeleton import T2M_SKELETON, Skeleton
 
 FPS = 20.0
@@ -346,7 +347,7 @@ def check_dataset(root, split: str = "test") -> tuple[float, dict[str, float]]:
     per_action: dict[str, list[bool]] = {}
     for motion_id in ids:
         label = json.loads((root / "labels" / f"{motion_id}.json").read_text())
-        joints = np.load(root / "new_joints" / f"{motion_id}.npy")
+        joints = load_array(root / "new_joints" / f"{motion_id}.npy", "clip's joints (T, 22, 3)", f"generate the dataset again (mmm data synth --out {root})")
         res = check_motion(joints, label["parts"], fps=label.get("fps", FPS))
         clip_ok.append(res.passed)
         for part, ok in zip(label["parts"], res.part_passed):
