@@ -57,9 +57,10 @@ def timestamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
 
-def git_commit() -> str | None:
-    """The commit of this package's source checkout, None outside one (an installed package)."""
-    root = Path(__file__).resolve().parents[2]
+def git_commit(root: Path | None = None) -> str | None:
+    """The commit of this package's source checkout at `root` (default: the one this module is in),
+    None outside one (an installed package, whose parents may be some other repository)."""
+    root = Path(__file__).resolve().parents[2] if root is None else root
     if not ((root / "pyproject.toml").is_file() and (root / "src" / "mmm" / "__init__.py").is_file()):
         return None
     try:

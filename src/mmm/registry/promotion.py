@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mmm.atomic import sha256_file
+from mmm.tracking import git_commit
 
 TOKENIZER, TEXT2MOTION, EVALUATOR = "mmm-tokenizer", "mmm-text2motion", "mmm-evaluator"
 UPPERBODY = "mmm-upperbody"  # the part-aware model (upper-body editing)
@@ -79,15 +80,14 @@ def code_version() -> str:
 
     fallback = f"mmm-motion {__version__}"
     root = Path(__file__).resolve().parents[3]
-    # Only a source checkout: an installed package's parents may be some other repository.
-    if not ((root / "pyproject.toml").is_file() and (root / "src" / "mmm" / "__init__.py").is_file()):
+    commit = git_commit(root)
+    if commit is None:
         return fallback
     try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
-        return fallback
-    return (commit + ("+dirty" if dirty else "")) if commit else fallback
+        dirty = ""
+    return commit + ("+dirty" if dirty else "")
 
 
 PROTOCOL_HASH, PROTOCOL_SETTINGS = "protocol.hash", "protocol.settings"
