@@ -306,7 +306,7 @@ def _bundle_source(tmp_path) -> Path:
 def test_concurrent_bundle_cache_fills_share_one_complete_copy(tmp_path, monkeypatch):
     import mlflow.artifacts
 
-    from mmm.registry import bundle
+    from mmm import resolve
 
     src = _bundle_source(tmp_path)
     dst = tmp_path / "cache" / "bundles" / "abc123"
@@ -325,7 +325,7 @@ def test_concurrent_bundle_cache_fills_share_one_complete_copy(tmp_path, monkeyp
 
     def fill(name):
         try:
-            got[name] = bundle._download(str(src), f"sqlite:///{tmp_path}/m.db", dst)
+            got[name] = resolve._download(str(src), f"sqlite:///{tmp_path}/m.db", dst)
             got[name + "-inode"] = (got[name] / "artifacts" / "transformer.ckpt").stat().st_ino
         except BaseException as e:  # reported below
             errors.append(e)
@@ -341,10 +341,10 @@ def test_concurrent_bundle_cache_fills_share_one_complete_copy(tmp_path, monkeyp
     assert got["a"] == got["b"] and got["a-inode"] == got["b-inode"]  # both use the one complete copy
     assert len(downloads) == 1  # the second waited for the first and took its copy
     assert (got["a"] / "artifacts" / "transformer.ckpt").read_bytes() == (src / "artifacts" / "transformer.ckpt").read_bytes()
-    assert (dst / bundle.COMPLETE).is_file()
+    assert (dst / resolve.COMPLETE).is_file()
 
     # A later fill of a complete copy keeps it: nothing deleted, nothing downloaded.
-    assert bundle._download(str(src), f"sqlite:///{tmp_path}/m.db", dst) == got["a"]
+    assert resolve._download(str(src), f"sqlite:///{tmp_path}/m.db", dst) == got["a"]
     assert (got["a"] / "artifacts" / "transformer.ckpt").stat().st_ino == got["a-inode"] and len(downloads) == 1
     assert sorted(p.name for p in dst.parent.iterdir()) == [".abc123.lock", "abc123"]  # no temporary folders
 

@@ -400,7 +400,7 @@ def test_identity_tracks_options(encoders, state, tiny_vocab, monkeypatch):
 
 
 def test_stage2_text_config_passes_the_options():
-    from mmm.training.stage2 import TextConfig
+    from mmm.text.encoders import TextConfig
 
     options = TextConfig(encoder="clip", clip_precision="float32", clip_words="all").options()
     assert options["precision"] == "float32" and options["words"] == "all"

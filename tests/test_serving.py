@@ -208,7 +208,7 @@ def test_requests_are_bounded_in_rows(registered, served_model):
 def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, store, tmp_path):
     from mmm.generation.model import TextToMotion
     from mmm.generation.sampler import SamplingConfig
-    from mmm.registry.bundle import bundle_checkpoints
+    from mmm.resolve import bundle_checkpoints
 
     stage2, stage1 = bundle_checkpoints(registered["uri"], store, dst=tmp_path / "bundle")
     assert Path(stage2).is_relative_to(tmp_path) and Path(stage1).is_relative_to(tmp_path)
@@ -257,7 +257,7 @@ def test_log_bundle_refuses_mismatched_checkpoints(registered, tmp_path):
 
 
 def test_localize_text_files_points_at_bundled_files(tmp_path):
-    from mmm.registry.bundle import localize_text_files
+    from mmm.resolve import localize_text_files
 
     ckpt = {"hyper_parameters": {"text_encoder": {"name": "clip-vit-b32", "identity": "x", "weights": "/train/clip.bin", "vocab": "/train/v.gz"}}, "state_dict": {"w": torch.ones(2)}}
     torch.save(ckpt, tmp_path / "s2.ckpt")

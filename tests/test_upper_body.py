@@ -241,7 +241,8 @@ def test_promotion_registers_the_part_aware_bundle_and_editing_defaults_to_it(pa
     model = TextToMotion.load(None, tracking_uri=parts_model["uri"], parts=True)
     assert model.part_aware and model.identity["reference"] == "models:/mmm-upperbody@champion"
     # The bundle's pyfunc model: rows carry the source motion.
-    from mmm.registry.bundle import TextToMotionPyfunc, bundle_checkpoints
+    from mmm.registry.bundle import TextToMotionPyfunc
+    from mmm.resolve import bundle_checkpoints
 
     stage2, stage1 = bundle_checkpoints("models:/mmm-upperbody@champion", parts_model["uri"], dst=tmp_path / "b")
     wrapped = TextToMotionPyfunc()

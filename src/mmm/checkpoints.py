@@ -166,7 +166,7 @@ def outside_outputs(recorded: str | Path | None) -> bool:
     return bool(recorded) and Path(recorded).exists() and not Path(recorded).resolve().is_relative_to(Path(OUTPUTS_ROOT).resolve())
 
 
-# Text-encoder options a checkpoint records (training/stage2.py TextConfig.options()).
+# Text-encoder options a checkpoint records (text/encoders.py TextConfig.options()).
 TEXT_FILE_OPTIONS = {"weights": "--clip-weights", "vocab": "--clip-vocab"}  # option -> the CLI flag that passes it
 TEXT_PLAIN_OPTIONS = ("activation", "precision", "words")
 

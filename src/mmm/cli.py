@@ -260,7 +260,7 @@ def cmd_dashboard(args: argparse.Namespace) -> None:
     from mlflow.tracking import MlflowClient
 
     from mmm.tracking import dashboard_links
-    from mmm.training.common import resolve_tracking_uri
+    from mmm.tracking import resolve_tracking_uri
 
     base = args.url or f"http://{args.host}:{args.port}"
     print(f"The MLflow dashboard (make mlflow-ui serves it on {base}); each experiment in its training view:")
@@ -272,7 +272,7 @@ def cmd_models(args: argparse.Namespace) -> None:
     from mlflow.tracking import MlflowClient
 
     from mmm.registry.promotion import list_models
-    from mmm.training.common import resolve_tracking_uri
+    from mmm.tracking import resolve_tracking_uri
 
     print(list_models(MlflowClient(resolve_tracking_uri(args.tracking_uri))))
 

@@ -26,11 +26,21 @@ verified files, and concurrent lookups never see a partial one.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import shutil
 import tempfile
 from pathlib import Path
+
+import mlflow.artifacts
+import torch
+from mlflow.exceptions import MlflowException
+from mlflow.models import Model
+from mlflow.tracking import MlflowClient
+
+from mmm.atomic import atomic_write, atomic_write_text, file_lock, fsync_directory, sha256_file
+from mmm.kinds import STAGE2, ModelKind
 
 _RUN_ID = re.compile(r"^[0-9a-f]{32}$")
 
@@ -56,10 +66,6 @@ def log_artifact_with_digest(client, run_id: str, local_path: str | Path, artifa
     """Upload `local_path` into the run's `artifact_dir` and record its sha256 as the run tag that
     `download_artifact` keys its cache by. The old tag is removed first, so that while the upload
     runs no reader takes the new file for the old one. Returns the digest."""
-    from mlflow.exceptions import MlflowException
-
-    from mmm.atomic import sha256_file
-
     artifact_path = f"{artifact_dir.rstrip('/')}/{Path(local_path).name}"
     digest = sha256_file(local_path)
     try:
@@ -73,8 +79,6 @@ def log_artifact_with_digest(client, run_id: str, local_path: str | Path, artifa
 
 def _artifact_record(client, run_id: str, artifact_path: str) -> tuple[int | None, str | None]:
     """(size in bytes the store reports or None, the run's recorded sha256 or None)."""
-    from mlflow.exceptions import MlflowException
-
     try:
         run = client.get_run(run_id)
         parent = artifact_path.rsplit("/", 1)[0] if "/" in artifact_path else None
@@ -104,11 +108,6 @@ def download_artifact(tracking_uri: str, run_id: str, artifact_path: str, cache_
     `sha256`: the digest the caller knows the file must have (a registered version's); else the
     run's recorded one is used, where there is one. A copy whose size or digest is not the
     recorded one is refused (ArtifactMismatch, a ModelNotFound), never served."""
-    import mlflow.artifacts
-    from mlflow.tracking import MlflowClient
-
-    from mmm.atomic import fsync_directory, sha256_file
-
     cache_dir = Path(cache_dir)
     name = artifact_path.rsplit("/", 1)[-1]
     client = MlflowClient(tracking_uri)
@@ -148,8 +147,6 @@ def download_artifact(tracking_uri: str, run_id: str, artifact_path: str, cache_
 
 def newest_run_checkpoint(tracking_uri: str, experiment: str, cache_dir: str | Path) -> tuple[str, str] | None:
     """(run id, local best.ckpt) of the newest finished run of `experiment` that has one."""
-    from mlflow.tracking import MlflowClient
-
     client = MlflowClient(tracking_uri)
     found = client.get_experiment_by_name(experiment)
     if found is None:
@@ -164,8 +161,6 @@ def newest_run_checkpoint(tracking_uri: str, experiment: str, cache_dir: str | P
 def registered_version(reference: str, tracking_uri: str):
     """The ModelVersion of models:/NAME@ALIAS or models:/NAME/VERSION (ModelNotFound otherwise)."""
     from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
     client = MlflowClient(tracking_uri)
     body = reference[len("models:/"):]
     try:
@@ -183,8 +178,6 @@ def _fetch_run_file(reference: str, tracking_uri: str, run_id: str, artifact_pat
                     sha256: str | None = None) -> str:
     """download_artifact, with MLflow's errors (no such run, no such artifact, a store that cannot
     be reached) as a ModelNotFound naming the reference."""
-    from mlflow.exceptions import MlflowException
-
     try:
         return download_artifact(tracking_uri, run_id, artifact_path, cache_dir, sha256=sha256)
     except ModelNotFound:
@@ -235,3 +228,122 @@ def resolve_checkpoint(
     if not Path(reference).exists():
         raise ModelNotFound(f"{reference}: no such checkpoint file, MLflow run id or models:/ URI")
     return reference, reference, None
+
+
+def resolve_model(reference: str | None, tracking_uri: str, kind: ModelKind, option: str, output_dir: str | None = None,
+                  cache_dir: str = "outputs/cache/models", experiment: str | None = None) -> tuple[str, str, str | None]:
+    """resolve_checkpoint for a model kind of the catalogue (its experiment, run folders and
+    training hint); `output_dir`/`experiment` override the kind's where a config names others."""
+    return resolve_checkpoint(reference, tracking_uri, experiment or kind.experiment, output_dir or kind.output_dir, kind.what,
+                              kind.train, option, cache_dir)
+
+
+# -- registered bundles (text-to-motion, upper-body) ----------------------------------------------
+TRANSFORMER = "transformer"  # the bundle's pyfunc artifact names
+TOKENIZER = "tokenizer"
+BUNDLE_CACHE = "outputs/cache/bundles"
+
+
+def champion_reference(tracking_uri: str, name: str = STAGE2.registered) -> str | None:
+    """models:/<name>@champion when that alias exists, else None (the newest stage-2 run)."""
+    try:
+        MlflowClient(tracking_uri).get_model_version_by_alias(name, "champion")
+    except MlflowException:
+        return None
+    return f"models:/{name}@champion"
+
+
+def resolve_bundle(reference: str, tracking_uri: str) -> tuple[str, str, dict, object]:
+    """(stage-2 checkpoint, stage-1 checkpoint, the identities the version's tags say they have,
+    the ModelVersion) of a registered bundle models:/NAME@ALIAS or models:/NAME/VERSION."""
+    version = registered_version(reference, tracking_uri)  # a clear error for an unknown name or alias
+    # A registered version's files never change: one folder per (store, source) is reused.
+    key = hashlib.sha256(f"{tracking_uri}|{version.source}".encode()).hexdigest()[:12]
+    stage2, stage1 = bundle_checkpoints(reference, tracking_uri, dst=Path(BUNDLE_CACHE) / key)
+    # The version's tags (written when it was logged) name the weights it must hold.
+    expected = {"transformer": version.tags.get("mmm.transformer.identity"), "stage1": version.tags.get("mmm.stage1.identity")}
+    return stage2, stage1, expected, version
+
+
+def localize_text_files(transformer_checkpoint: str | Path, files: dict[str, str], dst_dir: str | Path) -> str:
+    """A copy of the stage-2 checkpoint whose text-encoder options (weights, vocab) name `files`
+    instead of the training machine's paths; the weights are unchanged (the encoder's identity,
+    checked on load, covers the files' content)."""
+    ckpt = torch.load(transformer_checkpoint, map_location="cpu", weights_only=True)
+    text = ckpt["hyper_parameters"]["text_encoder"]
+    for option, path in files.items():
+        text[option] = str(path)
+    out = Path(dst_dir) / "transformer.local.ckpt"
+    with atomic_write(out) as fh:  # a shared cache folder: other processes may be loading this file
+        torch.save(ckpt, fh)
+    return str(out)
+
+
+def _artifact_location(model_uri: str, tracking_uri: str) -> str:
+    """Where a models:/ reference's files are, asked of `tracking_uri` itself: MLflow's own
+    models:/ download consults the process-wide registry instead of the one it is given."""
+    if not model_uri.startswith("models:/"):
+        return model_uri
+    client = MlflowClient(tracking_uri, registry_uri=tracking_uri)
+    body = model_uri[len("models:/"):]
+    if body.startswith("m-") and "/" not in body and "@" not in body:
+        return client.get_logged_model(body).artifact_location
+    version = registered_version(model_uri, tracking_uri)
+    return client.get_model_version_download_uri(version.name, version.version)
+
+
+COMPLETE = ".complete"  # in a download folder: the bundle's folder inside it, written last
+
+
+def _download(artifact_uri: str, tracking_uri: str, dst: str | Path | None) -> Path:
+    """Download into `dst` (a new temporary folder when None) all or nothing: into a sibling
+    first, renamed into place once complete (with its COMPLETE marker inside).
+
+    Fills of one `dst` take turns under a lock file beside it (`.<name>.lock`); one that waited
+    finds the other's complete copy and uses it. A complete copy is never deleted or replaced, so
+    a process reading one is never disturbed; a `dst` without the marker was made by no fill
+    (complete copies appear only by the rename) and is replaced."""
+    if dst is None:
+        return Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, tracking_uri=tracking_uri))
+    dst = Path(dst).resolve()  # MLflow answers with absolute paths
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    with file_lock(dst.parent / f".{dst.name}.lock"):
+        if not (dst / COMPLETE).is_file():  # else another process filled it while this one waited
+            tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
+            try:
+                local = Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, dst_path=str(tmp), tracking_uri=tracking_uri))
+                atomic_write_text(tmp / COMPLETE, str(local.relative_to(tmp)))
+                if dst.exists():  # not a fill's copy (see above): moved away whole, then deleted
+                    stale = Path(tempfile.mkdtemp(prefix=f".{dst.name}.stale-", dir=dst.parent))
+                    os.replace(dst, stale / dst.name)
+                    shutil.rmtree(stale, ignore_errors=True)
+                os.replace(tmp, dst)
+                fsync_directory(dst.parent)
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+    return dst / (dst / COMPLETE).read_text().strip()
+
+
+def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None = None) -> tuple[str, str]:
+    """(stage-2 checkpoint, stage-1 checkpoint): local files of a logged or registered bundle
+    (models:/NAME@ALIAS, models:/NAME/VERSION, models:/m-ID, runs:/ID/PATH or a local folder),
+    downloaded under `dst` (default: a new temporary folder). A `dst` that already holds a
+    complete download is used as it is, so key it by what cannot change (a registered version,
+    not an alias). `TextToMotion.from_files` loads them without MLflow's pyfunc machinery. When
+    the bundle carries text-encoder files (CLIP), the stage-2 file returned is a copy pointing at them."""
+    if Path(model_uri).is_dir():
+        local = Path(model_uri)
+    elif dst is not None and (Path(dst) / COMPLETE).is_file():
+        local = Path(dst) / (Path(dst) / COMPLETE).read_text().strip()
+    else:
+        local = _download(_artifact_location(model_uri, tracking_uri), tracking_uri, dst)
+    conf = Model.load(str(local)).flavors.get("python_function", {})
+    saved = conf.get("artifacts") or {}
+    if TRANSFORMER not in saved or TOKENIZER not in saved:
+        raise ValueError(f"{model_uri}: not a text-to-motion bundle (its pyfunc artifacts are {sorted(saved) or 'none'}; expected {TRANSFORMER!r} and {TOKENIZER!r})")
+    path = {name: str(local / entry["path"]) for name, entry in saved.items()}
+    transformer = path[TRANSFORMER]
+    text_files = {k[len("text_"):]: v for k, v in path.items() if k.startswith("text_")}
+    if text_files:
+        transformer = localize_text_files(transformer, text_files, local)
+    return transformer, path[TOKENIZER]

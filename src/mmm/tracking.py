@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import subprocess
 import time
+from dataclasses import dataclass
 from pathlib import Path
+
+from mmm.kinds import KINDS
 
 DESCRIPTION_TAG = "mlflow.note.content"  # the run's / experiment's / version's markdown description in the UI
 GIT_COMMIT_TAG = "mlflow.source.git.commit"
@@ -18,20 +21,43 @@ EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_de
 TRAINING_VIEW = "?workflowType=machine_learning"  # without it MLflow 3.17 may open a page in its GenAI view
 
 EXPERIMENT_DESCRIPTIONS = {
-    "mmm-stage1": "Stage 1: the motion tokenizer (VQ-VAE). Charts: `train/*` losses, `codebook/*` usage and resets, `collapse/*` "
-                  "(the collapse monitor), `val/mpjpe_root_aligned_mm` and `val/mpjpe_global_mm`. Images: `previews/reconstruction` "
-                  "(reference above reconstruction, one per validation: use the step slider).",
-    "mmm-stage1-parts": "Stage 1 of the part-aware model (upper-body editing): two codebooks, charts per codebook (`codebook/lower/*`, `codebook/upper/*`).",
-    "mmm-stage2": "Stage 2: the masked transformer. Charts: `train/*` loss and token accuracies, `val/*`. Images: `previews/generation` "
-                  "(reference above generated, one per validation). Tags link the stage-1 run and registered version it was trained on.",
-    "mmm-stage2-parts": "Stage 2 of the part-aware model: upper-body codes from the text given the lower body.",
-    "mmm-length": "The length estimator (caption -> number of codes), used when no length is given.",
-    "mmm-evaluator": "The package's own text-motion evaluator (contrastive), the yardstick promotion compares with.",
+    **{kind.experiment: kind.description for kind in KINDS.values()},
     "mmm-evaluation": "`mmm evaluate` runs: the replicated protocol, reconstruction and prompt adherence; each run's description holds its table.",
     "mmm-pipeline": "`mmm pipeline` runs: one parent run per pipeline (its description: the steps in order, with links), one nested run per step.",
     "mmm-ablations": "`mmm ablate` sweeps (the supplementary's Tables 8-13): a parent run per sweep, one nested run per setting.",
     "mmm-import": "The authors' released checkpoints imported with `mmm import released`.",
 }
+
+
+@dataclass
+class TrackingConfig:
+    """MLflow: an embedded sqlite store by default; a team points tracking_uri at its server."""
+
+    enabled: bool = True
+    tracking_uri: str = "sqlite:///mlflow.db"
+    artifact_root: str = "mlartifacts"  # for experiments this package creates on a sqlite store
+    experiment: str = "mmm"
+    run_name: str | None = None
+    log_checkpoints: bool = True
+
+
+def resolve_tracking_uri(uri: str) -> str:
+    """Make a relative sqlite path absolute, so every process and the dashboard agree on it."""
+    prefix = "sqlite:///"
+    if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
+        return prefix + str(Path(uri[len(prefix):]).resolve())
+    return uri
+
+
+def artifact_location(tracking_uri: str, artifact_root: str) -> str | None:
+    """Where a new experiment keeps its artifacts: artifact_root as given when it is a URI
+    (s3://...), None against a tracking server (the server's own store, which it serves to every
+    client), else the local folder (the embedded store)."""
+    if "://" in artifact_root or artifact_root.startswith("mlflow-artifacts:"):
+        return artifact_root
+    if tracking_uri.split(":", 1)[0] in ("http", "https", "databricks"):
+        return None
+    return Path(artifact_root).resolve().as_uri()
 
 
 def run_link(experiment_id: str, run_id: str, text: str | None = None) -> str:

@@ -16,7 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mmm.data.humanml3d import DataError
+class DataError(ValueError):
+    """Bad data on disk; the message names the file, the problem and the fix."""
+
+    def __init__(self, path: str | Path, problem: str, fix: str = ""):
+        self.path, self.problem, self.fix = str(path), problem, fix
+        super().__init__(f"{path}: {problem}" + (f"; {fix}" if fix else ""))
+
 
 NUMERIC_KINDS = "biuf"  # bool, int, unsigned, float (numpy dtype.kind)
 

@@ -24,17 +24,11 @@ import numpy as np
 
 from mmm.motion.features import reference_std
 
+from mmm.data.arrays import DataError, load_array
+
 log = logging.getLogger(__name__)
 
 SPLITS = ("train", "val", "test", "train_val", "all")
-
-
-class DataError(ValueError):
-    """Bad data on disk; the message names the file, the problem and the fix."""
-
-    def __init__(self, path: str | Path, problem: str, fix: str = ""):
-        self.path, self.problem, self.fix = str(path), problem, fix
-        super().__init__(f"{path}: {problem}" + (f"; {fix}" if fix else ""))
 
 
 @dataclass(frozen=True)
@@ -175,8 +169,6 @@ def load_stats(root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarr
         path = root / name
         if not path.exists():
             raise DataError(path, "normalization statistics are missing", f"create them with `mmm data stats {root} --write`")
-        from mmm.data.arrays import load_array  # (arrays.py imports DataError from here)
-
         arr = load_array(path, "normalization statistics", f"recompute with `mmm data stats {root} --write`").astype(np.float32)
         if arr.shape != (feature_dim,):
             raise DataError(path, f"shape {arr.shape}, expected ({feature_dim},)", f"recompute with `mmm data stats {root} --write`")

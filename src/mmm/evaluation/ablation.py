@@ -29,7 +29,8 @@ from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.generation.sampler import SamplingConfig
-from mmm.training.common import TrackingConfig, artifact_location, resolve_tracking_uri
+from mmm.transformer.schedules import DECODING_SCHEDULES
+from mmm.tracking import TrackingConfig, artifact_location, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ KINDS = {
 class Grids:
     reset: list[int] = field(default_factory=lambda: [1, 20, 80])
     cross_layers: list[int] = field(default_factory=lambda: [0, 1, 2, 4])
-    schedules: list[str] = field(default_factory=lambda: ["cosine", "linear", "square"])
+    schedules: list[str] = field(default_factory=lambda: list(DECODING_SCHEDULES))
     iterations: list[int] = field(default_factory=lambda: [5, 10, 15])
     temperature: list[float] = field(default_factory=lambda: [0.5, 1.0, 1.2, 1.5])
     topk: list[float] = field(default_factory=lambda: [0.1, 0.5, 0.9, 1.0])

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
-from mmm.training.common import TrackingConfig, artifact_location, resolve_tracking_uri
+from mmm.tracking import TrackingConfig, artifact_location, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 

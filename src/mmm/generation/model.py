@@ -24,30 +24,13 @@ import numpy as np
 import torch
 
 from mmm.fingerprint import tensors_fingerprint
+from mmm.generation.length import load_length_estimator
+from mmm.kinds import LENGTH, STAGE2, STAGE2_PARTS
 from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
 from mmm.motion.features import recover_from_ric
-from mmm.resolve import _RUN_ID, resolve_checkpoint
+from mmm.resolve import _RUN_ID, ModelNotFound, champion_reference, resolve_bundle, resolve_model
 from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint
 from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
-
-STAGE2_EXPERIMENT = "mmm-stage2"
-LENGTH_EXPERIMENT = "mmm-length"
-REGISTERED_MODEL = "mmm-text2motion"
-# The part-aware model (upper-body editing) has its own experiment, outputs and registered name.
-PARTS = {"experiment": "mmm-stage2-parts", "output_dir": "outputs/stage2-parts", "registered": "mmm-upperbody", "train": "make train-stage2-parts"}
-
-
-def champion_reference(tracking_uri: str, name: str = REGISTERED_MODEL) -> str | None:
-    """models:/<name>@champion when that alias exists, else None (the newest stage-2 run)."""
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
-    try:
-        MlflowClient(tracking_uri).get_model_version_by_alias(name, "champion")
-    except MlflowException:
-        return None
-    return f"models:/{name}@champion"
-
 
 @dataclass
 class Generated:
@@ -106,7 +89,7 @@ class TextToMotion:
         text_files: the text encoder's files ({"weights": PATH, "vocab": PATH} for CLIP), likewise.
         A registered version's files come with it, and its recorded fingerprints are checked.
         """
-        from mmm.training.common import resolve_tracking_uri
+        from mmm.tracking import resolve_tracking_uri
 
         tracking_uri = resolve_tracking_uri(tracking_uri)
         tokenizer_checkpoint = None
@@ -115,25 +98,15 @@ class TextToMotion:
 
             _, tokenizer_checkpoint, _ = resolve_tokenizer(stage1, tracking_uri)
         if reference is None:
-            reference = champion_reference(tracking_uri, PARTS["registered"] if parts else REGISTERED_MODEL)
+            reference = champion_reference(tracking_uri, (STAGE2_PARTS if parts else STAGE2).registered)
         if reference is not None and reference.startswith("models:/"):
-            from mmm.registry.bundle import bundle_checkpoints
-            from mmm.resolve import registered_version
-
-            version = registered_version(reference, tracking_uri)  # a clear error for an unknown name or alias
-            # A registered version's files never change: one folder per (store, source) is reused.
-            key = hashlib.sha256(f"{tracking_uri}|{version.source}".encode()).hexdigest()[:12]
-            stage2, bundled_stage1 = bundle_checkpoints(reference, tracking_uri, dst=Path("outputs/cache/bundles") / key)
-            # The version's tags (written when it was logged) name the weights it must hold.
-            expected = {"transformer": version.tags.get("mmm.transformer.identity"), "stage1": version.tags.get("mmm.stage1.identity")}
+            stage2, bundled_stage1, expected, version = resolve_bundle(reference, tracking_uri)
             model = cls.from_files(stage2, tokenizer_checkpoint or bundled_stage1, device, length_source=(length_model, tracking_uri),
                                    text_files=text_files, expected_identity=expected)
             model.identity.update({"reference": reference, "run_id": version.run_id, "version": version.version})
             return model
-        resolved, checkpoint, run_id = resolve_checkpoint(
-            reference, tracking_uri, PARTS["experiment"] if parts else STAGE2_EXPERIMENT, PARTS["output_dir"] if parts else output_dir,
-            "part-aware model" if parts else "text-to-motion model", PARTS["train"] if parts else "make train-stage2", "--model",
-        )
+        resolved, checkpoint, run_id = resolve_model(reference, tracking_uri, STAGE2_PARTS if parts else STAGE2, "--model",
+                                                     output_dir=None if parts else output_dir)
         model = cls.from_files(checkpoint, tokenizer_checkpoint, device, tracking_uri=tracking_uri, length_source=(length_model, tracking_uri),
                                text_files=text_files)
         model.identity.update({"reference": resolved, "run_id": run_id})
@@ -252,13 +225,10 @@ class TextToMotion:
         return self.text_encoder.encode([t if t else "motion" for t in texts]).to(self.device)
 
     def _load_length_estimator(self):
-        from mmm.generation.length import load_length_estimator
-        from mmm.resolve import ModelNotFound
-
         reference, tracking_uri = self._length_source
         self._length_source = None
         try:
-            _, checkpoint, _ = resolve_checkpoint(reference, tracking_uri, LENGTH_EXPERIMENT, "outputs/length", "length estimator", "make train-length", "--length-model")
+            _, checkpoint, _ = resolve_model(reference, tracking_uri, LENGTH, "--length-model")
         except ModelNotFound as e:
             raise ValueError(f"no length given and no length estimator: pass --length FRAMES, or train one with `make train-length` ({e})") from None
         estimator = load_length_estimator(checkpoint)

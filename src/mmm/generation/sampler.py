@@ -31,12 +31,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-SCHEDULES = {
-    "cosine": lambda x: math.cos(math.pi / 2 * x),
-    "linear": lambda x: 1.0 - x,
-    "square": lambda x: 1.0 - x * x,  # convex; the paper's "square root" row
-}
-
+from mmm.transformer.schedules import DECODING_SCHEDULES, check_schedule
 
 DECODINGS = ("package", "released")
 
@@ -88,7 +83,7 @@ def check_count(count, field: str, limit: int = MAX_SAMPLES) -> int:
 @dataclass
 class SamplingConfig:
     max_iterations: int = 10  # T_max
-    schedule: str = "cosine"  # cosine | linear | square
+    schedule: str = "cosine"  # a name of transformer/schedules.py DECODING_SCHEDULES
     temperature: float = 1.0  # 0: always the most likely code
     top_k: float | None = None  # keep this fraction of the codebook's logits (1.0 = all)
     top_p: float | None = None  # nucleus: the smallest set of codes with this total probability
@@ -105,8 +100,7 @@ class SamplingConfig:
         multinomial draw would fail on them mid-generation."""
         if self.decoding not in DECODINGS:
             raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {self.decoding!r}")
-        if self.schedule not in SCHEDULES:
-            raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        check_schedule(self.schedule, DECODING_SCHEDULES, "schedule")
         _check_integer("max_iterations", self.max_iterations, 1, MAX_ITERATIONS, f"an integer from 1 to {MAX_ITERATIONS}")
         if self.temperature != 0:
             _check_number("temperature", self.temperature, MIN_TEMPERATURE, MAX_TEMPERATURE,
@@ -226,7 +220,7 @@ def sample_tokens(
         cond[positions[None].expand(B, M) == code_lengths[:, None]] = c.end_id
     free = (real & ~fixed).sum(1)
     iterations = iteration_counts(code_lengths, free, cfg, M_model)
-    gamma = SCHEDULES[cfg.schedule]
+    gamma = DECODING_SCHEDULES[cfg.schedule]
     no_text = torch.zeros(B, dtype=torch.bool, device=device) if no_text is None else no_text.to(device)
     guided = cfg.guidance_scale != 1.0
     record = DecodeTrace() if trace else None

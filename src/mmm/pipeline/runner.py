@@ -199,7 +199,7 @@ def _run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, for
     from mlflow.tracking import MlflowClient
 
     from mmm.tracking import DESCRIPTION_TAG, log_dataset_input, prepare_experiment, run_link, source_tags, timestamp
-    from mmm.training.common import artifact_location
+    from mmm.tracking import artifact_location
 
     client = MlflowClient(ctx.tracking_uri)
     experiment_id = prepare_experiment(client, experiment, artifact_location(ctx.tracking_uri, artifact_root))

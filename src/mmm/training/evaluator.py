@@ -42,7 +42,7 @@ from mmm.training.common import (
     CheckpointConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, resolve_tracking_uri, tag_run, tracked_fit,
 )
 from mmm.training.runs import run_directory
-from mmm.training.stage2 import TextConfig, build_text
+from mmm.text.encoders import TextConfig, build_text
 
 log = logging.getLogger(__name__)
 

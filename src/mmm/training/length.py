@@ -31,7 +31,8 @@ from mmm.training.common import (
     CheckpointConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, tracked_fit,
 )
 from mmm.training.runs import run_directory
-from mmm.training.stage2 import Stage2Config, TextConfig, prepare_stage2_data
+from mmm.text.encoders import TextConfig
+from mmm.training.stage2 import Stage2Config, prepare_stage2_data
 
 log = logging.getLogger(__name__)
 

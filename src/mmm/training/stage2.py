@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 from mmm.callbacks.previews import GenerationPreview
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig, TokenTextDataModule
+from mmm.text.encoders import TextConfig, build_text
 from mmm.tokenizer.load import load_tokenizer
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (
@@ -26,28 +27,6 @@ from mmm.training.runs import claim_run_directory, resume_target, run_directory
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, stage2_codebooks
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class TextConfig:
-    encoder: str = "minilm"  # minilm (packaged, offline) | clip (local weights and vocab files)
-    clip_weights: str | None = None
-    clip_vocab: str | None = None
-    clip_activation: str = "quick_gelu"  # quick_gelu (OpenAI weights) | gelu (LAION weights)
-    clip_precision: str = "float16"  # float16 (OpenAI's dtype flow, as MMM was trained) | float32
-    clip_words: str = "eot"  # eot (words up to end-of-text) | all (all 77 positions, as MMM attends)
-    cache_dir: str = "outputs/cache/text"
-
-    def options(self) -> dict:
-        if self.encoder == "clip":
-            return {
-                "weights": self.clip_weights,
-                "vocab": self.clip_vocab,
-                "activation": self.clip_activation,
-                "precision": self.clip_precision,
-                "words": self.clip_words,
-            }
-        return {}
 
 
 @dataclass
@@ -78,13 +57,6 @@ class Stage2Config:
 def load_stage2_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:
     """conf/train_stage2.yaml, or with parts=True conf/train_stage2_parts.yaml (the part-aware transformer)."""
     return compose("train_stage2_parts" if parts else "train_stage2", list(overrides), schema=Stage2Config)
-
-
-def build_text(cfg: TextConfig):
-    from mmm.text import CaptionEmbeddingCache, build_text_encoder
-
-    encoder = build_text_encoder(cfg.encoder, **cfg.options())
-    return encoder, CaptionEmbeddingCache(cfg.cache_dir, encoder.identity)
 
 
 def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:

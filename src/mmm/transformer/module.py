@@ -11,20 +11,20 @@ import torch.nn.functional as F
 from torchmetrics import MeanMetric
 
 from mmm.tokenizer.module import OptimConfig, _as, warmup_step_schedule
+from mmm.transformer.schedules import TRAINING_SCHEDULES, check_schedule
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
 
 @dataclass
 class CorruptionConfig:
-    mask_schedule: str = "uniform"  # uniform: ratio ~ U(0.5, 1) (released); cosine: cos(pi/2 * u), u ~ U(0, 1)
+    mask_schedule: str = "uniform"  # a name of transformer/schedules.py TRAINING_SCHEDULES (uniform: as released)
     pkeep: float = 0.5  # real tokens replaced by random codes with probability 1 - pkeep
     loss_on: str = "all"  # all real positions (released) | masked
     cond_drop: float = 0.0  # probability of dropping the text (0.1 enables classifier-free guidance)
     lower_mask: float = 1.0  # part-aware model: a share ~ U(0, lower_mask) of the lower-body condition codes is masked
 
     def __post_init__(self):
-        if self.mask_schedule not in ("uniform", "cosine"):
-            raise ValueError(f"corruption.mask_schedule must be uniform or cosine, got {self.mask_schedule!r}")
+        check_schedule(self.mask_schedule, TRAINING_SCHEDULES, "corruption.mask_schedule")
         if self.loss_on not in ("all", "masked"):
             raise ValueError(f"corruption.loss_on must be all or masked, got {self.loss_on!r}")
         if not 0.0 <= self.lower_mask <= 1.0:
@@ -64,7 +64,7 @@ def corrupt(tokens: torch.Tensor, lengths: torch.Tensor, num_codes: int, cfg: Co
     random_codes = torch.randint(0, num_codes, (B, M), generator=generator, device=device)
     inputs = torch.where(replace, random_codes, tokens)
     u = rand(B)
-    ratio = 0.5 + 0.5 * u if cfg.mask_schedule == "uniform" else torch.cos(math.pi / 2 * u)
+    ratio = TRAINING_SCHEDULES[cfg.mask_schedule](u)
     count = torch.round(ratio * lengths).clamp(min=1).minimum(lengths).long()
     masked = random_positions(rand(B, M), real, count)
     inputs = torch.where(masked, torch.full_like(inputs, num_codes + 2), inputs)
