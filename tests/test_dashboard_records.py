@@ -169,7 +169,7 @@ def test_a_challenger_description_compares_with_the_champion(records):
     assert links_resolve(client, text) == 1 and versions_resolve(client, text) == 1
     assert challenger.tags["promotion"].startswith("challenger: does not beat the champion")
     # `mmm models list`: aliases, then the verdict and its reason, first.
-    from mmm.registry.promotion import list_models
+    from mmm.registry.versions import list_models
 
     listing = list_models(client, names=("mmm-text2motion",)).splitlines()
     line = next(i for i, l in enumerate(listing) if l.strip().startswith(f"v{challenger.version} "))

@@ -18,7 +18,7 @@ def stage1_runs(walker_dataset, tmp_path_factory):
     the registered first one."""
     import os
 
-    from mmm.registry.promotion import TOKENIZER, register_version
+    from mmm.registry.versions import TOKENIZER, register_version
     from mmm.training.stage2 import load_stage2_config, train_stage2
 
     out = tmp_path_factory.mktemp("dashboard")

@@ -3,7 +3,7 @@
 import pytest
 from mlflow.tracking import MlflowClient
 
-from mmm.registry.promotion import Criterion, code_version, list_models, promote_version, register_version, version_tags
+from mmm.registry.versions import Criterion, code_version, list_models, promote_version, register_version, version_tags
 
 
 @pytest.fixture
@@ -77,7 +77,7 @@ def test_code_version_is_the_commit_of_a_checkout_and_the_package_version_otherw
     import subprocess
 
     import mmm
-    from mmm.registry import promotion
+    from mmm.registry import versions as promotion
 
     head = subprocess.run(["git", "-C", str(promotion.Path(promotion.__file__).parents[3]), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     if head:  # this checkout is a git clone (CI's is)

@@ -19,7 +19,7 @@ from helpers import stage2_overrides, train_tiny_stage1
 from mlflow.tracking import MlflowClient
 
 from mmm.config import ConfigError
-from mmm.registry.promotion import Criterion, promote_version, register_version, version_tags
+from mmm.registry.versions import Criterion, promote_version, register_version, version_tags
 
 
 def sha256(path) -> str:
@@ -343,7 +343,7 @@ def test_dataset_fingerprint_notices_a_rewrite_that_keeps_size_and_mtime(tmp_pat
 def test_step_keys_include_the_resolved_config_and_the_code_version(walker_dataset, tmp_path, monkeypatch):
     from mmm.pipeline import steps
     from mmm.pipeline.runner import Context, step_key
-    from mmm.registry import promotion
+    from mmm.registry import versions as promotion
 
     conf = tmp_path / "conf"
     shutil.copytree(os.environ["MMM_CONF_DIR"], conf)

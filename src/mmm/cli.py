@@ -271,7 +271,7 @@ def cmd_dashboard(args: argparse.Namespace) -> None:
 def cmd_models(args: argparse.Namespace) -> None:
     from mlflow.tracking import MlflowClient
 
-    from mmm.registry.promotion import list_models
+    from mmm.registry.versions import list_models
     from mmm.tracking import resolve_tracking_uri
 
     print(list_models(MlflowClient(resolve_tracking_uri(args.tracking_uri))))

@@ -13,7 +13,7 @@ import lightning as L
 import torch
 from torch.utils.data import Dataset
 
-from mmm.data.sampling import ResumableDataLoader
+from mmm.data.resumable import ResumableDataLoader
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import TrainerConfig, build_strategy
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule

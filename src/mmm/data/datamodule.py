@@ -10,7 +10,7 @@ import lightning as L
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from torch.utils.data import DataLoader
 
-from mmm.data.sampling import ResumableDataLoader
+from mmm.data.resumable import ResumableDataLoader
 
 from mmm.data.datasets import MotionClipDataset, MotionWindowDataset, TextMotionDataset, collate_motions
 from mmm.data.humanml3d import DataError, LoadReport, load_clips, load_items, load_stats

@@ -91,7 +91,7 @@ def code_key() -> str:
     between two runs is noticed."""
     import subprocess
 
-    from mmm.registry.promotion import code_version
+    from mmm.registry.versions import code_version
 
     version = code_version()
     if version.endswith("+dirty"):
@@ -171,7 +171,7 @@ def step_evaluator() -> Step:
 
 def _promote_step(kind: str, source_step: str | None) -> Step:
     from mmm.registry.promote import load_promote_config
-    from mmm.registry.promotion import EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY
+    from mmm.registry.versions import EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY
 
     name = {"evaluator": EVALUATOR, "tokenizer": TOKENIZER, "text2motion": TEXT2MOTION, "upperbody": UPPERBODY}[kind]
 
@@ -195,7 +195,7 @@ def _promote_step(kind: str, source_step: str | None) -> Step:
 
 
 def _stage2_options(ctx) -> list[str]:
-    from mmm.registry.promotion import TOKENIZER
+    from mmm.registry.versions import TOKENIZER
 
     tokenizer = "models:/mmm-tokenizer@champion" if _champion(ctx, TOKENIZER) else ctx.outputs.get("stage1", {}).get("run_id")
     return [*_common(ctx), *([f"stage1={tokenizer}"] if tokenizer else [])]
@@ -216,7 +216,7 @@ def step_stage1() -> Step:
 
 
 def step_tokenize() -> Step:
-    from mmm.registry.promotion import TOKENIZER
+    from mmm.registry.versions import TOKENIZER
     from mmm.training.stage2 import load_stage2_config
 
     def config(ctx):
@@ -262,7 +262,7 @@ def step_length() -> Step:
 
 def step_evaluate() -> Step:
     from mmm.evaluation.run import load_evaluate_config
-    from mmm.registry.promotion import EVALUATOR
+    from mmm.registry.versions import EVALUATOR
 
     def model(ctx):
         return ctx.outputs.get("stage2", {}).get("run_id")

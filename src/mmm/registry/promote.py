@@ -1,5 +1,5 @@
 """`mmm promote tokenizer|text2motion|evaluator|upperbody [key=value ...]`: evaluate a candidate
-run, register it as a new version, and move `champion` to it only when it wins (see promotion.py).
+run, register it as a new version, and move `champion` to it only when it wins (see versions.py).
 
 Candidates default to the newest finished run of the kind's experiment. Metrics are measured here,
 on the configured data (its fingerprint is recorded) with the champion evaluator (or the newest
@@ -23,7 +23,7 @@ from mmm.atomic import sha256_file
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.evaluation.protocol import ProtocolConfig
-from mmm.registry.promotion import (
+from mmm.registry.versions import (
     CI_SUFFIX, EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, WEIGHTS_SHA256, Criterion, Decision, criteria_errors, freeze_weights,
     promote_version, register_version, version_tags,
 )

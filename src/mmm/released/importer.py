@@ -225,7 +225,7 @@ def _register(result: ImportedModels, sources: dict[str, str], tokenizer_identit
     import mlflow
     from mlflow.tracking import MlflowClient
 
-    from mmm.registry.promotion import TEXT2MOTION, TOKENIZER, register_version, version_tags
+    from mmm.registry.versions import TEXT2MOTION, TOKENIZER, register_version, version_tags
     from mmm.tracking import artifact_location, resolve_tracking_uri
 
     uri = resolve_tracking_uri(tracking_uri)

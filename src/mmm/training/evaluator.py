@@ -32,7 +32,7 @@ from torch.utils.data import Dataset
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig, TextMotionDataModule
 from mmm.data.datasets import TextMotionDataset, collate_motions
-from mmm.data.sampling import ResumableDataLoader
+from mmm.data.resumable import ResumableDataLoader
 from mmm.evaluation.contrastive import (
     ContrastiveEvaluator, ContrastiveEvaluatorModule, ContrastiveLossConfig, ContrastiveModelConfig, load_contrastive_evaluator,
     retrieval_metrics,
@@ -197,7 +197,7 @@ def register_evaluator(tracking_uri: str, name: str, run_id: str, tags: dict[str
                 raise
     source = f"runs:/{run_id}/checkpoints"
     if checkpoint:
-        from mmm.registry.promotion import WEIGHTS_SHA256, freeze_weights
+        from mmm.registry.versions import WEIGHTS_SHA256, freeze_weights
 
         source, digest = freeze_weights(client, run_id, checkpoint, name)
         tags = {**tags, WEIGHTS_SHA256: digest}

@@ -24,7 +24,7 @@ from torch.utils.data import Dataset
 
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
-from mmm.data.sampling import ResumableDataLoader
+from mmm.data.resumable import ResumableDataLoader
 from mmm.generation.length import LengthEstimatorModule, LengthModelConfig, length_metrics
 from mmm.tokenizer.module import OptimConfig
 from mmm.training.common import (

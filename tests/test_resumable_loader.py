@@ -3,7 +3,7 @@
 import torch
 
 from mmm.data import sampling
-from mmm.data.sampling import ResumableDataLoader, ShardedRandomSampler
+from mmm.data.resumable import ResumableDataLoader, ShardedRandomSampler
 
 
 def test_shards_cover_the_epoch_and_differ_by_epoch(monkeypatch):
