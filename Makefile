@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
+.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
@@ -27,8 +27,15 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP) ## create .venv and install the package (idempotent)
 
-test: $(STAMP) ## run the test suite (sets up first when needed)
+lint: $(STAMP) ## ruff: pyflakes, import order, line length 110 (pyproject.toml [tool.ruff])
+	$(BIN)/ruff check src tests benchmarks pipelines
+
+test: $(STAMP) ## lint, then the whole test suite (sets up first when needed)
+	$(BIN)/ruff check src tests benchmarks pipelines
 	$(BIN)/python -m pytest -q
+
+test-fast: $(STAMP) ## the fast loop: every test not marked slow (a few minutes)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 $(DATA)/all.txt: | $(STAMP)
 	$(BIN)/mmm data synth --out $(DATA) $(ARGS)

@@ -1,6 +1,7 @@
 """Generation speed: time per sentence against length, batch throughput, AITS, and a long sequence.
 
-    python benchmarks/generation_speed.py [--sizes tiny paper] [--repeats 5] [--out outputs/bench/generation_speed.json]
+    python benchmarks/generation_speed.py [--sizes tiny paper] [--repeats 5]
+        [--out outputs/bench/generation_speed.json]
 
 For each model size (random weights of that size: speed does not depend on their values; the
 text encoder is the real MiniLM, whose time is included as it is part of inference):
@@ -25,8 +26,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-PROMPTS = ["a person walks forward", "someone jumps twice", "a person waves with the right hand", "the man squats down",
-           "a person runs forward quickly", "a person turns left", "someone kicks with the left foot", "a person sits down"]
+PROMPTS = [
+    "a person walks forward",
+    "someone jumps twice",
+    "a person waves with the right hand",
+    "the man squats down",
+    "a person runs forward quickly",
+    "a person turns left",
+    "someone kicks with the left foot",
+    "a person sits down",
+]
 PAPER = {"aits_s": 0.081, "40_frames_s": 0.018, "long_10.873min_s": 1.65, "device": "NVIDIA RTX A5000"}
 
 
@@ -34,15 +43,21 @@ def build_model(size: str, device: str):
     from mmm.config import compose
     from mmm.generation.model import TextToMotion
     from mmm.text import build_text_encoder
-    from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+    from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
+    from mmm.training.optim import OptimConfig
     from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
     cfg = compose("train_stage2", [f"model={size}"]).model
     torch.manual_seed(0)
     tokenizer = TokenizerModule(263, TokenizerConfig(**cfg.tokenizer), OptimConfig(), TokenizerLossConfig())
     text = build_text_encoder("minilm")
-    transformer = MaskedMotionTransformer(tokenizer.tokenizer.codebook.detach().normal_(), TransformerConfig(**cfg.transformer), text.sentence_dim, text.word_dim)
+    transformer = MaskedMotionTransformer(
+        tokenizer.tokenizer.codebook.detach().normal_(),
+        TransformerConfig(**cfg.transformer),
+        text.sentence_dim,
+        text.word_dim,
+    )
     model = TextToMotion(tokenizer, transformer, text, {"size": size}, device=device)
     params = sum(p.numel() for p in transformer.parameters()) + sum(p.numel() for p in tokenizer.parameters())
     return model, params
@@ -60,7 +75,9 @@ def timed(fn, repeats: int, warmup: int = 1) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--sizes", nargs="+", default=["tiny"])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--lengths", default="40,60,80,100,120,140,160,180,196")
@@ -72,8 +89,18 @@ def main() -> None:
     args = parser.parse_args()
     lengths = [int(x) for x in args.lengths.split(",")]
     batches = [int(x) for x in args.batches.split(",")]
-    device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)"
-    report = {"device": device_name, "dtype": "float32", "torch": torch.__version__, "paper": PAPER, "sizes": {}}
+    device_name = (
+        torch.cuda.get_device_name()
+        if args.device.startswith("cuda")
+        else f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)"
+    )
+    report = {
+        "device": device_name,
+        "dtype": "float32",
+        "torch": torch.__version__,
+        "paper": PAPER,
+        "sizes": {},
+    }
     for size in args.sizes:
         model, params = build_model(size, args.device)
         entry = {"params_M": round(params / 1e6, 2), "per_sentence_s": {}, "sentences_per_s": {}}
@@ -83,13 +110,23 @@ def main() -> None:
                 texts = [PROMPTS[i % len(PROMPTS)] for i in range(batch)]
                 seconds = timed(lambda: model.generate(texts, [frames] * batch, seed=0), args.repeats)
                 curve[frames] = seconds / batch
-                print(f"{size} batch {batch:3d} {frames:4d} frames: {seconds / batch * 1000:8.1f} ms per sentence", flush=True)
+                print(
+                    f"{size} batch {batch:3d} {frames:4d} frames: {seconds / batch * 1000:8.1f} ms per "
+                    "sentence",
+                    flush=True,
+                )
             entry["per_sentence_s"][str(batch)] = curve
             entry["sentences_per_s"][str(batch)] = round(batch / (np.mean(list(curve.values())) * batch), 2)
         # AITS: batch 1, lengths spread evenly over 40..196 like a test set, mean time per sentence.
         if not args.no_aits:
             spread = np.linspace(40, 196, 9).round().astype(int).tolist()
-            per = [timed(lambda n=n: model.generate([PROMPTS[n % len(PROMPTS)]], [n], seed=0), max(1, args.repeats // 2)) for n in spread]
+            per = [
+                timed(
+                    lambda n=n: model.generate([PROMPTS[n % len(PROMPTS)]], [n], seed=0),
+                    max(1, args.repeats // 2),
+                )
+                for n in spread
+            ]
             entry["aits_s"] = round(float(np.mean(per)), 4)
             print(f"{size}: AITS {entry['aits_s']:.4f} s", flush=True)
         if args.long_minutes <= 0:
@@ -107,9 +144,18 @@ def main() -> None:
 
         seconds = timed(run_long, max(1, args.repeats // 2))
         produced = result["out"].features[0].shape[0]
-        entry["long"] = {"prompts": count, "frames": produced, "minutes": round(produced / model.fps / 60, 3), "seconds": round(seconds, 3),
-                         "forward_passes": result["out"].forward_passes}
-        print(f"{size}: {produced} frames ({produced / model.fps / 60:.2f} min) from {count} prompts in {seconds:.2f} s", flush=True)
+        entry["long"] = {
+            "prompts": count,
+            "frames": produced,
+            "minutes": round(produced / model.fps / 60, 3),
+            "seconds": round(seconds, 3),
+            "forward_passes": result["out"].forward_passes,
+        }
+        print(
+            f"{size}: {produced} frames ({produced / model.fps / 60:.2f} min) from {count} prompts in "
+            f"{seconds:.2f} s",
+            flush=True,
+        )
         report["sizes"][size] = entry
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -38,11 +38,14 @@ def _stage1(size: str, batch: int, device: str):
     import torch
 
     from mmm.config import compose
-    from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+    from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
+    from mmm.training.optim import OptimConfig
 
     cfg = compose("train_stage1", [f"model={size}"]).model.tokenizer
-    module = TokenizerModule(263, TokenizerConfig(**cfg), OptimConfig(), TokenizerLossConfig()).to(device).train()
+    module = (
+        TokenizerModule(263, TokenizerConfig(**cfg), OptimConfig(), TokenizerLossConfig()).to(device).train()
+    )
     x = torch.randn(batch, 64, 263, device=device)
 
     def loss():
@@ -57,20 +60,32 @@ def _stage2(size: str, batch: int, device: str):
     import torch
 
     from mmm.config import compose
-    from mmm.tokenizer.module import OptimConfig
+    from mmm.training.optim import OptimConfig
     from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt
     from mmm.transformer.network import TransformerConfig
 
     cfg = compose("train_stage2", [f"model={size}"]).model
     K, C = cfg.tokenizer.num_codes, cfg.tokenizer.code_dim
-    module = MaskedTransformerModule(torch.randn(K, C), TransformerConfig(**cfg.transformer), OptimConfig(), CorruptionConfig(cond_drop=0.1), 384, 384)
+    module = MaskedTransformerModule(
+        torch.randn(K, C),
+        TransformerConfig(**cfg.transformer),
+        OptimConfig(),
+        CorruptionConfig(cond_drop=0.1),
+        384,
+        384,
+    )
     module = module.to(device).train()
     M = cfg.transformer.max_tokens
     lengths = torch.full((batch,), M - 1, device=device)  # the longest motions (196 frames): the worst case
     tokens = torch.randint(0, K, (batch, M), device=device)
     tokens[:, M - 1] = K
-    batch_dict = {"tokens": tokens, "lengths": lengths, "sentence": torch.randn(batch, 384, device=device),
-                  "words": torch.randn(batch, 16, 384, device=device), "word_mask": torch.ones(batch, 16, dtype=torch.bool, device=device)}
+    batch_dict = {
+        "tokens": tokens,
+        "lengths": lengths,
+        "sentence": torch.randn(batch, 384, device=device),
+        "words": torch.randn(batch, 16, 384, device=device),
+        "word_mask": torch.ones(batch, 16, dtype=torch.bool, device=device),
+    }
 
     def loss():
         c = corrupt(tokens, lengths, K, module.corruption_cfg)
@@ -101,17 +116,33 @@ def measure(stage: int, size: str, batch: int, steps: int, warmup: int, device: 
         if i >= warmup:
             times.append(time.perf_counter() - t0)
     median = statistics.median(times)
-    peak = torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda") else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak = (
+        torch.cuda.max_memory_allocated() / 2**20
+        if device.startswith("cuda")
+        else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    )
     return {
-        "stage": stage, "size": size, "device": _device_name(device), "dtype": "float32", "batch": batch,
-        "params_M": round(sum(p.numel() for p in module.parameters()) / 1e6, 2), **extra,
-        "median_step_s": round(median, 4), "iters_per_s": round(1 / median, 3), "samples_per_s": round(batch / median, 1),
-        "peak_memory_MiB": round(peak, 1), "steps_timed": steps, "warmup": warmup, "torch": torch.__version__,
+        "stage": stage,
+        "size": size,
+        "device": _device_name(device),
+        "dtype": "float32",
+        "batch": batch,
+        "params_M": round(sum(p.numel() for p in module.parameters()) / 1e6, 2),
+        **extra,
+        "median_step_s": round(median, 4),
+        "iters_per_s": round(1 / median, 3),
+        "samples_per_s": round(batch / median, 1),
+        "peak_memory_MiB": round(peak, 1),
+        "steps_timed": steps,
+        "warmup": warmup,
+        "torch": torch.__version__,
     }
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--stages", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--sizes", nargs="+", default=["tiny", "paper"])
     parser.add_argument("--batch1", type=int, default=64)
@@ -121,7 +152,9 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--device", default=None)
     parser.add_argument("--out", default="outputs/bench/train_speed.json")
-    parser.add_argument("--one", nargs=3, default=None, help=argparse.SUPPRESS)  # stage size batch, in a child
+    parser.add_argument(
+        "--one", nargs=3, default=None, help=argparse.SUPPRESS
+    )  # stage size batch, in a child
     args = parser.parse_args()
     import torch
 
@@ -136,12 +169,30 @@ def main() -> None:
             batch = args.batch1 if stage == 1 else args.batch2
             if size == "paper" and device == "cpu":
                 batch = min(batch, args.paper_cpu_batch)
-            cmd = [sys.executable, __file__, "--one", str(stage), size, str(batch), "--steps", str(args.steps), "--warmup", str(args.warmup), "--device", device]
+            cmd = [
+                sys.executable,
+                __file__,
+                "--one",
+                str(stage),
+                size,
+                str(batch),
+                "--steps",
+                str(args.steps),
+                "--warmup",
+                str(args.warmup),
+                "--device",
+                device,
+            ]
             out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=REPO)
             r = json.loads(out.stdout.strip().splitlines()[-1])
             results.append(r)
-            print(f"stage {stage} {size:6s} {r['params_M']:7.2f}M params  batch {r['batch']:3d}  {r['iters_per_s']:8.3f} it/s  "
-                  f"{r['samples_per_s']:8.1f} samples/s  peak {r['peak_memory_MiB']:.0f} MiB  ({r['device']}, {r['dtype']})", flush=True)
+            print(
+                f"stage {stage} {size:6s} {r['params_M']:7.2f}M params  batch {r['batch']:3d}  "
+                f"{r['iters_per_s']:8.3f} it/s  "
+                f"{r['samples_per_s']:8.1f} samples/s  peak {r['peak_memory_MiB']:.0f} MiB  ({r['device']}, "
+                f"{r['dtype']})",
+                flush=True,
+            )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))
     print(f"wrote {args.out}")

@@ -1,4 +1,5 @@
-"""The evaluate pipeline: `python pipelines/evaluate.py [key=value ...] [--force STEP]` (same as `mmm pipeline evaluate`)."""
+"""The evaluate pipeline: `python pipelines/evaluate.py [key=value ...] [--force STEP]` (same as `mmm
+pipeline evaluate`)."""
 
 import sys
 

@@ -1,4 +1,5 @@
-"""The full pipeline: `python pipelines/full.py [key=value ...] [--force STEP]` (same as `mmm pipeline full`)."""
+"""The full pipeline: `python pipelines/full.py [key=value ...] [--force STEP]` (same as `mmm pipeline
+full`)."""
 
 import sys
 

@@ -1,4 +1,5 @@
-"""The parts pipeline: `python pipelines/parts.py [key=value ...] [--force STEP]` (same as `mmm pipeline parts`)."""
+"""The parts pipeline: `python pipelines/parts.py [key=value ...] [--force STEP]` (same as `mmm pipeline
+parts`)."""
 
 import sys
 

@@ -1,4 +1,5 @@
-"""The promote pipeline: `python pipelines/promote.py [key=value ...] [--force STEP]` (same as `mmm pipeline promote`)."""
+"""The promote pipeline: `python pipelines/promote.py [key=value ...] [--force STEP]` (same as `mmm pipeline
+promote`)."""
 
 import sys
 

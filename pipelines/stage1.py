@@ -1,4 +1,5 @@
-"""The stage1 pipeline: `python pipelines/stage1.py [key=value ...] [--force STEP]` (same as `mmm pipeline stage1`)."""
+"""The stage1 pipeline: `python pipelines/stage1.py [key=value ...] [--force STEP]` (same as `mmm pipeline
+stage1`)."""
 
 import sys
 

@@ -1,4 +1,5 @@
-"""The stage2 pipeline: `python pipelines/stage2.py [key=value ...] [--force STEP]` (same as `mmm pipeline stage2`)."""
+"""The stage2 pipeline: `python pipelines/stage2.py [key=value ...] [--force STEP]` (same as `mmm pipeline
+stage2`)."""
 
 import sys
 

@@ -1,5 +1,4 @@
 import os
-import sys
 from pathlib import Path
 
 import pytest
@@ -11,7 +10,6 @@ REFERENCE = _ref if _ref.is_dir() else None
 
 # Tests read configs from the checkout and never touch a user's MLflow store.
 os.environ.setdefault("MMM_CONF_DIR", str(REPO / "conf"))
-sys.path.insert(0, str(TESTS))
 
 
 @pytest.fixture
@@ -23,7 +21,7 @@ def reference_dir():
 
 @pytest.fixture(scope="session")
 def walker_dataset(tmp_path_factory):
-    from helpers import write_walker_dataset
+    from tests.helpers import write_walker_dataset
 
     return write_walker_dataset(tmp_path_factory.mktemp("walkers") / "ds")
 
@@ -31,10 +29,19 @@ def walker_dataset(tmp_path_factory):
 @pytest.fixture(scope="session")
 def trained(walker_dataset, tmp_path_factory):
     """Tiny stage-1 and stage-2 models trained for a few steps on the walker dataset (shared)."""
-    from helpers import stage2_overrides, train_tiny_stage1
     from mmm.training.stage2 import load_stage2_config, train_stage2
+    from tests.helpers import stage2_overrides, train_tiny_stage1
 
     out = tmp_path_factory.mktemp("trained")
     train_tiny_stage1(walker_dataset, out)
-    result = train_stage2(load_stage2_config(stage2_overrides(walker_dataset, out, **{"trainer.max_steps": 4, "trainer.val_check_interval": 4})))
-    return {"out": out, "checkpoint": result.best_checkpoint, "uri": f"sqlite:///{out}/mlflow.db", "walker": walker_dataset}
+    result = train_stage2(
+        load_stage2_config(
+            stage2_overrides(walker_dataset, out, **{"trainer.max_steps": 4, "trainer.val_check_interval": 4})
+        )
+    )
+    return {
+        "out": out,
+        "checkpoint": result.best_checkpoint,
+        "uri": f"sqlite:///{out}/mlflow.db",
+        "walker": walker_dataset,
+    }

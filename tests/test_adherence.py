@@ -40,7 +40,12 @@ def canonical(world):
 def test_thresholds_are_the_spec_table():
     assert adh.WALK_SPEEDS == {"slow": (0.5, 0.8), "normal": (1.0, 1.4), "fast": (1.6, 2.0)}
     assert (adh.STAND_MAX_PATH, adh.STAND_MAX_HEIGHT_DEVIATION) == (0.3, 0.1)
-    assert (adh.WALK_MAX_ANGLE_DEG, adh.RUN_MIN_SPEED, adh.TURN_MIN_FRACTION, adh.TURN_MAX_DISPLACEMENT) == (45.0, 2.2, 0.6, 0.5)
+    assert (adh.WALK_MAX_ANGLE_DEG, adh.RUN_MIN_SPEED, adh.TURN_MIN_FRACTION, adh.TURN_MAX_DISPLACEMENT) == (
+        45.0,
+        2.2,
+        0.6,
+        0.5,
+    )
     assert (adh.CIRCLE_MIN_HEADING_DEG, adh.CIRCLE_MAX_END_DISTANCE) == (270.0, 1.0)
     assert (adh.JUMP_MIN_PEAK, adh.JUMP_MIN_FORWARD_PER_JUMP, adh.SQUAT_MIN_DIP) == (0.15, 0.4, 0.25)
     assert (adh.WAVE_MIN_FRACTION, adh.RAISE_MIN_FRACTION) == (0.4, 0.3)
@@ -61,6 +66,7 @@ def test_standing_height_comes_from_the_skeleton_and_matches_the_animation():
     assert abs(np.median(pelvis) - h) < 0.03
 
 
+@pytest.mark.slow
 def test_every_clip_and_its_mirror_satisfy_their_labels(dataset):
     failures = []
     for motion_id in all_ids(dataset):
@@ -81,7 +87,9 @@ def variants():
     out += [("walk", {"direction": d, "speed": s}) for d, s in itertools.product(directions, speeds)]
     out += [("turn", {"side": s, "angle": a}) for s, a in itertools.product(["left", "right"], [90, 180])]
     out += [("circle", {"side": s}) for s in ("clockwise", "counterclockwise")]
-    out += [("jump", {"count": c, "mode": m}) for c, m in itertools.product([1, 2, 3], ["in_place", "forward"])]
+    out += [
+        ("jump", {"count": c, "mode": m}) for c, m in itertools.product([1, 2, 3], ["in_place", "forward"])
+    ]
     out += [("squat", {"count": c}) for c in (1, 2, 3)]
     out += [(a, {"hand": h}) for a in ("wave", "punch") for h in ("left", "right", "both")]
     out += [("kick", {"foot": f}) for f in ("left", "right")]
@@ -95,9 +103,21 @@ def variants():
 # like waving both hands; jumps, raised arms and squats with the arms forwards pass the arm
 # position of a punch.
 MAY_PASS = {
-    ("stand", "kick"), ("stand", "punch"), ("stand", "raise_arms"), ("stand", "turn"), ("stand", "wave"),
-    ("walk", "circle"), ("walk", "jump"), ("turn", "circle"), ("squat", "sit"), ("sit", "squat"),
-    ("wave", "raise_arms"), ("raise_arms", "wave"), ("punch", "jump"), ("punch", "raise_arms"), ("punch", "squat"),
+    ("stand", "kick"),
+    ("stand", "punch"),
+    ("stand", "raise_arms"),
+    ("stand", "turn"),
+    ("stand", "wave"),
+    ("walk", "circle"),
+    ("walk", "jump"),
+    ("turn", "circle"),
+    ("squat", "sit"),
+    ("sit", "squat"),
+    ("wave", "raise_arms"),
+    ("raise_arms", "wave"),
+    ("punch", "jump"),
+    ("punch", "raise_arms"),
+    ("punch", "squat"),
 }
 
 
@@ -125,6 +145,7 @@ def must_fail(label_action, label_params, action, params):
     return False
 
 
+@pytest.mark.slow
 def test_other_actions_fail_each_actions_conditions(dataset):
     wrongly_passed, checked = [], 0
     seen = set()
@@ -148,6 +169,7 @@ def test_other_actions_fail_each_actions_conditions(dataset):
         assert len({c for la, c in seen if la == action}) >= 6, action
 
 
+@pytest.mark.slow
 def test_named_confusions_fail(dataset):
     """The examples of the brief: squat vs jump, walk forward vs backward, wave left vs right."""
     found = {"squat": 0, "walk": 0, "wave": 0}
@@ -158,15 +180,21 @@ def test_named_confusions_fail(dataset):
             span = dict(start=part["start"], end=part["end"])
             if a == "squat":
                 found["squat"] += 1
-                assert not check_motion(joints, [dict(span, action="jump", params={"count": p["count"], "mode": "in_place"})]).passed
+                assert not check_motion(
+                    joints, [dict(span, action="jump", params={"count": p["count"], "mode": "in_place"})]
+                ).passed
             if a == "walk" and p["direction"] == "forward":
                 found["walk"] += 1
-                assert not check_motion(joints, [dict(span, action="walk", params=dict(p, direction="backward"))]).passed
+                assert not check_motion(
+                    joints, [dict(span, action="walk", params=dict(p, direction="backward"))]
+                ).passed
             if a == "wave" and p["hand"] != "both":
                 found["wave"] += 1
                 other = "right" if p["hand"] == "left" else "left"
                 res = check_motion(joints, [dict(span, action="wave", params={"hand": other})])
-                assert not res.passed and any("above the head" in c.name and not c.passed for c in res.conditions)
+                assert not res.passed and any(
+                    "above the head" in c.name and not c.passed for c in res.conditions
+                )
     assert all(v > 0 for v in found.values()), found
 
 

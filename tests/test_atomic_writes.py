@@ -43,7 +43,13 @@ def store(tmp_path):
     client = MlflowClient(uri)
     experiment = client.create_experiment("cache-test", artifact_location=(tmp_path / "art").as_uri())
     run_id = client.create_run(experiment).info.run_id
-    return {"uri": uri, "client": client, "run_id": run_id, "cache": tmp_path / "cache", "files": tmp_path / "files"}
+    return {
+        "uri": uri,
+        "client": client,
+        "run_id": run_id,
+        "cache": tmp_path / "cache",
+        "files": tmp_path / "files",
+    }
 
 
 def _upload(store, content: bytes, tagged: bool = True) -> None:
@@ -61,6 +67,7 @@ def _leftovers(cache: Path) -> list[str]:
     return [p.name for p in cache.iterdir() if p.name.startswith(".")] if cache.exists() else []
 
 
+@pytest.mark.slow
 def test_truncated_cached_file_is_fetched_again(store, monkeypatch):
     import mlflow.artifacts
 
@@ -77,34 +84,58 @@ def test_truncated_cached_file_is_fetched_again(store, monkeypatch):
     # A complete cached copy is used as it is: no third download.
     calls = []
     real = mlflow.artifacts.download_artifacts
-    monkeypatch.setattr(mlflow.artifacts, "download_artifacts", lambda *a, **k: calls.append(k) or real(*a, **k))
-    assert Path(download_artifact(store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"])).read_bytes() == content
+    monkeypatch.setattr(
+        mlflow.artifacts, "download_artifacts", lambda *a, **k: calls.append(k) or real(*a, **k)
+    )
+    assert (
+        Path(
+            download_artifact(store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"])
+        ).read_bytes()
+        == content
+    )
     assert calls == []
     assert _leftovers(store["cache"]) == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tagged", [True, False], ids=["recorded-sha256", "untagged"])
 def test_reuploaded_checkpoint_is_never_served_stale(store, tagged):
     """A --resume uploads a new best.ckpt under the same run and name, of the same size."""
     before, after = b"A" * 4096, b"B" * 4096
     _upload(store, before, tagged)
-    assert Path(download_artifact(store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"])).read_bytes() == before
+    assert (
+        Path(
+            download_artifact(store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"])
+        ).read_bytes()
+        == before
+    )
     _upload(store, after, tagged)
-    assert Path(download_artifact(store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"])).read_bytes() == after
+    assert (
+        Path(
+            download_artifact(store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"])
+        ).read_bytes()
+        == after
+    )
     assert _leftovers(store["cache"]) == []
 
 
+@pytest.mark.slow
 def test_a_download_that_does_not_match_the_recorded_digest_is_refused(store):
     _upload(store, b"weights" * 100)
-    with pytest.raises(ArtifactMismatch, match=r"the download has sha256 [0-9a-f]{64}, the recorded sha256 is 0{64}"):
-        download_artifact(store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"], sha256="0" * 64)
+    with pytest.raises(
+        ArtifactMismatch, match=r"the download has sha256 [0-9a-f]{64}, the recorded sha256 is 0{64}"
+    ):
+        download_artifact(
+            store["uri"], store["run_id"], "checkpoints/best.ckpt", store["cache"], sha256="0" * 64
+        )
     assert not (store["cache"] / "by-sha256" / ("0" * 64)).exists()
     assert _leftovers(store["cache"]) == []
 
 
 # -- checkpoint saves -------------------------------------------------------------------------------
 def _trainer_checkpoint_io(tmp_path):
-    from mmm.training.common import TrainerConfig, build_trainer
+    from mmm.training.common import build_trainer
+    from mmm.training.configs import TrainerConfig
 
     trainer = build_trainer(TrainerConfig(max_steps=1, enable_progress_bar=False), [], None, str(tmp_path))
     return trainer.strategy.checkpoint_io
@@ -136,25 +167,43 @@ def test_checkpoint_save_is_atomic_in_its_own_folder(tmp_path, monkeypatch):
     kept = torch.load(last, map_location="cpu", weights_only=True)
     assert kept["global_step"] == 10 and torch.equal(kept["w"], torch.ones(1000))  # the previous complete one
     assert sorted(p.name for p in folder.iterdir()) == ["last.ckpt"]  # no half file, under any name
-    assert len(written_to) == 1 and written_to[0].startswith(".last.ckpt.")  # a temporary file beside it, not in $TMPDIR
+    assert len(written_to) == 1 and written_to[0].startswith(
+        ".last.ckpt."
+    )  # a temporary file beside it, not in $TMPDIR
 
     io.save_checkpoint({"global_step": 30, "w": torch.full((1000,), 3.0)}, last)
     assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 30
     assert synced  # the file (and its folder) reached the disk before the rename counted
 
 
+@pytest.mark.slow
 def test_training_killed_during_a_checkpoint_save_resumes_from_the_previous_one(walker_dataset, tmp_path):
     """SIGKILL while last.ckpt is being rewritten (a test hook holds each save open for 2 s before
     its rename), then `mmm train stage1 --resume last`: the previous complete last.ckpt is intact
     and the training finishes."""
     out = tmp_path / "run"
     overrides = [
-        f"data.root={walker_dataset}", "data.synthesize=null", "data.batch_size=8", "model.tokenizer.width=16", "model.tokenizer.num_codes=32",
-        "trainer.max_steps=6", "trainer.val_check_interval=2", "trainer.enable_progress_bar=false", "callbacks.preview_clips=0",
-        "callbacks.usage_plot=false", f"output_dir={out}/s1", f"logger.tracking_uri=sqlite:///{out}/mlflow.db", f"logger.artifact_root={out}/art",
+        f"data.root={walker_dataset}",
+        "data.synthesize=null",
+        "data.batch_size=8",
+        "model.tokenizer.width=16",
+        "model.tokenizer.num_codes=32",
+        "trainer.max_steps=6",
+        "trainer.val_check_interval=2",
+        "trainer.enable_progress_bar=false",
+        "callbacks.preview_clips=0",
+        "callbacks.usage_plot=false",
+        f"output_dir={out}/s1",
+        f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
+        f"logger.artifact_root={out}/art",
     ]
     train = [sys.executable, "-m", "mmm.cli", "train", "stage1", *overrides]
-    proc = subprocess.Popen(train, env={**os.environ, "MMM_TEST_CHECKPOINT_SAVE_DELAY": "2"}, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        train,
+        env={**os.environ, "MMM_TEST_CHECKPOINT_SAVE_DELAY": "2"},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     saving = []
     try:
         deadline = time.monotonic() + 300
@@ -171,7 +220,9 @@ def test_training_killed_during_a_checkpoint_save_resumes_from_the_previous_one(
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert saving and proc.returncode == -signal.SIGKILL, f"no save caught in progress (exit {proc.returncode}): {proc.stderr.read().decode()[-3000:]}"
+    assert saving and proc.returncode == -signal.SIGKILL, (
+        f"no save caught in progress (exit {proc.returncode}): {proc.stderr.read().decode()[-3000:]}"
+    )
     checkpoints = saving[0].parent
     kept = torch.load(checkpoints / "last.ckpt", map_location="cpu", weights_only=True)
     assert kept["global_step"] == 2  # the save at step 4 never replaced it
@@ -185,13 +236,20 @@ def test_training_killed_during_a_checkpoint_save_resumes_from_the_previous_one(
 
 # -- --overwrite of a sample folder -----------------------------------------------------------------
 def _samples(n: int, tag: str, frames: int = 12) -> list[dict]:
-    from helpers import turning_walker
-
     from mmm.motion.features import joints_to_features
+    from tests.helpers import turning_walker
 
     joints = turning_walker(frames=frames + 1).numpy().astype(np.float32)
     features = joints_to_features(joints)
-    return [{"features": features, "joints": joints[: features.shape[0]], "caption": f"{tag} {k}", "meta": {"run": tag, "sample": k}} for k in range(n)]
+    return [
+        {
+            "features": features,
+            "joints": joints[: features.shape[0]],
+            "caption": f"{tag} {k}",
+            "meta": {"run": tag, "sample": k},
+        }
+        for k in range(n)
+    ]
 
 
 def _quick_sample(folder, features, joints, caption, meta, skeleton):
@@ -220,20 +278,41 @@ def test_overwrite_with_fewer_samples_replaces_the_whole_folder(tmp_path):
     folders = outputs.write_samples(out, _samples(1, "new"), T2M_SKELETON, overwrite=True)
     assert folders == [out / "0"]
     assert _runs(out) == {"0": "new"}  # no stale gen/1, gen/2 from the run with more samples
-    assert {"features.npy", "joints.npy", "motion.gif", "motion.bvh", "meta.json"} <= {p.name for p in (out / "0").iterdir()}
+    assert {"features.npy", "joints.npy", "motion.gif", "motion.bvh", "meta.json"} <= {
+        p.name for p in (out / "0").iterdir()
+    }
     assert _siblings(out) == []  # no temporary folder left beside it
 
 
+@pytest.mark.slow
 def test_cli_generate_overwrite_with_fewer_samples(trained, tmp_path, capsys):
     from mmm.cli import main
 
     out = tmp_path / "gen"
-    common = ["generate", "--text", "a person walks forward", "--length", "60", "--model", trained["checkpoint"],
-              "--tracking-uri", trained["uri"], "--out", str(out)]
+    common = [
+        "generate",
+        "--text",
+        "a person walks forward",
+        "--length",
+        "60",
+        "--model",
+        trained["checkpoint"],
+        "--tracking-uri",
+        trained["uri"],
+        "--out",
+        str(out),
+    ]
     assert main([*common, "--num-samples", "3", "--seed", "1", "--trace"]) == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["0", "1", "2", "decoding_trace.png"]
-    assert main([*common, "--num-samples", "1", "--seed", "2"]) == 2  # without --overwrite: refused, nothing changed
-    assert "pass --overwrite" in capsys.readouterr().err and sorted(p.name for p in out.iterdir()) == ["0", "1", "2", "decoding_trace.png"]
+    assert (
+        main([*common, "--num-samples", "1", "--seed", "2"]) == 2
+    )  # without --overwrite: refused, nothing changed
+    assert "pass --overwrite" in capsys.readouterr().err and sorted(p.name for p in out.iterdir()) == [
+        "0",
+        "1",
+        "2",
+        "decoding_trace.png",
+    ]
     assert main([*common, "--num-samples", "1", "--seed", "2", "--overwrite"]) == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["0"]  # no stale gen/1, gen/2 or old trace
     assert json.loads((out / "0" / "meta.json").read_text())["seed"] == 2
@@ -264,11 +343,14 @@ def test_interrupted_overwrite_leaves_the_old_folder(tmp_path, monkeypatch):
 
     def cut_after_first(real):
         def rename(src, dst, *args, **kwargs):
-            if sys._getframe(1).f_globals.get("__name__") == outputs.__name__:  # only write_samples' own moves
+            if (
+                sys._getframe(1).f_globals.get("__name__") == outputs.__name__
+            ):  # only write_samples' own moves
                 moves.append((src, dst))
                 if len(moves) == 2:
                     raise OSError(5, "Input/output error")
             return real(src, dst, *args, **kwargs)
+
         return rename
 
     monkeypatch.setattr(os, "rename", cut_after_first(os.rename))
@@ -289,7 +371,9 @@ def test_overwrite_refuses_a_folder_that_holds_more_than_samples(tmp_path, monke
     (out / "notes.txt").write_text("mine")
     with pytest.raises(FileExistsError, match=r"project holds notes.txt besides samples"):
         outputs.write_samples(out, _samples(1, "new"), T2M_SKELETON, overwrite=True)
-    assert (out / "notes.txt").read_text() == "mine" and json.loads((out / "0" / "meta.json").read_text())["run"] == "old"
+    assert (out / "notes.txt").read_text() == "mine" and json.loads((out / "0" / "meta.json").read_text())[
+        "run"
+    ] == "old"
     assert _siblings(out) == []
 
 
@@ -303,6 +387,7 @@ def _bundle_source(tmp_path) -> Path:
     return src
 
 
+@pytest.mark.slow
 def test_concurrent_bundle_cache_fills_share_one_complete_copy(tmp_path, monkeypatch):
     import mlflow.artifacts
 
@@ -340,12 +425,16 @@ def test_concurrent_bundle_cache_fills_share_one_complete_copy(tmp_path, monkeyp
     assert errors == []
     assert got["a"] == got["b"] and got["a-inode"] == got["b-inode"]  # both use the one complete copy
     assert len(downloads) == 1  # the second waited for the first and took its copy
-    assert (got["a"] / "artifacts" / "transformer.ckpt").read_bytes() == (src / "artifacts" / "transformer.ckpt").read_bytes()
+    assert (got["a"] / "artifacts" / "transformer.ckpt").read_bytes() == (
+        src / "artifacts" / "transformer.ckpt"
+    ).read_bytes()
     assert (dst / resolve.COMPLETE).is_file()
 
     # A later fill of a complete copy keeps it: nothing deleted, nothing downloaded.
     assert resolve._download(str(src), f"sqlite:///{tmp_path}/m.db", dst) == got["a"]
-    assert (got["a"] / "artifacts" / "transformer.ckpt").stat().st_ino == got["a-inode"] and len(downloads) == 1
+    assert (got["a"] / "artifacts" / "transformer.ckpt").stat().st_ino == got["a-inode"] and len(
+        downloads
+    ) == 1
     assert sorted(p.name for p in dst.parent.iterdir()) == [".abc123.lock", "abc123"]  # no temporary folders
 
 
@@ -359,19 +448,48 @@ def test_load_context_leaves_no_temporary_folders(tmp_path, monkeypatch):
 
     files = tmp_path / "bundle" / "artifacts"
     files.mkdir(parents=True)
-    torch.save({"hyper_parameters": {"text_encoder": {"name": "clip-vit-b32", "identity": "x", "weights": "/train/clip.pt", "vocab": "/train/v.txt.gz"}},
-                "state_dict": {"w": torch.ones(2)}}, files / "transformer.ckpt")
+    torch.save(
+        {
+            "hyper_parameters": {
+                "text_encoder": {
+                    "name": "clip-vit-b32",
+                    "identity": "x",
+                    "weights": "/train/clip.pt",
+                    "vocab": "/train/v.txt.gz",
+                }
+            },
+            "state_dict": {"w": torch.ones(2)},
+        },
+        files / "transformer.ckpt",
+    )
     for name in ("tokenizer.ckpt", "text_weights.pt", "text_vocab.txt.gz"):
         (files / name).write_bytes(b"x")
     scratch = tmp_path / "tmpdir"
     scratch.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     loaded = []
-    monkeypatch.setattr(TextToMotion, "from_files", classmethod(lambda cls, *args, **kwargs: loaded.append((args, kwargs)) or SimpleNamespace(part_aware=False)))
-    context = SimpleNamespace(model_config={}, artifacts={
-        "transformer": str(files / "transformer.ckpt"), "tokenizer": str(files / "tokenizer.ckpt"),
-        "text_weights": str(files / "text_weights.pt"), "text_vocab": str(files / "text_vocab.txt.gz")})
+    monkeypatch.setattr(
+        TextToMotion,
+        "from_files",
+        classmethod(
+            lambda cls, *args, **kwargs: loaded.append((args, kwargs)) or SimpleNamespace(part_aware=False)
+        ),
+    )
+    context = SimpleNamespace(
+        model_config={},
+        artifacts={
+            "transformer": str(files / "transformer.ckpt"),
+            "tokenizer": str(files / "tokenizer.ckpt"),
+            "text_weights": str(files / "text_weights.pt"),
+            "text_vocab": str(files / "text_vocab.txt.gz"),
+        },
+    )
     TextToMotionPyfunc().load_context(context)
     assert loaded  # the model was built ...
     assert list(scratch.iterdir()) == []  # ... and no temporary folder outlives load_context
-    assert sorted(p.name for p in files.iterdir()) == ["text_vocab.txt.gz", "text_weights.pt", "tokenizer.ckpt", "transformer.ckpt"]
+    assert sorted(p.name for p in files.iterdir()) == [
+        "text_vocab.txt.gz",
+        "text_weights.pt",
+        "tokenizer.ckpt",
+        "transformer.ckpt",
+    ]

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import D, write_dataset
+from tests.helpers import D, write_dataset
 
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "PYTHONWARNINGS": "ignore"}
 WORKERS = 3
@@ -27,7 +27,14 @@ WORKERS = 3
 def run_mmm(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     """`python -m mmm.cli ARGS` in `cwd` (so relative defaults such as sqlite:///mlflow.db and
     outputs/ would land there, where the test looks for them)."""
-    return subprocess.run([sys.executable, "-m", "mmm.cli", *args], cwd=cwd, env=ENV, capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "mmm.cli", *args],
+        cwd=cwd,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def tree(folder: Path) -> dict[str, str]:
@@ -42,7 +49,9 @@ def tree(folder: Path) -> dict[str, str]:
 def assert_refused(result: subprocess.CompletedProcess, expected: list[str]) -> None:
     """Exit 2, no traceback, exactly one error line, naming every string of `expected`."""
     err = result.stderr
-    assert result.returncode == 2, f"exit {result.returncode}\nstdout: {result.stdout[-2000:]}\nstderr: {err[-4000:]}"
+    assert result.returncode == 2, (
+        f"exit {result.returncode}\nstdout: {result.stdout[-2000:]}\nstderr: {err[-4000:]}"
+    )
     assert "Traceback" not in err, err
     errors = [line for line in err.splitlines() if line.startswith("error:")]
     assert len(errors) == 1, err
@@ -60,7 +69,10 @@ BEFORE_MODEL = {
     # sampling settings: NaN, infinite, out of range (issue 13)
     "temperature nan": (GEN + ["--temperature", "nan"], ["--temperature nan", "0.001 to 100"]),
     "temperature inf": (GEN + ["--temperature", "inf"], ["--temperature inf", "0.001 to 100"]),
-    "temperature negative": (GEN + ["--temperature", "-1"], ["--temperature -1.0", "0 (always the most likely code)"]),
+    "temperature negative": (
+        GEN + ["--temperature", "-1"],
+        ["--temperature -1.0", "0 (always the most likely code)"],
+    ),
     "guidance nan": (GEN + ["--guidance", "nan"], ["--guidance nan", "from 0 to 100"]),
     "guidance inf": (GEN + ["--guidance", "inf"], ["--guidance inf", "from 0 to 100"]),
     "guidance negative": (GEN + ["--guidance", "-2"], ["--guidance -2.0", "from 0 to 100"]),
@@ -75,38 +87,76 @@ BEFORE_MODEL = {
     "seed negative": (GEN + ["--seed", "-1"], ["--seed -1", "0 to 2^63-1"]),
     "seed 2^63": (GEN + ["--seed", str(2**63)], [f"--seed {2**63}", "0 to 2^63-1"]),
     "long seed 2^64": (LONG + ["--seed", str(2**64)], [f"--seed {2**64}", "0 to 2^63-1"]),
-    "released decoding with top-k": (GEN + ["--decoding", "released", "--top-k", "0.5"], ["released decoding", "top_k=0.5"]),
+    "released decoding with top-k": (
+        GEN + ["--decoding", "released", "--top-k", "0.5"],
+        ["released decoding", "top_k=0.5"],
+    ),
     # placement and counts of edits and long sequences
     "place negative": (OUTPAINT + ["--place", "-4"], ["--place -4", "0 or more"]),
-    "edit num-samples above bound": (OUTPAINT + ["--num-samples", "100"], ["--num-samples 100", "from 1 to 64"]),
-    "transition codes negative": (LONG + ["--transition-codes", "-1"], ["--transition-codes -1", "0 or more"]),
+    "edit num-samples above bound": (
+        OUTPAINT + ["--num-samples", "100"],
+        ["--num-samples 100", "from 1 to 64"],
+    ),
+    "transition codes negative": (
+        LONG + ["--transition-codes", "-1"],
+        ["--transition-codes -1", "0 or more"],
+    ),
     "lengths not numbers": (LONG + ["--lengths", "80,abc"], ["--lengths '80,abc'"]),
     # empty text and paragraphs (README: empty text; issue 13: empty or whitespace-only paragraph)
     "empty text": (["generate", "--text", "", "--out", "{out}"], ["--text is empty"]),
     "whitespace text": (["generate", "--text", "   ", "--out", "{out}"], ["--text is empty"]),
-    "whitespace paragraph": (["generate-long", "--paragraph", " \t ", "--out", "{out}"], ["--paragraph is empty"]),
+    "whitespace paragraph": (
+        ["generate-long", "--paragraph", " \t ", "--out", "{out}"],
+        ["--paragraph is empty"],
+    ),
     "empty paragraph": (["generate-long", "--paragraph", "", "--out", "{out}"], ["--paragraph is empty"]),
-    "paragraph without action": (["generate-long", "--paragraph", " , . ; ", "--out", "{out}"], ["no action found in the paragraph"]),
-    "one empty segment": (["generate-long", "--text", "a person walks", "--text", " ", "--out", "{out}"], ["--text is empty"]),
+    "paragraph without action": (
+        ["generate-long", "--paragraph", " , . ; ", "--out", "{out}"],
+        ["no action found in the paragraph"],
+    ),
+    "one empty segment": (
+        ["generate-long", "--text", "a person walks", "--text", " ", "--out", "{out}"],
+        ["--text is empty"],
+    ),
     "edit with empty text": (OUTPAINT + ["--text", "  "], ["--text is empty"]),
     # README: a source of the wrong shape
-    "source wrong shape": (["edit", "inbetween", "--source", "{bad_shape}", "--keep", "0:40,60:80", "--out", "{out}"],
-                           ["bad_shape.npy", "expected features (T, 263)"]),
-    "source with NaN": (["edit", "complete", "--source", "{nan_source}", "--keep", "0:40", "--out", "{out}"], ["nan_source.npy", "NaN/Inf"]),
+    "source wrong shape": (
+        ["edit", "inbetween", "--source", "{bad_shape}", "--keep", "0:40,60:80", "--out", "{out}"],
+        ["bad_shape.npy", "expected features (T, 263)"],
+    ),
+    "source with NaN": (
+        ["edit", "complete", "--source", "{nan_source}", "--keep", "0:40", "--out", "{out}"],
+        ["nan_source.npy", "NaN/Inf"],
+    ),
     # other commands' bounds
-    "synth seed negative": (["data", "synth", "--out", "{out}", "--seed", "-5", "--num-clips", "2"], ["--seed -5", "0 to 2^63-1"]),
+    "synth seed negative": (
+        ["data", "synth", "--out", "{out}", "--seed", "-5", "--num-clips", "2"],
+        ["--seed -5", "0 to 2^63-1"],
+    ),
     "preview count zero": (["data", "preview", "{dataset}", "--out", "{out}", "--count", "0"], ["--count 0"]),
     "render fps nan": (["render", "{joints}", "--out", "{out}/x.gif", "--fps", "nan"], ["--fps nan"]),
     "render fps zero": (["render", "{joints}", "--out", "{out}/x.gif", "--fps", "0"], ["--fps 0.0"]),
     # issue 13: a caption span #0#inf (HumanML3D caption line): the file and line are named
-    "caption span inf (check)": (["data", "check", "{inf_caption}", "--on-invalid", "error"], ["texts/000000.txt:2", "0..inf s is not finite"]),
-    "caption span inf (preview)": (["data", "preview", "{inf_caption}", "--out", "{out}"], ["texts/000000.txt:2", "0..inf s is not finite"]),
+    "caption span inf (check)": (
+        ["data", "check", "{inf_caption}", "--on-invalid", "error"],
+        ["texts/000000.txt:2", "0..inf s is not finite"],
+    ),
+    "caption span inf (preview)": (
+        ["data", "preview", "{inf_caption}", "--out", "{out}"],
+        ["texts/000000.txt:2", "0..inf s is not finite"],
+    ),
     # README: bad data names the file (malformed caption line, a split naming a missing id), a
     # misspelt config key names the valid ones, the released upper-body pair is refused
-    "malformed caption line": (["data", "check", "{malformed}", "--on-invalid", "error"], ["texts/000000.txt:1", "malformed caption line"]),
+    "malformed caption line": (
+        ["data", "check", "{malformed}", "--on-invalid", "error"],
+        ["texts/000000.txt:1", "malformed caption line"],
+    ),
     "split names a missing id": (["data", "check", "{missing_id}", "--on-invalid", "error"], ["000099"]),
     "misspelt config key": (["train", "stage1", "trainer.max_stepz=5"], ["max_stepz"]),
-    "released upper-body import": (["import", "released-upperbody", "--vq", "{source}", "--stats", "{dataset}"], ["the released upper-body pair cannot be mapped"]),
+    "released upper-body import": (
+        ["import", "released-upperbody", "--vq", "{source}", "--stats", "{dataset}"],
+        ["the released upper-body pair cannot be mapped"],
+    ),
 }
 
 
@@ -123,16 +173,35 @@ def _inputs(folder: Path) -> dict[str, str]:
     np.save(folder / "joints.npy", joints)
     good_line = "a person walks#a/DET person/NOUN walk/VERB#0.0#0.0"
     inf_caption = folder / "inf_caption"
-    write_dataset(inf_caption, {"000000": (60, [good_line, "a person jumps#a/DET person/NOUN jump/VERB#0#inf"])},
-                  {s: ["000000"] for s in ("train", "val", "test")})
+    write_dataset(
+        inf_caption,
+        {"000000": (60, [good_line, "a person jumps#a/DET person/NOUN jump/VERB#0#inf"])},
+        {s: ["000000"] for s in ("train", "val", "test")},
+    )
     (inf_caption / "new_joints").mkdir()
     np.save(inf_caption / "new_joints" / "000000.npy", rng.normal(size=(60, 22, 3)).astype(np.float32))
     dataset = folder / "dataset"
     write_dataset(dataset, {"000000": (60, [good_line])}, {s: ["000000"] for s in ("train", "val", "test")})
-    write_dataset(folder / "malformed", {"000000": (60, ["a person walks#0.0"])}, {s: ["000000"] for s in ("train", "val", "test")})
-    write_dataset(folder / "missing_id", {"000000": (60, [good_line])}, {s: ["000000", "000099"] for s in ("train", "val", "test")})
-    return {"malformed": str(folder / "malformed"), "missing_id": str(folder / "missing_id"),"source": str(folder / "source.npy"), "bad_shape": str(folder / "bad_shape.npy"), "nan_source": str(folder / "nan_source.npy"),
-            "joints": str(folder / "joints.npy"), "inf_caption": str(inf_caption), "dataset": str(dataset)}
+    write_dataset(
+        folder / "malformed",
+        {"000000": (60, ["a person walks#0.0"])},
+        {s: ["000000"] for s in ("train", "val", "test")},
+    )
+    write_dataset(
+        folder / "missing_id",
+        {"000000": (60, [good_line])},
+        {s: ["000000", "000099"] for s in ("train", "val", "test")},
+    )
+    return {
+        "malformed": str(folder / "malformed"),
+        "missing_id": str(folder / "missing_id"),
+        "source": str(folder / "source.npy"),
+        "bad_shape": str(folder / "bad_shape.npy"),
+        "nan_source": str(folder / "nan_source.npy"),
+        "joints": str(folder / "joints.npy"),
+        "inf_caption": str(inf_caption),
+        "dataset": str(dataset),
+    }
 
 
 def _run_table(table: dict, files: dict[str, str], base: Path, extra: list[str] = ()) -> dict:
@@ -161,6 +230,7 @@ def before_model_results(tmp_path_factory):
     return results
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(BEFORE_MODEL))
 def test_refused_before_any_model_loads(before_model_results, name):
     result, cwd, before, after = before_model_results[name]
@@ -171,14 +241,44 @@ def test_refused_before_any_model_loads(before_model_results, name):
 
 # -- inputs refused once the model is known (lengths depend on it; README) ------------------------
 WITH_MODEL = {
-    "length below 40": (["generate", "--model", "{model}", "--text", "a person walks", "--length", "30", "--out", "{out}"],
-                        ["--length 30 frames is outside 40..196"]),
-    "length above 196": (["generate", "--model", "{model}", "--text", "a person walks", "--length", "500", "--out", "{out}"],
-                         ["--length 500 frames is outside 40..196"]),
-    "segment length below 40": (["generate-long", "--model", "{model}", "--text", "a person walks", "--text", "a person jumps",
-                                 "--lengths", "80,20", "--out", "{out}"], ["segment length 20 frames is outside 40..196"]),
-    "unknown model": (["generate", "--model", "models:/no-such-model@champion", "--text", "a person walks", "--length", "80", "--out", "{out}"],
-                      ["no-such-model"]),
+    "length below 40": (
+        ["generate", "--model", "{model}", "--text", "a person walks", "--length", "30", "--out", "{out}"],
+        ["--length 30 frames is outside 40..196"],
+    ),
+    "length above 196": (
+        ["generate", "--model", "{model}", "--text", "a person walks", "--length", "500", "--out", "{out}"],
+        ["--length 500 frames is outside 40..196"],
+    ),
+    "segment length below 40": (
+        [
+            "generate-long",
+            "--model",
+            "{model}",
+            "--text",
+            "a person walks",
+            "--text",
+            "a person jumps",
+            "--lengths",
+            "80,20",
+            "--out",
+            "{out}",
+        ],
+        ["segment length 20 frames is outside 40..196"],
+    ),
+    "unknown model": (
+        [
+            "generate",
+            "--model",
+            "models:/no-such-model@champion",
+            "--text",
+            "a person walks",
+            "--length",
+            "80",
+            "--out",
+            "{out}",
+        ],
+        ["no-such-model"],
+    ),
 }
 
 
@@ -188,11 +288,14 @@ def with_model_results(trained, tmp_path_factory):
     store = Path(trained["uri"].removeprefix("sqlite:///"))
     digest = hashlib.sha256(store.read_bytes()).hexdigest()
     started = time.perf_counter()
-    results = _run_table(WITH_MODEL, {"model": str(trained["checkpoint"])}, base, extra=["--tracking-uri", trained["uri"]])
+    results = _run_table(
+        WITH_MODEL, {"model": str(trained["checkpoint"])}, base, extra=["--tracking-uri", trained["uri"]]
+    )
     print(f"[bad input] {len(results)} commands with a model in {time.perf_counter() - started:.1f} s")
     return results, digest, store
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(WITH_MODEL))
 def test_refused_once_the_model_is_known(with_model_results, name):
     results, digest, store = with_model_results
@@ -200,17 +303,35 @@ def test_refused_once_the_model_is_known(with_model_results, name):
     assert_refused(result, WITH_MODEL[name][1])
     # No output folder; what loading the model put in the download cache (outputs/cache/) may stay.
     assert before == {} and not (cwd / "out").exists()
-    assert all(path.startswith("outputs") for path in after) and all(path.startswith("outputs/cache/") for path in after if path.count("/") > 1)
+    assert all(path.startswith("outputs") for path in after) and all(
+        path.startswith("outputs/cache/") for path in after if path.count("/") > 1
+    )
     assert hashlib.sha256(store.read_bytes()).hexdigest() == digest, "the MLflow store changed"
 
 
+@pytest.mark.slow
 def test_console_script_refuses_like_the_module(tmp_path):
     """The installed `mmm` entry point itself (not only `python -m mmm.cli`)."""
     script = Path(sys.executable).with_name("mmm")
     if not script.exists():
         pytest.skip("no console script next to this interpreter")
-    result = subprocess.run([str(script), "generate", "--text", "a person walks", "--temperature", "nan", "--out", str(tmp_path / "out")],
-                            cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [
+            str(script),
+            "generate",
+            "--text",
+            "a person walks",
+            "--temperature",
+            "nan",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        cwd=tmp_path,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert_refused(result, ["--temperature nan"])
     assert list(tmp_path.iterdir()) == []
 
@@ -219,10 +340,20 @@ def test_console_script_refuses_like_the_module(tmp_path):
 @pytest.mark.parametrize(
     "field, value, allowed",
     [
-        ("temperature", math.nan, "0.001 to 100"), ("temperature", math.inf, "0.001 to 100"), ("temperature", -0.5, "0.001 to 100"),
-        ("temperature", 1e-9, "0.001 to 100"), ("guidance_scale", math.nan, "0 to 100"), ("guidance_scale", -math.inf, "0 to 100"),
-        ("guidance_scale", 1e9, "0 to 100"), ("top_k", math.nan, "(0, 1]"), ("top_k", 0.0, "(0, 1]"), ("top_p", math.inf, "(0, 1]"),
-        ("top_p", -0.1, "(0, 1]"), ("max_iterations", 101, "1 to 100"), ("max_iterations", 0, "1 to 100"), ("max_iterations", 2.5, "1 to 100"),
+        ("temperature", math.nan, "0.001 to 100"),
+        ("temperature", math.inf, "0.001 to 100"),
+        ("temperature", -0.5, "0.001 to 100"),
+        ("temperature", 1e-9, "0.001 to 100"),
+        ("guidance_scale", math.nan, "0 to 100"),
+        ("guidance_scale", -math.inf, "0 to 100"),
+        ("guidance_scale", 1e9, "0 to 100"),
+        ("top_k", math.nan, "(0, 1]"),
+        ("top_k", 0.0, "(0, 1]"),
+        ("top_p", math.inf, "(0, 1]"),
+        ("top_p", -0.1, "(0, 1]"),
+        ("max_iterations", 101, "1 to 100"),
+        ("max_iterations", 0, "1 to 100"),
+        ("max_iterations", 2.5, "1 to 100"),
         ("max_iterations", True, "1 to 100"),
     ],
 )
@@ -238,10 +369,16 @@ def test_sampling_config_names_field_value_and_range(field, value, allowed):
 def test_sampling_config_accepts_the_edges():
     from mmm.generation.sampler import MAX_ITERATIONS, SamplingConfig, check_count, check_seed
 
-    SamplingConfig(max_iterations=MAX_ITERATIONS, temperature=100.0, guidance_scale=100.0, top_k=1.0, top_p=1.0)
+    SamplingConfig(
+        max_iterations=MAX_ITERATIONS, temperature=100.0, guidance_scale=100.0, top_k=1.0, top_p=1.0
+    )
     SamplingConfig(max_iterations=1, temperature=0.0, guidance_scale=0.0)
     SamplingConfig(temperature=0.001)
-    assert check_seed(2**63 - 1) == 2**63 - 1 and check_seed(np.int64(3)) == 3 and check_count(64, "num_samples") == 64
+    assert (
+        check_seed(2**63 - 1) == 2**63 - 1
+        and check_seed(np.int64(3)) == 3
+        and check_count(64, "num_samples") == 64
+    )
 
 
 @pytest.mark.parametrize(
@@ -273,13 +410,15 @@ def test_bundle_params_use_the_same_ranges(params, message):
 def test_an_infinite_caption_span_names_file_and_line(span):
     from mmm.data.humanml3d import DataError, parse_caption_line
 
-    with pytest.raises(DataError, match=r"^texts/1\.txt:4: caption span .* s is not finite; write the span in seconds"):
+    with pytest.raises(
+        DataError, match=r"^texts/1\.txt:4: caption span .* s is not finite; write the span in seconds"
+    ):
         parse_caption_line(f"a man jumps#a/DET man/NOUN jump/VERB#{span}", "texts/1.txt", 4)
 
 
 @pytest.mark.timeout(60)  # the character-by-character wrap this replaces took minutes
 def test_a_20000_character_word_wraps_fast():
-    from mmm.render.stick import _Style, _header_lines, _wrap
+    from mmm.render.stick import _header_lines, _Style, _wrap
 
     style = _Style.for_size(320, 320)
     word = "w" * 20_000

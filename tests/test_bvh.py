@@ -23,8 +23,12 @@ from mmm.motion.skeleton import KIT_SKELETON, T2M_SKELETON, forward_kinematics
 REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
 REFERENCE_MOTION = REFERENCE / "humanml3d" / "new_joints" / "012314.npy"
 T2M_CARRIERS = (
-    "pelvis_to_left_hip", "pelvis_to_right_hip", "pelvis_to_spine1",
-    "spine3_to_neck", "spine3_to_left_collar", "spine3_to_right_collar",
+    "pelvis_to_left_hip",
+    "pelvis_to_right_hip",
+    "pelvis_to_spine1",
+    "spine3_to_neck",
+    "spine3_to_left_collar",
+    "spine3_to_right_collar",
 )
 TOL = 1e-3  # metres: the round trip must reproduce every joint within 1 mm
 
@@ -71,8 +75,27 @@ def turning_motion(T: int = 61) -> np.ndarray:
 
 
 KIT_LENGTHS_MM = (
-    0.0, 110.0, 120.0, 160.0, 210.0, 190.0, 290.0, 250.0, 190.0, 290.0, 250.0,
-    95.0, 430.0, 420.0, 60.0, 140.0, 95.0, 430.0, 420.0, 60.0, 140.0,
+    0.0,
+    110.0,
+    120.0,
+    160.0,
+    210.0,
+    190.0,
+    290.0,
+    250.0,
+    190.0,
+    290.0,
+    250.0,
+    95.0,
+    430.0,
+    420.0,
+    60.0,
+    140.0,
+    95.0,
+    430.0,
+    420.0,
+    60.0,
+    140.0,
 )
 
 
@@ -188,7 +211,9 @@ def test_turning_motion_with_arms_overhead_round_trip(tmp_path, arcs):
     # End Sites extend the leaf bones: the left hand's tip is 5 cm beyond the wrist, overhead.
     left_tip = motion.end_positions[:, list(motion.end_sites).index("left_wrist")]
     forearm = joints[-1, 20] - joints[-1, 18]
-    np.testing.assert_allclose(left_tip[-1] - joints[-1, 20], 0.05 * forearm / np.linalg.norm(forearm), atol=1e-5)
+    np.testing.assert_allclose(
+        left_tip[-1] - joints[-1, 20], 0.05 * forearm / np.linalg.norm(forearm), atol=1e-5
+    )
     if arcs != "parent":
         return
     # Arcs taken in the parent's frame give back the construction's own angles (R = Rz.Rx.Ry):
@@ -212,8 +237,14 @@ def test_kit_motion_round_trip_in_metres(tmp_path):
     assert info.skeleton == "kit" and info.fps == 12.5 and motion.fps == 12.5
     assert info.max_deviation_m < 1e-9
     np.testing.assert_allclose(info.bone_lengths, np.array(KIT_LENGTHS_MM) / 1000.0, atol=1e-9)
-    assert {"root_to_back1", "root_to_right_hip", "root_to_left_hip", "chest_to_head",
-            "chest_to_right_shoulder", "chest_to_left_shoulder"} <= set(motion.names)
+    assert {
+        "root_to_back1",
+        "root_to_right_hip",
+        "root_to_left_hip",
+        "chest_to_head",
+        "chest_to_right_shoulder",
+        "chest_to_left_shoulder",
+    } <= set(motion.names)
     assert len(motion.names) == 21 + 6
     # Offsets are written in metres: the thigh bone is 0.43 m, not 430.
     assert motion.offsets[motion.names.index("right_knee")] == pytest.approx([0.0, -0.43, 0.0], abs=1e-9)
@@ -227,8 +258,10 @@ def test_non_rigid_motion_is_rigidified_and_the_deviation_reported(tmp_path):
     info = write_bvh(noisy, tmp_path / "noisy.bvh")
     parsed = read_bvh(tmp_path / "noisy.bvh").positions(T2M_SKELETON.joint_names)
     err = max_error(parsed, expected)
-    print(f"rigidified round trip: max joint error {err * 1e3:.6f} mm; "
-          f"reported deviation {info.max_deviation_m * 1e3:.3f} mm")
+    print(
+        f"rigidified round trip: max joint error {err * 1e3:.6f} mm; "
+        f"reported deviation {info.max_deviation_m * 1e3:.3f} mm"
+    )
     assert err < TOL
     np.testing.assert_allclose(info.bone_lengths, lengths, atol=1e-12)
     np.testing.assert_allclose(info.rigid_joints, expected, atol=1e-9)
@@ -297,7 +330,7 @@ def test_file_structure(tmp_path):
     motion_at = lines.index("MOTION")
     assert lines[motion_at + 1] == "Frames: 7"
     assert float(lines[motion_at + 2].split(":")[1]) == pytest.approx(1 / 30.0, rel=1e-9)
-    frame_lines = lines[motion_at + 3:]
+    frame_lines = lines[motion_at + 3 :]
     assert len(frame_lines) == 7
     assert all(len(line.split()) == 87 for line in frame_lines)
     assert text.count("{") == text.count("}") == 28 + 5
@@ -342,7 +375,9 @@ def test_truncated_or_corrupt_files_raise_clear_errors(tmp_path):
         read_bvh(broken("unclosed.bvh", lines[:20] + lines[motion_at:]))
     wrong = list(lines)
     wrong[motion_at + 4] = " ".join(wrong[motion_at + 4].split()[:-1])
-    with pytest.raises(ValueError, match=rf"line {motion_at + 5} \(frame 1\) has 86 values, expected 87") as err:
+    with pytest.raises(
+        ValueError, match=rf"line {motion_at + 5} \(frame 1\) has 86 values, expected 87"
+    ) as err:
         read_bvh(broken("wrong.bvh", wrong))
     assert "wrong.bvh" in str(err.value)
     with pytest.raises(ValueError, match="more frame lines"):
@@ -390,8 +425,14 @@ def test_independent_bvh_reader_agrees(tmp_path):
     theirs = bvh.Bvh(path.read_text())
     assert theirs.nframes == 9 and theirs.frame_time == pytest.approx(mine.frame_time)
     assert tuple(theirs.get_joints_names()) == mine.names
-    values = np.array([
-        [v for name in mine.names for v in theirs.frame_joint_channels(t, name, theirs.joint_channels(name))]
-        for t in range(theirs.nframes)
-    ])
+    values = np.array(
+        [
+            [
+                v
+                for name in mine.names
+                for v in theirs.frame_joint_channels(t, name, theirs.joint_channels(name))
+            ]
+            for t in range(theirs.nframes)
+        ]
+    )
     np.testing.assert_array_equal(values, mine.motion)

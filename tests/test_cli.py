@@ -26,8 +26,16 @@ def test_convert_features_to_joints_and_back(reference_dir, tmp_path):
 @pytest.mark.parametrize(
     "direction, array, message",
     [
-        ("joints-to-features", np.zeros((10, 263), np.float32), r"shape \(10, 263\), expected joints \(T, 22, 3\)"),
-        ("features-to-joints", np.zeros((10, 22, 3), np.float32), r"shape \(10, 22, 3\), expected features \(T, 263\)"),
+        (
+            "joints-to-features",
+            np.zeros((10, 263), np.float32),
+            r"shape \(10, 263\), expected joints \(T, 22, 3\)",
+        ),
+        (
+            "features-to-joints",
+            np.zeros((10, 22, 3), np.float32),
+            r"shape \(10, 22, 3\), expected features \(T, 263\)",
+        ),
         ("features-to-joints", np.full((10, 263), np.nan, np.float32), "NaN/Inf"),
     ],
 )
@@ -41,10 +49,20 @@ def test_convert_rejects_bad_input(tmp_path, capsys, direction, array, message):
     assert not dst.exists()
 
 
+@pytest.mark.slow
 def test_missing_input_and_console_entry_point(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "mmm.cli", "convert", "features-to-joints", str(tmp_path / "nope.npy"), str(tmp_path / "o.npy")],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "mmm.cli",
+            "convert",
+            "features-to-joints",
+            str(tmp_path / "nope.npy"),
+            str(tmp_path / "o.npy"),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert result.returncode == 2
     assert "nope.npy: no such file" in result.stderr

@@ -121,7 +121,10 @@ def test_reader_extracts_every_tensor(archive):
     path, expected = archive
     got = read_torchscript_tensors(path)
     assert sorted(got) == sorted(expected)
-    assert "transformer.resblocks.1.attn.in_proj_weight" in got and "transformer.resblocks.0.mlp.c_fc.bias" in got
+    assert (
+        "transformer.resblocks.1.attn.in_proj_weight" in got
+        and "transformer.resblocks.0.mlp.c_fc.bias" in got
+    )
     for key, value in expected.items():
         assert got[key].dtype == value.dtype and got[key].shape == value.shape, key
         assert torch.equal(got[key], value), key
@@ -159,10 +162,15 @@ def test_payload_would_run_with_plain_pickle(tmp_path):
     # control: the payloads used below really do run when unpickled normally
     marker = tmp_path / "ran"
     name, body = _payloads(marker)[2]
-    subprocess.run([sys.executable, "-c", "import pickle, sys; pickle.loads(sys.stdin.buffer.read())"], input=body, check=True)
+    subprocess.run(
+        [sys.executable, "-c", "import pickle, sys; pickle.loads(sys.stdin.buffer.read())"],
+        input=body,
+        check=True,
+    )
     assert marker.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", [0, 1, 2])
 def test_reader_refuses_foreign_globals(which, archive, tiny_vocab, tmp_path):
     marker = tmp_path / "ran"
@@ -197,6 +205,7 @@ def test_code_and_constants_are_never_run(archive, tmp_path):
     assert not marker.exists()
 
 
+@pytest.mark.slow
 def test_damaged_archives_name_the_file(archive, tiny_vocab, tmp_path):
     path = archive[0]
     raw = path.read_bytes()
@@ -208,7 +217,9 @@ def test_damaged_archives_name_the_file(archive, tiny_vocab, tmp_path):
         (tmp_path / name).write_bytes(data)
 
     _rewrite(path, tmp_path / "no_data_pkl.pt", lambda n, d: None if n.endswith("/data.pkl") else d)
-    _rewrite(path, tmp_path / "garbage_pkl.pt", lambda n, d: b"\x80\x02garbage" if n.endswith("/data.pkl") else d)
+    _rewrite(
+        path, tmp_path / "garbage_pkl.pt", lambda n, d: b"\x80\x02garbage" if n.endswith("/data.pkl") else d
+    )
     _rewrite(path, tmp_path / "missing_storage.pt", lambda n, d: None if re.search(r"/data/0$", n) else d)
     _rewrite(path, tmp_path / "short_storage.pt", lambda n, d: d[:2] if re.search(r"/data/\d+$", n) else d)
     # a flipped byte inside a storage: the zip's CRC check catches it
@@ -216,10 +227,19 @@ def test_damaged_archives_name_the_file(archive, tiny_vocab, tmp_path):
     with zipfile.ZipFile(path) as z:
         info = next(i for i in z.infolist() if re.search(r"/data/\d+$", i.filename) and i.file_size > 8)
     name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26 : info.header_offset + 30])
-    bad[info.header_offset + 30 + name_len + extra_len + 1] ^= 0xFF  # a byte of the data, after the local header
+    bad[info.header_offset + 30 + name_len + extra_len + 1] ^= (
+        0xFF  # a byte of the data, after the local header
+    )
     (tmp_path / "flipped.pt").write_bytes(bytes(bad))
 
-    for name in [*cases, "no_data_pkl.pt", "garbage_pkl.pt", "missing_storage.pt", "short_storage.pt", "flipped.pt"]:
+    for name in [
+        *cases,
+        "no_data_pkl.pt",
+        "garbage_pkl.pt",
+        "missing_storage.pt",
+        "short_storage.pt",
+        "flipped.pt",
+    ]:
         with pytest.raises(ValueError, match=re.escape(str(tmp_path / name))) as err:
             read_torchscript_tensors(tmp_path / name)
         assert "download it again" in str(err.value), name
@@ -235,11 +255,35 @@ def test_damaged_archives_name_the_file(archive, tiny_vocab, tmp_path):
 # Token ids from OpenAI's clip/simple_tokenizer.py (with ftfy 6.3) on the open_clip 3.3.0 vocabulary.
 SOT, EOT = 49406, 49407
 EXPECTED_IDS = {
-    "a person walks forward and then turns around.": [SOT, 320, 2533, 8192, 2342, 537, 1594, 3185, 1630, 269, EOT],
+    "a person walks forward and then turns around.": [
+        SOT,
+        320,
+        2533,
+        8192,
+        2342,
+        537,
+        1594,
+        3185,
+        1630,
+        269,
+        EOT,
+    ],
     "a person says \u201chello\u201d and waves": [SOT, 320, 2533, 1563, 257, 3306, 257, 537, 7882, EOT],
     "the person\u2019s left hand waves": [SOT, 518, 2533, 568, 1823, 2463, 7882, EOT],
     "a man walks to the cafe\u0301 and sits": [SOT, 320, 786, 8192, 531, 518, 15304, 537, 12726, EOT],
-    "a person does a \ufb01gure eight with the arm": [SOT, 320, 2533, 1897, 320, 5274, 7910, 593, 518, 4793, EOT],
+    "a person does a \ufb01gure eight with the arm": [
+        SOT,
+        320,
+        2533,
+        1897,
+        320,
+        5274,
+        7910,
+        593,
+        518,
+        4793,
+        EOT,
+    ],
     "\uff41 \uff50\uff45\uff52\uff53\uff4f\uff4e \uff57\uff41\uff4c\uff4b\uff53": [SOT, 320, 2533, 8192, EOT],
     "a person jumps &amp;amp;amp; spins": [SOT, 320, 2533, 18911, 261, 27243, EOT],
     "he says &#8220;stop&#8221; and halts": [SOT, 797, 1563, 257, 1691, 257, 537, 1296, 590, EOT],
@@ -247,14 +291,20 @@ EXPECTED_IDS = {
     "it\u00e2\u20ac\u2122s a person running": [SOT, 585, 568, 320, 2533, 2761, EOT],
 }
 LONG = "a person walks forward then turns left and walks again " * 9  # 92 tokens
-LONG_IDS = [SOT] + [320, 2533, 8192, 2342, 1594, 3185, 1823, 537, 8192, 1495] * 7 + [320, 2533, 8192, 2342, 1594, EOT]
+LONG_IDS = (
+    [SOT]
+    + [320, 2533, 8192, 2342, 1594, 3185, 1823, 537, 8192, 1495] * 7
+    + [320, 2533, 8192, 2342, 1594, EOT]
+)
 
 
 @pytest.fixture(scope="module")
 def real_tokenizer():
     vocab = find_vocab()
     if vocab is None:
-        pytest.skip("no installed open_clip/clip package ships bpe_simple_vocab_16e6.txt.gz (make setup installs it)")
+        pytest.skip(
+            "no installed open_clip/clip package ships bpe_simple_vocab_16e6.txt.gz (make setup installs it)"
+        )
     return CLIPTokenizer(vocab)
 
 
@@ -277,6 +327,7 @@ def test_without_ftfy_the_ids_differ(real_tokenizer, monkeypatch):
     assert len(changed) == 8 and list(EXPECTED_IDS)[0] not in changed
 
 
+@pytest.mark.slow
 def test_ftfy_is_required(tiny_vocab, state, monkeypatch):
     monkeypatch.setitem(sys.modules, "ftfy", None)
     with pytest.raises(ImportError, match="pip install ftfy"):
@@ -288,14 +339,19 @@ def test_ftfy_is_required(tiny_vocab, state, monkeypatch):
 # ------------------------------------------------------------------------------ float16 dtype flow
 
 
+@pytest.mark.slow
 def test_float16_weights_follow_openai_convert_weights(encoders):
     dtypes = {k: v.dtype for k, v in encoders["float16", "eot"].model.state_dict().items()}
     half = {k for k, d in dtypes.items() if d == torch.float16}
     expected_half = {"text_projection"} | {
-        k for k in dtypes if re.search(r"\.(attn\.in_proj_(weight|bias)|attn\.out_proj\.\w+|mlp\.c_(fc|proj)\.\w+)$", k)
+        k
+        for k in dtypes
+        if re.search(r"\.(attn\.in_proj_(weight|bias)|attn\.out_proj\.\w+|mlp\.c_(fc|proj)\.\w+)$", k)
     }
     assert half == expected_half and len(half) == 1 + 12 * 8
-    assert {dtypes["token_embedding.weight"], dtypes["positional_embedding"], dtypes["ln_final.weight"]} == {torch.float32}
+    assert {dtypes["token_embedding.weight"], dtypes["positional_embedding"], dtypes["ln_final.weight"]} == {
+        torch.float32
+    }
     assert all(v.dtype == torch.float32 for v in encoders["float32", "eot"].model.state_dict().values())
 
 
@@ -319,6 +375,7 @@ def _openai_block(block, x):
     return (x + F.linear(h, block.mlp.c_proj.weight, block.mlp.c_proj.bias)).permute(1, 0, 2)
 
 
+@pytest.mark.slow
 def test_one_block_matches_the_written_out_flow(encoders):
     torch.manual_seed(0)
     x32 = torch.randn(2, 9, 512)
@@ -335,11 +392,14 @@ def test_one_block_matches_the_written_out_flow(encoders):
         assert 1e-4 < diff < 5e-2
 
 
+@pytest.mark.slow
 def test_float16_encoding_is_openai_flow_not_float32(encoders):
     e16, e32 = encoders["float16", "all"].encode(TEXTS), encoders["float32", "all"].encode(TEXTS)
     assert e16.sentence.dtype == e16.words.dtype == torch.float32
     # computed in float16 and cast at the end: every value is a float16 number
-    assert torch.equal(e16.words, e16.words.half().float()) and torch.equal(e16.sentence, e16.sentence.half().float())
+    assert torch.equal(e16.words, e16.words.half().float()) and torch.equal(
+        e16.sentence, e16.sentence.half().float()
+    )
     assert not torch.equal(e32.words, e32.words.half().float())
     # close to the float32 computation, but not equal to it
     for a, b in ((e16.words, e32.words), (e16.sentence, e32.sentence)):
@@ -358,6 +418,7 @@ def test_float16_encoding_is_openai_flow_not_float32(encoders):
     assert torch.equal(e16.words, words.float()) and torch.equal(e16.sentence, sentence.float())
 
 
+@pytest.mark.slow
 def test_words_all_and_eot(encoders):
     for precision in ("float16", "float32"):
         eot, every = encoders[precision, "eot"].encode(TEXTS), encoders[precision, "all"].encode(TEXTS)
@@ -370,6 +431,7 @@ def test_words_all_and_eot(encoders):
         assert every.truncated == eot.truncated == 0
 
 
+@pytest.mark.slow
 def test_cache_round_trip_with_all_words(encoders, tmp_path):
     enc = encoders["float16", "all"]
     cache = CaptionEmbeddingCache(tmp_path, enc.identity)
@@ -383,6 +445,7 @@ def test_cache_round_trip_with_all_words(encoders, tmp_path):
 # ------------------------------------------------------------------------------ options and identity
 
 
+@pytest.mark.slow
 def test_identity_tracks_options(encoders, state, tiny_vocab, monkeypatch):
     identities = {key: enc.identity for key, enc in encoders.items()}
     assert len(set(identities.values())) == 4

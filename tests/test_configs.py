@@ -9,7 +9,10 @@ from mmm.config import compose, conf_dir, to_object
 from mmm.training.stage1 import Stage1Config, load_stage1_config
 from mmm.training.stage2 import Stage2Config, load_stage2_config
 
-STAGES = {"train_stage1": (Stage1Config, load_stage1_config), "train_stage2": (Stage2Config, load_stage2_config)}
+STAGES = {
+    "train_stage1": (Stage1Config, load_stage1_config),
+    "train_stage2": (Stage2Config, load_stage2_config),
+}
 GROUPS = sorted(p.name for p in conf_dir().iterdir() if p.is_dir())
 
 
@@ -26,6 +29,7 @@ def cases():
                 yield entry, group, path.stem
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("entry, group, option", list(cases()))
 def test_every_option_composes(entry, group, option):
     schema, load = STAGES[entry]
@@ -43,9 +47,19 @@ def test_defaults_are_the_cpu_demo_and_paper_sizes_differ():
     assert (cfg.data.name, cfg.trainer.accelerator, cfg.optim.lr) == ("synthetic", "cpu", 1e-3)
     assert cfg.model.tokenizer.num_codes == 512
     paper = to_object(load_stage1_config(["model=paper", "optim=stage1_paper", "trainer.max_steps=5"]))
-    assert (paper.model.tokenizer.width, paper.model.tokenizer.num_codes, paper.optim.lr, paper.trainer.max_steps) == (512, 8192, 2e-4, 5)
+    assert (
+        paper.model.tokenizer.width,
+        paper.model.tokenizer.num_codes,
+        paper.optim.lr,
+        paper.trainer.max_steps,
+    ) == (512, 8192, 2e-4, 5)
     s2 = to_object(load_stage2_config(["model=paper", "optim=stage2_paper"]))
-    assert (s2.model.transformer.embed_dim, s2.model.transformer.num_layers, s2.optim.betas, s2.optim.milestones) == (1024, 18, [0.5, 0.9], [150000])
+    assert (
+        s2.model.transformer.embed_dim,
+        s2.model.transformer.num_layers,
+        s2.optim.betas,
+        s2.optim.milestones,
+    ) == (1024, 18, [0.5, 0.9], [150000])
     assert s2.text.encoder == "minilm" and s2.stage1 is None
 
 
@@ -53,18 +67,35 @@ def test_unknown_group_option_lists_the_choices():
     with pytest.raises(ValueError, match="options: cpu, ddp, ddp_cpu, gpu, multinode"):
         compose("train_stage1", ["trainer=tpu"])
     with pytest.raises(ValueError, match="num_cross_layers=7 must be between 0 and num_layers=6"):
-        to_object(load_stage2_config(["model.transformer.num_layers=6", "model.transformer.num_cross_layers=7"]))
+        to_object(
+            load_stage2_config(["model.transformer.num_layers=6", "model.transformer.num_cross_layers=7"])
+        )
 
 
 def test_part_aware_configs_extend_the_whole_body_ones():
-    base, parts = OmegaConf.to_container(load_stage1_config()), OmegaConf.to_container(load_stage1_config(parts=True))
-    assert parts["model"]["tokenizer"]["part_aware"] is True and parts["logger"]["experiment"] == "mmm-stage1-parts"
+    base, parts = (
+        OmegaConf.to_container(load_stage1_config()),
+        OmegaConf.to_container(load_stage1_config(parts=True)),
+    )
+    assert (
+        parts["model"]["tokenizer"]["part_aware"] is True
+        and parts["logger"]["experiment"] == "mmm-stage1-parts"
+    )
     assert parts["output_dir"] == "outputs/stage1-parts"
     differing = {k for k in base if base[k] != parts[k]}
     assert differing == {"model", "logger", "output_dir"}  # everything else is inherited
-    assert {k: v for k, v in parts["model"]["tokenizer"].items() if k != "part_aware"} == {k: v for k, v in base["model"]["tokenizer"].items() if k != "part_aware"}
-    s2 = to_object(load_stage2_config(["model=paper", "corruption.lower_mask=0.5"], parts=True))  # groups and overrides still apply
-    assert (s2.part_aware, s2.stage1_experiment, s2.corruption.lower_mask, s2.model.transformer.num_layers) == (True, "mmm-stage1-parts", 0.5, 18)
+    assert {k: v for k, v in parts["model"]["tokenizer"].items() if k != "part_aware"} == {
+        k: v for k, v in base["model"]["tokenizer"].items() if k != "part_aware"
+    }
+    s2 = to_object(
+        load_stage2_config(["model=paper", "corruption.lower_mask=0.5"], parts=True)
+    )  # groups and overrides still apply
+    assert (
+        s2.part_aware,
+        s2.stage1_experiment,
+        s2.corruption.lower_mask,
+        s2.model.transformer.num_layers,
+    ) == (True, "mmm-stage1-parts", 0.5, 18)
     assert s2.corruption.cond_drop == 0.1  # from train_stage2.yaml
 
 

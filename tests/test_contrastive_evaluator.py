@@ -11,9 +11,14 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from mmm.evaluation.contrastive import (
-    ContrastiveEvaluator, ContrastiveEvaluatorModule, ContrastiveModelConfig, EvaluatorEmbedder, false_negative_mask, info_nce_loss,
-    load_contrastive_evaluator, matching_ranks, retrieval_metrics,
+    ContrastiveEvaluator,
+    ContrastiveModelConfig,
+    EvaluatorEmbedder,
+    load_contrastive_evaluator,
+    matching_ranks,
+    retrieval_metrics,
 )
+from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule, false_negative_mask, info_nce_loss
 from mmm.text import TextEmbedding
 
 D, DS = 16, 24  # toy feature and sentence dims
@@ -25,6 +30,7 @@ def small_evaluator(**kw) -> ContrastiveEvaluator:
     return ContrastiveEvaluator(D, DS, cfg).eval()
 
 
+@pytest.mark.slow
 def test_shapes_and_padding_does_not_change_a_motion_embedding():
     ev = small_evaluator()
     g = torch.Generator().manual_seed(0)
@@ -54,7 +60,9 @@ def test_shapes_and_padding_does_not_change_a_motion_embedding():
     with pytest.raises(ValueError, match=r"\(B, T, 16\)"):
         ev.embed_motions(torch.randn(2, 10, D + 1), torch.tensor([10, 10]))
     with pytest.raises(ValueError, match="lengths"):
-        ev.embed_motions(torch.randn(2, 10, D), torch.tensor([10, 3]))  # shorter than the 4 frames it downsamples by
+        ev.embed_motions(
+            torch.randn(2, 10, D), torch.tensor([10, 3])
+        )  # shorter than the 4 frames it downsamples by
     with pytest.raises(ValueError, match="lengths"):
         ev.embed_motions(torch.randn(2, 10, D), torch.tensor([10, 11]))
     with pytest.raises(ValueError, match=r"\(B, 24\)"):
@@ -72,17 +80,27 @@ def test_info_nce_loss_on_a_hand_made_2x2_case():
     m2t = (sp(2 - 0) + sp(1.6 - 1.2)) / 2
     assert float(info_nce_loss(text, motion, 2.0)) == pytest.approx((t2m + m2t) / 2, abs=1e-6)
     # Inputs are L2-normalized inside: scaling an embedding changes nothing.
-    assert float(info_nce_loss(3 * text, 0.5 * motion, torch.tensor(2.0))) == pytest.approx((t2m + m2t) / 2, abs=1e-6)
+    assert float(info_nce_loss(3 * text, 0.5 * motion, torch.tensor(2.0))) == pytest.approx(
+        (t2m + m2t) / 2, abs=1e-6
+    )
     # Pair (0, 1) left out of the negatives: row 0 and column 1 keep only their positive (loss 0).
     exclude = torch.tensor([[False, True], [False, False]])
-    assert float(info_nce_loss(text, motion, 2.0, exclude)) == pytest.approx((sp(1.6) / 2 + sp(2.0) / 2) / 2, abs=1e-6)
+    assert float(info_nce_loss(text, motion, 2.0, exclude)) == pytest.approx(
+        (sp(1.6) / 2 + sp(2.0) / 2) / 2, abs=1e-6
+    )
     # The diagonal is never excluded.
-    assert float(info_nce_loss(text, motion, 2.0, torch.eye(2, dtype=torch.bool))) == pytest.approx((t2m + m2t) / 2, abs=1e-6)
+    assert float(info_nce_loss(text, motion, 2.0, torch.eye(2, dtype=torch.bool))) == pytest.approx(
+        (t2m + m2t) / 2, abs=1e-6
+    )
     # Perfectly matched, well separated pairs at a high scale: loss near zero.
     assert float(info_nce_loss(torch.eye(4), torch.eye(4), 100.0)) < 1e-6
     # Near-identical captions are marked (off the diagonal only); no threshold: no mask.
     s = torch.tensor([[1.0, 0.0], [0.999, 0.04], [0.0, 1.0]])
-    assert false_negative_mask(s, 0.95).tolist() == [[False, True, False], [True, False, False], [False, False, False]]
+    assert false_negative_mask(s, 0.95).tolist() == [
+        [False, True, False],
+        [True, False, False],
+        [False, False, False],
+    ]
     assert false_negative_mask(s, None) is None
 
 
@@ -97,7 +115,9 @@ def test_retrieval_ranks_and_r_precision_by_hand():
     assert t2m.tolist() == [0, 1, 2] and m2t.tolist() == [0, 0, 2]
     scores = retrieval_metrics([text], [motion])
     assert scores["r_precision_top1"] == pytest.approx(1 / 3)
-    assert scores["r_precision_top2"] == pytest.approx(2 / 3) and scores["r_precision_top3"] == pytest.approx(1.0)
+    assert scores["r_precision_top2"] == pytest.approx(2 / 3) and scores["r_precision_top3"] == pytest.approx(
+        1.0
+    )
     expected = (0.1 + math.hypot(0.2, 0.3) + math.hypot(0.9, 1.0)) / 3
     assert scores["matching_distance"] == pytest.approx(expected, abs=1e-6)
     two = retrieval_metrics([text, text], [motion, text])  # a perfect second batch: hits summed over both
@@ -127,38 +147,64 @@ def toy_items(world, classes, seed):
         n = int(torch.randint(8, T_MAX + 1, (1,), generator=g))
         motion = torch.zeros(T_MAX, D)
         motion[:n] = world["motion_centres"][c] + 0.7 * torch.randn(n, D, generator=g)
-        sentence = world["caption_centres"][c] + world["paraphrases"][c, int(torch.randint(0, 3, (1,), generator=g))]
-        items.append({"motion": motion, "lengths": torch.tensor(n), "sentence": sentence, "cls": torch.tensor(c)})
+        sentence = (
+            world["caption_centres"][c] + world["paraphrases"][c, int(torch.randint(0, 3, (1,), generator=g))]
+        )
+        items.append(
+            {"motion": motion, "lengths": torch.tensor(n), "sentence": sentence, "cls": torch.tensor(c)}
+        )
     return items
 
 
+@pytest.mark.slow
 def test_module_learns_toy_retrieval_and_checkpoint_loads_weights_only(tmp_path):
     L.seed_everything(0)
     world = toy_world()
     g = torch.Generator().manual_seed(0)
     train = toy_items(world, torch.randint(0, CLASSES, (4096,), generator=g), seed=1)
     # Validation batches of 32 hold one item of each class, so pairs differ only by class.
-    val = [item for k in range(4) for item in toy_items(world, torch.randperm(CLASSES, generator=g), seed=100 + k)]
+    val = [
+        item
+        for k in range(4)
+        for item in toy_items(world, torch.randperm(CLASSES, generator=g), seed=100 + k)
+    ]
     mean, std = torch.randn(D), torch.rand(D) + 0.5
     module = ContrastiveEvaluatorModule(
-        D, DS, {"embed_dim": 32, "hidden_dim": 32, "text_hidden_dim": 64, "dropout": 0.0},
-        {"lr": 3e-3, "betas": [0.9, 0.999], "weight_decay": 0.01, "warmup_steps": 10}, {"false_negative_threshold": 0.95},
-        mean=mean, std=std, text_encoder={"name": "fake", "identity": "fake-0"}, data={"name": "toy", "fingerprint": "f" * 16},
+        D,
+        DS,
+        {"embed_dim": 32, "hidden_dim": 32, "text_hidden_dim": 64, "dropout": 0.0},
+        {"lr": 3e-3, "betas": [0.9, 0.999], "weight_decay": 0.01, "warmup_steps": 10},
+        {"false_negative_threshold": 0.95},
+        mean=mean,
+        std=std,
+        text_encoder={"name": "fake", "identity": "fake-0"},
+        data={"name": "toy", "fingerprint": "f" * 16},
     )
     val_loader = torch.utils.data.DataLoader(val, batch_size=32)
     batch = next(iter(val_loader))
     with torch.no_grad():  # untrained: about chance (1/32)
-        t2m, _ = matching_ranks(*reversed(module.evaluator(batch["motion"], batch["lengths"], batch["sentence"])))
+        t2m, _ = matching_ranks(
+            *reversed(module.evaluator(batch["motion"], batch["lengths"], batch["sentence"]))
+        )
     assert float((t2m == 0).float().mean()) < 0.25
     trainer = L.Trainer(
-        accelerator="cpu", max_steps=300, val_check_interval=300, check_val_every_n_epoch=None, logger=False,
-        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
+        accelerator="cpu",
+        max_steps=300,
+        val_check_interval=300,
+        check_val_every_n_epoch=None,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
     )
     trainer.fit(module, torch.utils.data.DataLoader(train, batch_size=64, shuffle=True), val_loader)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     assert metrics["val/t2m_top1"] >= 0.9 and metrics["val/m2t_top1"] >= 0.9
     assert metrics["val/t2m_top5"] >= 0.99 and metrics["val/m2t_top5"] >= 0.99
-    assert metrics["val/loss"] < 0.1  # measured over seeds 0-3: top-1 1.0 both ways, loss 0.001, temperature 0.062
+    assert (
+        metrics["val/loss"] < 0.1
+    )  # measured over seeds 0-3: top-1 1.0 both ways, loss 0.001, temperature 0.062
     assert 1 / 100 <= metrics["train/temperature"] < 0.07  # learned: sharper than it started
 
     path = tmp_path / "evaluator.ckpt"
@@ -169,12 +215,23 @@ def test_module_learns_toy_retrieval_and_checkpoint_loads_weights_only(tmp_path)
     assert hp["text_encoder"]["identity"] == "fake-0" and hp["loss"]["false_negative_threshold"] == 0.95
     evaluator, info = load_contrastive_evaluator(path)
     assert not evaluator.training
-    assert info["text_encoder"] == {"name": "fake", "identity": "fake-0"} and info["data_fingerprint"] == "f" * 16
+    assert (
+        info["text_encoder"] == {"name": "fake", "identity": "fake-0"}
+        and info["data_fingerprint"] == "f" * 16
+    )
     assert torch.equal(info["mean"], mean) and torch.equal(info["std"], std)
     module.eval()
     with torch.no_grad():
-        assert torch.allclose(evaluator.embed_motions(batch["motion"], batch["lengths"]), module.evaluator.embed_motions(batch["motion"], batch["lengths"]), atol=1e-6)
-        assert torch.allclose(evaluator.embed_sentences(batch["sentence"]), module.evaluator.embed_sentences(batch["sentence"]), atol=1e-6)
+        assert torch.allclose(
+            evaluator.embed_motions(batch["motion"], batch["lengths"]),
+            module.evaluator.embed_motions(batch["motion"], batch["lengths"]),
+            atol=1e-6,
+        )
+        assert torch.allclose(
+            evaluator.embed_sentences(batch["sentence"]),
+            module.evaluator.embed_sentences(batch["sentence"]),
+            atol=1e-6,
+        )
 
     # Raw features and caption strings through the stored statistics and a (fake) text encoder.
     class FakeEncoder:
@@ -182,7 +239,9 @@ def test_module_learns_toy_retrieval_and_checkpoint_loads_weights_only(tmp_path)
 
         def encode(self, texts):
             rows = torch.stack([world["caption_centres"][int(t.split()[-1])] for t in texts])
-            return TextEmbedding(rows, torch.zeros(len(texts), 1, 1), torch.ones(len(texts), 1, dtype=torch.bool), 0)
+            return TextEmbedding(
+                rows, torch.zeros(len(texts), 1, 1), torch.ones(len(texts), 1, dtype=torch.bool), 0
+            )
 
     embedder = EvaluatorEmbedder(evaluator, info, text_encoder=FakeEncoder())
     raw = batch["motion"] * std + mean
@@ -204,19 +263,26 @@ def test_module_learns_toy_retrieval_and_checkpoint_loads_weights_only(tmp_path)
 
 # ----------------------------------------------------------------------------- end to end
 
-ACTIONS = ["a person walks forward", "someone jumps in place", "a man waves his right hand", "the person squats down"]
+ACTIONS = [
+    "a person walks forward",
+    "someone jumps in place",
+    "a man waves his right hand",
+    "the person squats down",
+]
 
 
 def write_action_dataset(root):
     """96 clips of 4 'actions' (each visible in the features) with 2 captions each; splits 48/8/40."""
-    from helpers import write_dataset
+    from tests.helpers import write_dataset
 
     rng = np.random.default_rng(0)
     clips, ids = {}, []
     for i in range(96):
         action = i % len(ACTIONS)
         frames = int(rng.integers(40, 90))
-        features = (rng.normal(size=(frames, 263)) * 0.3 + np.linspace(-1, 1, 263) * (action - 1.5)).astype(np.float32)
+        features = (rng.normal(size=(frames, 263)) * 0.3 + np.linspace(-1, 1, 263) * (action - 1.5)).astype(
+            np.float32
+        )
         words = " ".join(f"{w}/X" for w in ACTIONS[action].split())
         lines = [f"{ACTIONS[action]}#{words}#0.0#0.0", f"{ACTIONS[action]} twice#{words} twice/X#0.0#0.0"]
         clips[f"{i:06d}"] = (features, lines)
@@ -225,6 +291,7 @@ def write_action_dataset(root):
     return root
 
 
+@pytest.mark.slow
 def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     from mmm.fingerprint import dataset_fingerprint
     from mmm.resolve import resolve_checkpoint
@@ -234,10 +301,21 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     root = write_action_dataset(tmp_path / "ds")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     overrides = {
-        "data.root": root, "data.synthesize": "null", "data.batch_size": 16, "model.hidden_dim": 16, "model.embed_dim": 32,
-        "model.text_hidden_dim": 32, "trainer.max_steps": 6, "trainer.val_check_interval": 3, "trainer.log_every_n_steps": 1,
-        "trainer.enable_progress_bar": "false", "output_dir": f"{tmp_path}/ev", "text.cache_dir": f"{tmp_path}/text",
-        "logger.tracking_uri": uri, "logger.artifact_root": f"{tmp_path}/art", "registry.name": "test-evaluator",
+        "data.root": root,
+        "data.synthesize": "null",
+        "data.batch_size": 16,
+        "model.hidden_dim": 16,
+        "model.embed_dim": 32,
+        "model.text_hidden_dim": 32,
+        "trainer.max_steps": 6,
+        "trainer.val_check_interval": 3,
+        "trainer.log_every_n_steps": 1,
+        "trainer.enable_progress_bar": "false",
+        "output_dir": f"{tmp_path}/ev",
+        "text.cache_dir": f"{tmp_path}/text",
+        "logger.tracking_uri": uri,
+        "logger.artifact_root": f"{tmp_path}/art",
+        "registry.name": "test-evaluator",
     }
     result = train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
     client = MlflowClient(uri)
@@ -245,36 +323,65 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     assert client.get_experiment(run.info.experiment_id).name == "mmm-evaluator"
     tags = run.data.tags
     fingerprint = dataset_fingerprint(root)
-    assert tags["mmm.stage"] == "evaluator" and tags["data.fingerprint"] == fingerprint == result.data_fingerprint
+    assert (
+        tags["mmm.stage"] == "evaluator"
+        and tags["data.fingerprint"] == fingerprint == result.data_fingerprint
+    )
     assert tags["text_encoder"].startswith("minilm-") and tags["text_encoder"] == result.text_encoder
     assert tags["evaluator.train_items"] == "48" and tags["evaluator.test_items"] == "40"
-    assert run.data.params["model.hidden_dim"] == "16" and run.data.params["registry.name"] == "test-evaluator"
+    assert (
+        run.data.params["model.hidden_dim"] == "16" and run.data.params["registry.name"] == "test-evaluator"
+    )
     expected = {
-        "train/loss", "train/temperature", "val/loss", "val/t2m_top1", "val/t2m_top5", "val/m2t_top1", "val/m2t_top5",
-        "test/r_precision_top1", "test/r_precision_top2", "test/r_precision_top3", "test/matching_distance", "test/items",
-        "baseline/shuffled_r_precision_top1", "time/fit_s", "time/total_s",
+        "train/loss",
+        "train/temperature",
+        "val/loss",
+        "val/t2m_top1",
+        "val/t2m_top5",
+        "val/m2t_top1",
+        "val/m2t_top5",
+        "test/r_precision_top1",
+        "test/r_precision_top2",
+        "test/r_precision_top3",
+        "test/matching_distance",
+        "test/items",
+        "baseline/shuffled_r_precision_top1",
+        "time/fit_s",
+        "time/total_s",
     }
     assert expected <= set(run.data.metrics)
     assert len(client.get_metric_history(result.run_id, "train/loss")) == 6
     assert len(client.get_metric_history(result.run_id, "val/t2m_top1")) == 2
     m = run.data.metrics
     assert m["test/items"] == 32  # 40 test items: one batch of 32, the rest dropped
-    assert 0.0 <= m["test/r_precision_top1"] <= m["test/r_precision_top2"] <= m["test/r_precision_top3"] <= 1.0
+    assert (
+        0.0 <= m["test/r_precision_top1"] <= m["test/r_precision_top2"] <= m["test/r_precision_top3"] <= 1.0
+    )
     assert 0.0 < m["test/matching_distance"] <= 2.0  # unit-length embeddings
     assert m["test/r_precision_top1"] == pytest.approx(result.metrics["test/r_precision_top1"])
     assert {f.path for f in client.list_artifacts(result.run_id)} >= {"config.yaml", "checkpoints"}
-    assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
+    assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {
+        "checkpoints/best.ckpt",
+        "checkpoints/last.ckpt",
+    }
 
     # A registered model version pointing at the run's checkpoints, tagged with what it was made from.
     assert result.registered_model == "test-evaluator" and result.model_version == "1"
     version = client.get_model_version("test-evaluator", "1")
-    # An immutable copy of the checkpoint (a later resume of the run rewrites checkpoints/, never this), its digest tagged.
+    # An immutable copy of the checkpoint (a later resume of the run rewrites checkpoints/, never this), its
+    # digest tagged.
     import hashlib
 
     digest = hashlib.sha256(open(result.best_checkpoint, "rb").read()).hexdigest()
-    assert version.source == f"runs:/{result.run_id}/registered/test-evaluator-{digest[:12]}" and version.run_id == result.run_id
+    assert (
+        version.source == f"runs:/{result.run_id}/registered/test-evaluator-{digest[:12]}"
+        and version.run_id == result.run_id
+    )
     assert version.tags["weights.sha256"] == digest
-    assert version.tags["data.fingerprint"] == fingerprint and version.tags["text_encoder"] == tags["text_encoder"]
+    assert (
+        version.tags["data.fingerprint"] == fingerprint
+        and version.tags["text_encoder"] == tags["text_encoder"]
+    )
     assert version.tags["mmm.kind"] == "evaluator"
     for k in ("r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_distance"):
         assert float(version.tags[f"test.{k}"]) == pytest.approx(m[f"test/{k}"], abs=1e-4)
@@ -283,13 +390,28 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     assert register_evaluator(uri, "test-evaluator", result.run_id, {"note": "again"}).version in (2, "2")
 
     # The registered checkpoint resolves, loads with weights_only and is self-contained.
-    _, path, run_id = resolve_checkpoint("models:/test-evaluator/1", uri, "mmm-evaluator", f"{tmp_path}/ev", "evaluator", "", "evaluator", f"{tmp_path}/dl")
+    _, path, run_id = resolve_checkpoint(
+        "models:/test-evaluator/1",
+        uri,
+        "mmm-evaluator",
+        f"{tmp_path}/ev",
+        "evaluator",
+        "",
+        "evaluator",
+        f"{tmp_path}/dl",
+    )
     assert run_id == result.run_id and path.endswith("best.ckpt")
     evaluator, info = load_contrastive_evaluator(path)
-    assert info["data_fingerprint"] == fingerprint and info["text_encoder"]["identity"] == tags["text_encoder"]
-    assert np.allclose(info["mean"].numpy(), np.load(root / "Mean.npy")) and np.allclose(info["std"].numpy(), np.load(root / "Std.npy"))
+    assert (
+        info["data_fingerprint"] == fingerprint and info["text_encoder"]["identity"] == tags["text_encoder"]
+    )
+    assert np.allclose(info["mean"].numpy(), np.load(root / "Mean.npy")) and np.allclose(
+        info["std"].numpy(), np.load(root / "Std.npy")
+    )
     cache = CaptionEmbeddingCache(f"{tmp_path}/text", tags["text_encoder"])
-    embedder = EvaluatorEmbedder(evaluator, info, caption_cache=cache)  # every caption is cached: no encoder is built
+    embedder = EvaluatorEmbedder(
+        evaluator, info, caption_cache=cache
+    )  # every caption is cached: no encoder is built
     assert embedder.embed_texts(ACTIONS).shape == (4, 32)
     features = torch.from_numpy(np.load(root / "new_joint_vecs" / "000056.npy"))[None]
     assert embedder.embed_motions(features, [features.shape[1]]).shape == (1, 32)

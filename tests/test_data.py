@@ -10,17 +10,29 @@ from mmm.config import ConfigError, compose, conf_dir, to_object
 from mmm.data.datamodule import DataConfig, TextMotionDataModule, TokenizerDataModule
 from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_motions
 from mmm.data.humanml3d import (
-    DataError, check_mirror_splits, compute_stats, load_clips, load_items, load_stats, mirror_id, parse_caption_line,
+    DataError,
+    check_mirror_splits,
+    compute_stats,
+    load_clips,
+    load_items,
+    load_stats,
+    mirror_id,
+    parse_caption_line,
 )
-from helpers import D, make_features, write_dataset
-
+from tests.helpers import D, make_features, write_dataset
 
 WHOLE = "a person walks forward#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0"
 
 
 def test_parse_caption_line():
     c = parse_caption_line("a man jumps#a/DET man/NOUN jump/VERB#1.5#4.0")
-    assert (c.text, c.tokens, c.start, c.end, c.whole_clip) == ("a man jumps", ("a/DET", "man/NOUN", "jump/VERB"), 1.5, 4.0, False)
+    assert (c.text, c.tokens, c.start, c.end, c.whole_clip) == (
+        "a man jumps",
+        ("a/DET", "man/NOUN", "jump/VERB"),
+        1.5,
+        4.0,
+        False,
+    )
     assert parse_caption_line("x#x/NOUN#nan#nan").whole_clip
     with pytest.raises(DataError, match=r"t\.txt:3: malformed caption line \(2"):
         parse_caption_line("no tokens#0.0", "t.txt", 3)
@@ -40,7 +52,10 @@ def test_mirror_id():
 
 def test_load_items_length_rules_and_sub_spans(tmp_path):
     clips = {
-        "000000": (120, [WHOLE, "then jumps#then/ADV jump/VERB#2.0#5.5", "short part#short/ADJ part/NOUN#0.0#1.0"]),
+        "000000": (
+            120,
+            [WHOLE, "then jumps#then/ADV jump/VERB#2.0#5.5", "short part#short/ADJ part/NOUN#0.0#1.0"],
+        ),
         "000001": (30, [WHOLE]),  # too short
         "000002": (210, [WHOLE]),  # too long (>= 200)
         "000003": (150, ["only a part#only/ADV a/DET part/NOUN#1.0#4.0"]),  # no whole-clip caption
@@ -65,16 +80,36 @@ def test_load_items_length_rules_and_sub_spans(tmp_path):
     "breakage, message",
     [
         (lambda r: (r / "new_joint_vecs/000001.npy").unlink(), r"000001\.npy: motion file is missing"),
-        (lambda r: (r / "new_joint_vecs/000001.npy").write_bytes(b"garbage"), r"000001\.npy: unreadable \.npy"),
-        (lambda r: np.save(r / "new_joint_vecs/000001.npy", np.zeros((80, 251), np.float32)), r"000001\.npy: wrong feature shape \(80, 251\), expected \(T, 263\)"),
-        (lambda r: np.save(r / "new_joint_vecs/000001.npy", np.full((80, 263), np.nan, np.float32)), r"000001\.npy: NaN/Inf values \(80 of 80"),
-        (lambda r: (r / "texts/000001.txt").write_text("broken line\n"), r"000001\.txt:1: malformed caption line"),
-        (lambda r: (r / "texts/000001.txt").write_text(WHOLE + "\n#x/NOUN#0.0#0.0\n"), r"000001\.txt:2: empty caption text"),
-        (lambda r: (r / "train.txt").write_text("000000\n000001\n000009\n"), r"000009\.npy: motion file is missing"),
+        (
+            lambda r: (r / "new_joint_vecs/000001.npy").write_bytes(b"garbage"),
+            r"000001\.npy: unreadable \.npy",
+        ),
+        (
+            lambda r: np.save(r / "new_joint_vecs/000001.npy", np.zeros((80, 251), np.float32)),
+            r"000001\.npy: wrong feature shape \(80, 251\), expected \(T, 263\)",
+        ),
+        (
+            lambda r: np.save(r / "new_joint_vecs/000001.npy", np.full((80, 263), np.nan, np.float32)),
+            r"000001\.npy: NaN/Inf values \(80 of 80",
+        ),
+        (
+            lambda r: (r / "texts/000001.txt").write_text("broken line\n"),
+            r"000001\.txt:1: malformed caption line",
+        ),
+        (
+            lambda r: (r / "texts/000001.txt").write_text(WHOLE + "\n#x/NOUN#0.0#0.0\n"),
+            r"000001\.txt:2: empty caption text",
+        ),
+        (
+            lambda r: (r / "train.txt").write_text("000000\n000001\n000009\n"),
+            r"000009\.npy: motion file is missing",
+        ),
     ],
 )
 def test_bad_input_is_an_error_naming_the_file_or_a_counted_skip(tmp_path, breakage, message):
-    write_dataset(tmp_path, {"000000": (80, [WHOLE]), "000001": (80, [WHOLE])}, {"train": ["000000", "000001"]})
+    write_dataset(
+        tmp_path, {"000000": (80, [WHOLE]), "000001": (80, [WHOLE])}, {"train": ["000000", "000001"]}
+    )
     breakage(tmp_path)
     with pytest.raises(DataError, match=message) as info:
         load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
@@ -90,12 +125,16 @@ def test_missing_split_and_stats_errors(tmp_path):
     write_dataset(tmp_path, {"000000": (80, [WHOLE])}, {"train": ["000000"]}, stats=False)
     with pytest.raises(DataError, match=r"val\.txt: split file is missing"):
         load_items(tmp_path, "val", feature_dim=D, fps=20, min_length=40)
-    with pytest.raises(DataError, match=r"Mean\.npy: normalization statistics are missing; create them with `mmm data stats"):
+    with pytest.raises(
+        DataError, match=r"Mean\.npy: normalization statistics are missing; create them with `mmm data stats"
+    ):
         load_stats(tmp_path, D)
 
 
 def test_compute_stats_the_reference_way_skips_nan_files(tmp_path):
-    arrays = write_dataset(tmp_path, {"000000": (50, [WHOLE]), "000001": (70, [WHOLE])}, {"train": ["000000", "000001"]})
+    arrays = write_dataset(
+        tmp_path, {"000000": (50, [WHOLE]), "000001": (70, [WHOLE])}, {"train": ["000000", "000001"]}
+    )
     np.save(tmp_path / "new_joint_vecs/000002.npy", np.full((60, D), np.nan, np.float32))
     mean, std, report = compute_stats(tmp_path, 22)
     stacked = np.concatenate([arrays["000000"], arrays["000001"]]).astype(np.float64)
@@ -113,8 +152,11 @@ def test_reference_stats_are_group_averaged(reference_dir):
 
 
 def test_mirror_split_leaks_are_found(tmp_path):
-    write_dataset(tmp_path, {i: (50, [WHOLE]) for i in ["000000", "M000000", "000001", "M000001"]},
-                  {"train": ["000000", "M000000", "000001"], "test": ["M000001"]})
+    write_dataset(
+        tmp_path,
+        {i: (50, [WHOLE]) for i in ["000000", "M000000", "000001", "M000001"]},
+        {"train": ["000000", "M000000", "000001"], "test": ["M000001"]},
+    )
     assert check_mirror_splits(tmp_path) == ["000001", "M000001"]
 
 
@@ -131,7 +173,11 @@ def test_window_dataset_enumerates_every_window():
 
 
 def test_text_motion_dataset_crops_like_the_reference_and_collate_pads(tmp_path):
-    write_dataset(tmp_path, {"000000": (199, [WHOLE, "another#another/DET#0.0#0.0"]), "000001": (45, [WHOLE])}, {"train": ["000000", "000001"]})
+    write_dataset(
+        tmp_path,
+        {"000000": (199, [WHOLE, "another#another/DET#0.0#0.0"]), "000001": (45, [WHOLE])},
+        {"train": ["000000", "000001"]},
+    )
     items, _ = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
     mean, std = load_stats(tmp_path, D)
     ds = TextMotionDataset(items, mean, std)
@@ -142,7 +188,12 @@ def test_text_motion_dataset_crops_like_the_reference_and_collate_pads(tmp_path)
     assert ds[0]["motion"].equal(ds[0]["motion"])  # a sample is a function of its index
     sample = ds[1]
     assert sample["length"] in (44, 40) and sample["motion"].shape == (sample["length"], D)
-    offset_found = any(np.allclose(sample["motion"].numpy(), (items[1].features[o:o + sample["length"]] - mean) / std, atol=1e-5) for o in range(0, 6))
+    offset_found = any(
+        np.allclose(
+            sample["motion"].numpy(), (items[1].features[o : o + sample["length"]] - mean) / std, atol=1e-5
+        )
+        for o in range(0, 6)
+    )
     assert offset_found
     batch = collate_motions([ds[0], ds[1]])
     assert batch["motion"].shape[0] == 2 and batch["motion"].shape[1] == int(batch["lengths"].max())
@@ -178,7 +229,9 @@ def test_config_overrides_and_errors():
 
 def test_datamodules_produce_batches(tmp_path):
     clips = {f"{i:06d}": (60 + 10 * i, [WHOLE]) for i in range(6)}
-    write_dataset(tmp_path, clips, {"train": list(clips)[:4], "val": list(clips)[4:], "test": list(clips)[4:]})
+    write_dataset(
+        tmp_path, clips, {"train": list(clips)[:4], "val": list(clips)[4:], "test": list(clips)[4:]}
+    )
     cfg = DataConfig(root=str(tmp_path), batch_size=3)
     stage1 = TokenizerDataModule(cfg)
     stage1.prepare_data()
@@ -186,7 +239,10 @@ def test_datamodules_produce_batches(tmp_path):
     batch = next(iter(stage1.train_dataloader()))
     assert batch.shape == (3, 64, D)
     val = next(iter(stage1.val_dataloader()))
-    assert val["lengths"].tolist() == [100, 108] and val["names"] == ["000004", "000005"]  # cut to multiples of 4
+    assert val["lengths"].tolist() == [100, 108] and val["names"] == [
+        "000004",
+        "000005",
+    ]  # cut to multiples of 4
     # Clip 000000 (60 frames) is shorter than a window; the others give T - 63 windows each.
     assert len(stage1.datasets["train"]) == (70 - 63) + (80 - 63) + (90 - 63)
     stage2 = TextMotionDataModule(cfg)
@@ -204,7 +260,9 @@ def test_datamodule_refuses_a_missing_folder_without_synthesis(tmp_path):
 
 
 def test_load_clips_keeps_long_clips_for_the_tokenizer(tmp_path):
-    write_dataset(tmp_path, {"000000": (250, [WHOLE]), "000001": (50, [WHOLE])}, {"train": ["000000", "000001"]})
+    write_dataset(
+        tmp_path, {"000000": (250, [WHOLE]), "000001": (50, [WHOLE])}, {"train": ["000000", "000001"]}
+    )
     clips, report = load_clips(tmp_path, "train", feature_dim=D, min_length=64)
     assert list(clips) == ["000000"] and clips["000000"].shape == (250, D)
     assert report.skipped["clip shorter than 64 frames"] == 1

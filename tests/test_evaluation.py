@@ -30,7 +30,14 @@ class MeanEvaluator:
         self.motion_calls = 0
 
     def embed_texts(self, captions):
-        return torch.stack([torch.tensor([len(c.text), sum(map(ord, c.text)) % 97, c.text.count(" ")], dtype=torch.float32) for c in captions])
+        return torch.stack(
+            [
+                torch.tensor(
+                    [len(c.text), sum(map(ord, c.text)) % 97, c.text.count(" ")], dtype=torch.float32
+                )
+                for c in captions
+            ]
+        )
 
     def embed_motions(self, features, lengths):
         self.motion_calls += 1
@@ -51,25 +58,35 @@ class EchoModel:
         from mmm.motion.features import recover_from_ric
 
         g = np.random.default_rng(seed)
-        features = [self.by_caption[t].features[:n] + self.noise * g.normal(size=(n, 263)).astype(np.float32) for t, n in zip(texts, frames)]
+        features = [
+            self.by_caption[t].features[:n] + self.noise * g.normal(size=(n, 263)).astype(np.float32)
+            for t, n in zip(texts, frames)
+        ]
         return Generated(list(texts), features, [recover_from_ric(f) for f in features], [], [], 0)
 
 
+@pytest.mark.slow
 def test_protocol_structure_and_the_real_reference_row(walker_dataset):
     items, _ = load_items(walker_dataset, "train", feature_dim=263, fps=20, min_length=40)
     mean, std = load_stats(walker_dataset, 263)
     cfg = ProtocolConfig(replications=3, batch_size=8, diversity_times=10, mm_texts=0)
     evaluator = MeanEvaluator()
     oracle = evaluate_text_to_motion(EchoModel(items), evaluator, items, mean, std, cfg, progress=False)
-    assert evaluator.motion_calls == 3 * (len(items) // 8) * 2  # real and generated, per batch, per replication
+    assert (
+        evaluator.motion_calls == 3 * (len(items) // 8) * 2
+    )  # real and generated, per batch, per replication
     assert len(oracle["replications"]) == 3
     gen, real = oracle["generated"], oracle["real"]
     assert math.isnan(gen["multimodality"][0])
-    noisy = evaluate_text_to_motion(EchoModel(items, noise=0.5), MeanEvaluator(), items, mean, std, cfg, progress=False)
+    noisy = evaluate_text_to_motion(
+        EchoModel(items, noise=0.5), MeanEvaluator(), items, mean, std, cfg, progress=False
+    )
     assert noisy["real"] == real  # the reference row does not depend on the model
     # Echoing a clip of the caption (at another crop) is close to the real motion; adding noise is not.
     assert gen["fid"][0] < 0.02 * noisy["generated"]["fid"][0] and abs(real["fid"][0]) < 1e-6
-    again = evaluate_text_to_motion(EchoModel(items, noise=0.5), MeanEvaluator(), items, mean, std, cfg, progress=False)
+    again = evaluate_text_to_motion(
+        EchoModel(items, noise=0.5), MeanEvaluator(), items, mean, std, cfg, progress=False
+    )
     same = lambda r: {k: v for k, v in r["generated"].items() if k != "multimodality"}  # noqa: E731 (nan != nan)
     assert same(again) == same(noisy)  # same seed, same numbers
 
@@ -101,11 +118,19 @@ class Replay(EchoModel):
         return Generated(list(texts), features, [recover_from_ric(f) for f in features], [], [], 0)
 
 
+@pytest.mark.slow
 def test_prompt_adherence_separates_an_oracle_from_a_model_that_stands_still(synthetic_small):
     items, _ = load_items(synthetic_small, "train", feature_dim=263, fps=20, min_length=40)
     oracle = prompt_adherence(Replay(items), synthetic_small, items)
     assert oracle["count"] > 40 and oracle["rate"] >= 0.95
-    stand_item = next(i for i in items if item_parts(i, __import__("json").loads((synthetic_small / "labels" / f"{i.motion_id}.json").read_text()))[0]["action"] == "stand")
+    stand_item = next(
+        i
+        for i in items
+        if item_parts(
+            i, __import__("json").loads((synthetic_small / "labels" / f"{i.motion_id}.json").read_text())
+        )[0]["action"]
+        == "stand"
+    )
 
     class StandStill(EchoModel):
         def generate(self, texts, frames, sampling=None, seed=None, check_lengths=True):
@@ -116,16 +141,26 @@ def test_prompt_adherence_separates_an_oracle_from_a_model_that_stands_still(syn
 
     still = prompt_adherence(StandStill(items), synthetic_small, items)
     assert still["rate"] < 0.5 * oracle["rate"]
-    assert still["per_action"]["stand"][0] == still["per_action"]["stand"][1]  # standing still does satisfy "stand"
+    assert (
+        still["per_action"]["stand"][0] == still["per_action"]["stand"][1]
+    )  # standing still does satisfy "stand"
 
 
 def test_item_parts_follow_the_span():
     from mmm.data.humanml3d import Caption, MotionItem
 
-    label = {"parts": [{"action": "walk", "params": {}, "start": 0, "end": 60}, {"action": "jump", "params": {"count": 2}, "start": 60, "end": 140}]}
+    label = {
+        "parts": [
+            {"action": "walk", "params": {}, "start": 0, "end": 60},
+            {"action": "jump", "params": {"count": 2}, "start": 60, "end": 140},
+        ]
+    }
     whole = MotionItem("x", "x", np.zeros((140, 263)), [Caption("c", (), 0, 0)])
     span = MotionItem("x#60-140", "x", np.zeros((80, 263)), [Caption("c", (), 3, 7)], start=60)
-    assert [(p["action"], p["start"], p["end"]) for p in item_parts(whole, label)] == [("walk", 0, 60), ("jump", 60, 140)]
+    assert [(p["action"], p["start"], p["end"]) for p in item_parts(whole, label)] == [
+        ("walk", 0, 60),
+        ("jump", 60, 140),
+    ]
     assert [(p["action"], p["start"], p["end"]) for p in item_parts(span, label)] == [("jump", 0, 80)]
 
 
@@ -135,48 +170,99 @@ def own_evaluator(trained):
 
     out = trained["out"]
     overrides = {
-        "data.root": trained["walker"], "data.synthesize": "null", "data.batch_size": 8, "model.hidden_dim": 16, "model.embed_dim": 32,
-        "model.text_hidden_dim": 32, "trainer.max_steps": 4, "trainer.val_check_interval": 4, "trainer.enable_progress_bar": "false",
-        "output_dir": f"{out}/ev", "text.cache_dir": f"{out}/text", "logger.tracking_uri": trained["uri"], "logger.artifact_root": f"{out}/art",
+        "data.root": trained["walker"],
+        "data.synthesize": "null",
+        "data.batch_size": 8,
+        "model.hidden_dim": 16,
+        "model.embed_dim": 32,
+        "model.text_hidden_dim": 32,
+        "trainer.max_steps": 4,
+        "trainer.val_check_interval": 4,
+        "trainer.enable_progress_bar": "false",
+        "output_dir": f"{out}/ev",
+        "text.cache_dir": f"{out}/text",
+        "logger.tracking_uri": trained["uri"],
+        "logger.artifact_root": f"{out}/art",
     }
     return train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
 
 
-SMALL = ["split=train", "protocol.batch_size=8", "protocol.replications=2", "protocol.mm_texts=2", "protocol.mm_generations=3",
-         "protocol.mm_times=2", "protocol.diversity_times=10", "data.synthesize=null"]
+SMALL = [
+    "split=train",
+    "protocol.batch_size=8",
+    "protocol.replications=2",
+    "protocol.mm_texts=2",
+    "protocol.mm_generations=3",
+    "protocol.mm_times=2",
+    "protocol.diversity_times=10",
+    "data.synthesize=null",
+]
 
 
+@pytest.mark.slow
 def test_mmm_evaluate_logs_the_table_to_mlflow(trained, own_evaluator, tmp_path):
     from mmm.evaluation.run import evaluate, load_evaluate_config
 
-    results = evaluate(load_evaluate_config([
-        *SMALL, f"data.root={trained['walker']}", f"text2motion={trained['checkpoint']}", f"logger.tracking_uri={trained['uri']}",
-        f"logger.artifact_root={trained['out']}/art", f"output_dir={tmp_path}/eval",
-    ]))
+    results = evaluate(
+        load_evaluate_config(
+            [
+                *SMALL,
+                f"data.root={trained['walker']}",
+                f"text2motion={trained['checkpoint']}",
+                f"logger.tracking_uri={trained['uri']}",
+                f"logger.artifact_root={trained['out']}/art",
+                f"output_dir={tmp_path}/eval",
+            ]
+        )
+    )
     client = MlflowClient(trained["uri"])
     run = client.get_run(results["run_id"])
     metrics = run.data.metrics
-    for name in ("generated/top1", "generated/fid", "generated/matching_score", "generated/diversity", "generated/multimodality",
-                 "real/top1", "recon/fid", "recon/mpjpe_root_aligned_mm"):
+    for name in (
+        "generated/top1",
+        "generated/fid",
+        "generated/matching_score",
+        "generated/diversity",
+        "generated/multimodality",
+        "real/top1",
+        "recon/fid",
+        "recon/mpjpe_root_aligned_mm",
+    ):
         assert name in metrics and np.isfinite(metrics[name]), name
         assert 0 <= metrics.get(name + "_ci", 0)
     assert abs(metrics["real/fid"]) < 1e-6
-    assert run.data.tags["evaluator"].startswith("contrastive-") and len(run.data.tags["data.fingerprint"]) == 16
+    assert (
+        run.data.tags["evaluator"].startswith("contrastive-") and len(run.data.tags["data.fingerprint"]) == 16
+    )
     assert {f.path for f in client.list_artifacts(results["run_id"])} >= {"evaluation.md", "evaluation.json"}
     assert "| Generated |" in (tmp_path / "eval/evaluation.md").read_text()
     assert "adherence" not in results  # the walker dataset has no labels
 
 
+@pytest.mark.slow
 def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
     from mmm.evaluation.ablation import load_ablation_config, run_ablation
 
     out = trained["out"]
-    common = [*[s for s in SMALL if not s.startswith("split")], f"data.root={trained['walker']}", f"logger.tracking_uri={trained['uri']}",
-              f"logger.artifact_root={trained['out']}/art", f"output_dir={tmp_path}/abl", "protocol.max_batches=1"]
-    result = run_ablation("temperature", load_ablation_config([*common, "split=train", f"text2motion={trained['checkpoint']}", "grids.temperature=[0.5,1.5]"]))
+    common = [
+        *[s for s in SMALL if not s.startswith("split")],
+        f"data.root={trained['walker']}",
+        f"logger.tracking_uri={trained['uri']}",
+        f"logger.artifact_root={trained['out']}/art",
+        f"output_dir={tmp_path}/abl",
+        "protocol.max_batches=1",
+    ]
+    result = run_ablation(
+        "temperature",
+        load_ablation_config(
+            [*common, "split=train", f"text2motion={trained['checkpoint']}", "grids.temperature=[0.5,1.5]"]
+        ),
+    )
     assert list(result["rows"]) == ["temperature 0.5", "temperature 1.5"]
     rows = list(csv.DictReader(open(tmp_path / "abl/temperature/table.csv")))
-    assert [r["setting"] for r in rows] == ["temperature 0.5", "temperature 1.5"] and all(float(r["top1"]) >= 0 for r in rows)
+    assert [r["setting"] for r in rows] == ["temperature 0.5", "temperature 1.5"] and all(
+        float(r["top1"]) >= 0 for r in rows
+    )
     assert (tmp_path / "abl/temperature/plot.png").stat().st_size > 5000
     client = MlflowClient(trained["uri"])
     experiment = client.get_experiment_by_name("mmm-ablations")
@@ -186,13 +272,35 @@ def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
     assert sorted(r.data.params["setting"] for r in children) == ["temperature 0.5", "temperature 1.5"]
     assert parent.data.tags["paper.table"] == "11"
     # A training sweep: one stage-2 model per setting, trained and tracked in its stage's experiment.
-    stage2 = [f"trainer.max_steps=2", "trainer.val_check_interval=2", "model.transformer.embed_dim=32", "model.transformer.num_heads=2",
-              "model.transformer.num_layers=2", f"data.root={trained['walker']}", "data.synthesize=null", f"output_dir={out}/abl_s2",
-              f"stage1_output_dir={out}/s1", f"token_cache_dir={out}/tokens", f"text.cache_dir={out}/text", "callbacks.preview_captions=0"]
-    training = run_ablation("cross-layers", load_ablation_config([
-        *common, "split=train", "grids.cross_layers=[0,2]", "stage2_overrides=[" + ",".join(f"'{o}'" for o in stage2) + "]",
-    ]))
+    stage2 = [
+        "trainer.max_steps=2",
+        "trainer.val_check_interval=2",
+        "model.transformer.embed_dim=32",
+        "model.transformer.num_heads=2",
+        "model.transformer.num_layers=2",
+        f"data.root={trained['walker']}",
+        "data.synthesize=null",
+        f"output_dir={out}/abl_s2",
+        f"stage1_output_dir={out}/s1",
+        f"token_cache_dir={out}/tokens",
+        f"text.cache_dir={out}/text",
+        "callbacks.preview_captions=0",
+    ]
+    training = run_ablation(
+        "cross-layers",
+        load_ablation_config(
+            [
+                *common,
+                "split=train",
+                "grids.cross_layers=[0,2]",
+                "stage2_overrides=[" + ",".join(f"'{o}'" for o in stage2) + "]",
+            ]
+        ),
+    )
     assert list(training["rows"]) == ["0 cross-attention layers", "2 cross-attention layers"]
     sweep = client.search_runs([experiment.experiment_id], "tags.`mmm.ablation` = 'cross-layers'")[0]
-    stage2_runs = client.search_runs([client.get_experiment_by_name("mmm-stage2").experiment_id], f"attributes.run_name = 'ablation-{sweep.info.run_id[:8]}'")
+    stage2_runs = client.search_runs(
+        [client.get_experiment_by_name("mmm-stage2").experiment_id],
+        f"attributes.run_name = 'ablation-{sweep.info.run_id[:8]}'",
+    )
     assert sorted(r.data.params["model.transformer.num_cross_layers"] for r in stage2_runs) == ["0", "2"]

@@ -11,13 +11,19 @@ from mmm.cli import main
 from mmm.export.bvh import read_bvh
 from mmm.generation.model import TextToMotion
 from mmm.generation.prompts import split_paragraph
+from mmm.generation.sampler import (
+    SamplingConfig,
+    filter_logits,
+    frames_to_codes,
+    iteration_counts,
+    sample_tokens,
+)
 from mmm.motion.skeleton import T2M_SKELETON
-from mmm.generation.sampler import SamplingConfig, filter_logits, frames_to_codes, iteration_counts, sample_tokens
 from mmm.text import TextEmbedding
-from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.optim import OptimConfig
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
-
 
 K = 32
 
@@ -32,7 +38,9 @@ class FakeText(torch.nn.Module):
         for i, t in enumerate(texts):
             g = torch.Generator().manual_seed(sum(map(ord, t)))
             words[i] = torch.randn(4, 5, generator=g)
-        return TextEmbedding(words.mean(1).repeat(1, 2)[:, :6], words, torch.ones(len(texts), 4, dtype=torch.bool), 0)
+        return TextEmbedding(
+            words.mean(1).repeat(1, 2)[:, :6], words, torch.ones(len(texts), 4, dtype=torch.bool), 0
+        )
 
 
 class CountingTransformer(torch.nn.Module):
@@ -53,10 +61,17 @@ class CountingTransformer(torch.nn.Module):
 @pytest.fixture(scope="module")
 def model():
     torch.manual_seed(0)
-    tok = TokenizerModule(263, TokenizerConfig(width=16, num_codes=K, code_dim=8), OptimConfig(), TokenizerLossConfig())
+    tok = TokenizerModule(
+        263, TokenizerConfig(width=16, num_codes=K, code_dim=8), OptimConfig(), TokenizerLossConfig()
+    )
     tok.train()
     tok.tokenizer(torch.randn(8, 64, 263))
-    transformer = MaskedMotionTransformer(tok.tokenizer.codebook.detach(), TransformerConfig(embed_dim=32, num_heads=4, num_layers=2, dropout=0.0), 6, 5)
+    transformer = MaskedMotionTransformer(
+        tok.tokenizer.codebook.detach(),
+        TransformerConfig(embed_dim=32, num_heads=4, num_layers=2, dropout=0.0),
+        6,
+        5,
+    )
     return TextToMotion(tok.eval(), transformer.eval(), FakeText(), {"reference": "test"})
 
 
@@ -64,13 +79,24 @@ def test_schedules_iterations_and_filters():
     cfg = SamplingConfig()
     lengths = torch.tensor([49, 30, 10, 1])
     assert iteration_counts(lengths, lengths, cfg, 50).tolist() == [10, 6, 2, 1]  # ceil(10 L / 50)
-    assert iteration_counts(lengths, torch.tensor([5, 0, 3, 1]), cfg, 50).tolist() == [10, 0, 2, 1]  # nothing free: no pass
-    assert iteration_counts(lengths, lengths, SamplingConfig(dynamic_iterations=False), 50).tolist() == [10] * 4
+    assert iteration_counts(lengths, torch.tensor([5, 0, 3, 1]), cfg, 50).tolist() == [
+        10,
+        0,
+        2,
+        1,
+    ]  # nothing free: no pass
+    assert (
+        iteration_counts(lengths, lengths, SamplingConfig(dynamic_iterations=False), 50).tolist() == [10] * 4
+    )
     assert frames_to_codes(torch.tensor([40, 41, 196, 195])).tolist() == [10, 11, 49, 49]
     logits = torch.log(torch.tensor([[0.5, 0.3, 0.15, 0.05]]))
     assert torch.isinf(filter_logits(logits, 0.5, None)).tolist() == [[False, False, True, True]]
-    assert torch.isinf(filter_logits(logits, None, 0.7)).tolist() == [[False, False, True, True]]  # 0.5 + 0.3 >= 0.7
-    assert torch.isinf(filter_logits(logits, None, 0.4)).tolist() == [[False, True, True, True]]  # always the top code
+    assert torch.isinf(filter_logits(logits, None, 0.7)).tolist() == [
+        [False, False, True, True]
+    ]  # 0.5 + 0.3 >= 0.7
+    assert torch.isinf(filter_logits(logits, None, 0.4)).tolist() == [
+        [False, True, True, True]
+    ]  # always the top code
     with pytest.raises(ValueError, match="schedule must be one of"):
         SamplingConfig(schedule="sqrt")
 
@@ -85,7 +111,9 @@ def test_forward_passes_follow_each_samples_own_count(model):
     assert result.iterations.tolist() == expected == [10, 6, 2, 5]
     assert result.forward_passes == len(counter.calls) == max(expected)
     # Pass t holds exactly the samples that still have iterations left; finished ones are never re-predicted.
-    assert [len(call) for call in counter.calls] == [sum(e > t for e in expected) for t in range(max(expected))]
+    assert [len(call) for call in counter.calls] == [
+        sum(e > t for e in expected) for t in range(max(expected))
+    ]
     assert (result.tokens[torch.arange(4), codes] == model.transformer.end_id).all()
     for i, c in enumerate(codes.tolist()):
         assert bool((result.tokens[i, :c] < K).all())  # every position decoded to a code
@@ -101,10 +129,18 @@ def test_a_seed_gives_identical_output(model):
     assert all(np.array_equal(x, y) for x, y in zip(a.codes, b.codes))
     assert all(np.array_equal(x, y) for x, y in zip(a.features, b.features))
     assert not all(np.array_equal(x, y) for x, y in zip(a.codes, c.codes))
-    guided = model.generate(["walk"], frames=[80], sampling=SamplingConfig(guidance_scale=2.0, top_k=0.5, top_p=0.9, temperature=0.7), seed=7)
-    assert guided.forward_passes == 4 and np.isfinite(guided.features[0]).all()  # 20 codes; CFG doubles the batch, not the passes
+    guided = model.generate(
+        ["walk"],
+        frames=[80],
+        sampling=SamplingConfig(guidance_scale=2.0, top_k=0.5, top_p=0.9, temperature=0.7),
+        seed=7,
+    )
+    assert (
+        guided.forward_passes == 4 and np.isfinite(guided.features[0]).all()
+    )  # 20 codes; CFG doubles the batch, not the passes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "keep, text, frames, place",
     [
@@ -151,18 +187,25 @@ def test_long_sequence_in_one_decode(model):
         out = model.generate_long(["walk", "jump", "wave"], frames=[80, 120, 40], seed=0, transition_codes=2)
     finally:
         model.transformer = inner
-    # Segments: one batch of passes (the longest takes ceil(10 * 30 / 50) = 6); transitions: one pass for both.
+    # Segments: one batch of passes (the longest takes ceil(10 * 30 / 50) = 6); transitions: one pass for
+    # both.
     assert len(counter.calls) == 6 + 1 and len(counter.calls[-1]) == 2
     assert out.segments == [(0, 80), (88, 208), (216, 256)]
     assert out.features[0].shape == (256, 263)
     seg = model.generate(["walk", "jump", "wave"], frames=[80, 120, 40], seed=0)
-    assert np.array_equal(out.codes[0][:20], seg.codes[0]) and np.array_equal(out.codes[0][22:52], seg.codes[1])
+    assert np.array_equal(out.codes[0][:20], seg.codes[0]) and np.array_equal(
+        out.codes[0][22:52], seg.codes[1]
+    )
 
 
 def test_paragraph_splitter():
-    assert split_paragraph("A person walks forward, then turns left. After that they jump twice and finally sit down.") == [
-        "a person walks forward", "a person turns left", "a person jumps twice", "a person sits down"]
-    assert split_paragraph("The man runs; he waves with the right hand") == ["the man runs", "the man waves with the right hand"]
+    assert split_paragraph(
+        "A person walks forward, then turns left. After that they jump twice and finally sit down."
+    ) == ["a person walks forward", "a person turns left", "a person jumps twice", "a person sits down"]
+    assert split_paragraph("The man runs; he waves with the right hand") == [
+        "the man runs",
+        "the man waves with the right hand",
+    ]
     with pytest.raises(ValueError, match="no action found"):
         split_paragraph(" . ; ")
 
@@ -172,24 +215,51 @@ def test_trace_plot(model, tmp_path):
 
     out = model.generate(["walk"], frames=[120], seed=0, trace=True)
     assert len(out.trace.masked) == 6 and out.trace.masked[-1].sum() == 0
-    assert [int(m[0].sum()) for m in out.trace.masked] == [math.ceil(math.cos(math.pi / 2 * t / 6) * 30 - 1e-6) for t in range(1, 7)]
+    assert [int(m[0].sum()) for m in out.trace.masked] == [
+        math.ceil(math.cos(math.pi / 2 * t / 6) * 30 - 1e-6) for t in range(1, 7)
+    ]
     png = plot_trace(out.trace, tmp_path / "t.png", title="walk")
     assert png.stat().st_size > 5000
 
 
+@pytest.mark.slow
 def test_cli_generate_writes_complete_sample_folders(trained, tmp_path, capsys):
     dest = tmp_path / "gen"
-    code = main(["generate", "--text", "a person walks forward", "--length", "83", "--num-samples", "2", "--seed", "4",
-                 "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(dest), "--trace"])
+    code = main(
+        [
+            "generate",
+            "--text",
+            "a person walks forward",
+            "--length",
+            "83",
+            "--num-samples",
+            "2",
+            "--seed",
+            "4",
+            "--model",
+            trained["checkpoint"],
+            "--tracking-uri",
+            trained["uri"],
+            "--out",
+            str(dest),
+            "--trace",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     for k in (0, 1):
         folder = dest / str(k)
-        assert {"features.npy", "joints.npy", "motion.gif", "motion.bvh", "meta.json"} <= {p.name for p in folder.iterdir()}
+        assert {"features.npy", "joints.npy", "motion.gif", "motion.bvh", "meta.json"} <= {
+            p.name for p in folder.iterdir()
+        }
         features, joints = np.load(folder / "features.npy"), np.load(folder / "joints.npy")
         assert features.shape == (83, 263) and joints.shape == (83, 22, 3)
         meta = json.loads((folder / "meta.json").read_text())
-        assert meta["prompt"] == "a person walks forward" and meta["length_frames"] == 83 and meta["seed"] == 4
-        assert meta["model"]["checkpoint"] == trained["checkpoint"] and meta["model"]["text_encoder"].startswith("minilm-")
+        assert (
+            meta["prompt"] == "a person walks forward" and meta["length_frames"] == 83 and meta["seed"] == 4
+        )
+        assert meta["model"]["checkpoint"] == trained["checkpoint"] and meta["model"][
+            "text_encoder"
+        ].startswith("minilm-")
         assert meta["iterations"] == 5 and set(meta["seconds"]) >= {"text", "sample", "decode", "total"}
         bvh = read_bvh(folder / "motion.bvh")
         assert bvh.num_frames == 83
@@ -199,38 +269,101 @@ def test_cli_generate_writes_complete_sample_folders(trained, tmp_path, capsys):
     assert (dest / "decoding_trace.png").exists()
     # Same seed, same motion.
     again = tmp_path / "again"
-    main(["generate", "--text", "a person walks forward", "--length", "83", "--num-samples", "2", "--seed", "4",
-          "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(again)])
+    main(
+        [
+            "generate",
+            "--text",
+            "a person walks forward",
+            "--length",
+            "83",
+            "--num-samples",
+            "2",
+            "--seed",
+            "4",
+            "--model",
+            trained["checkpoint"],
+            "--tracking-uri",
+            trained["uri"],
+            "--out",
+            str(again),
+        ]
+    )
     assert np.array_equal(np.load(dest / "1/features.npy"), np.load(again / "1/features.npy"))
 
 
+@pytest.mark.slow
 def test_cli_edit_and_long(trained, tmp_path, capsys):
     from mmm.motion.features import recover_from_ric
 
     source = tmp_path / "source_joints.npy"  # joints (T, 22, 3) work as a source
     np.save(source, recover_from_ric(np.load(trained["walker"] / "new_joint_vecs/000005.npy")))
     dest = tmp_path / "edit"
-    assert main(["edit", "inbetween", "--source", str(source), "--keep", "0:40,80:100", "--text", "a person jumps",
-                 "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(dest)]) == 0, capsys.readouterr().err
+    assert (
+        main(
+            [
+                "edit",
+                "inbetween",
+                "--source",
+                str(source),
+                "--keep",
+                "0:40,80:100",
+                "--text",
+                "a person jumps",
+                "--model",
+                trained["checkpoint"],
+                "--tracking-uri",
+                trained["uri"],
+                "--out",
+                str(dest),
+            ]
+        )
+        == 0
+    ), capsys.readouterr().err
     meta = json.loads((dest / "0/meta.json").read_text())
     assert meta["kind"] == "inbetween" and meta["keep_frames"] == [[0, 40], [80, 100]]
     assert sum(meta["kept_codes"]) == 10 + 5  # codes 0-9 and 20-24
     long = tmp_path / "long"
-    assert main(["generate-long", "--paragraph", "A person walks forward, then jumps and finally waves.", "--lengths", "60",
-                 "--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(long)]) == 0
+    assert (
+        main(
+            [
+                "generate-long",
+                "--paragraph",
+                "A person walks forward, then jumps and finally waves.",
+                "--lengths",
+                "60",
+                "--model",
+                trained["checkpoint"],
+                "--tracking-uri",
+                trained["uri"],
+                "--out",
+                str(long),
+            ]
+        )
+        == 0
+    )
     meta = json.loads((long / "0/meta.json").read_text())
     assert meta["prompts"] == ["a person walks forward", "a person jumps", "a person waves"]
     assert np.load(long / "0/features.npy").shape == (60 * 3 + 2 * 8, 263)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "argv, message",
     [
         (["generate", "--text", "  ", "--length", "80"], "--text is empty"),
         (["generate", "--text", "walk", "--length", "30"], "--length 30 frames is outside 40..196"),
-        (["generate", "--text", "walk", "--length", "80", "--model", "models:/mmm-text2motion@nope"], "models:/mmm-text2motion@nope: no such registered model"),
-        (["edit", "complete", "--source", "BADSOURCE", "--keep", "0:40"], "shape (10, 7), expected features (T, 263) or joints (T, 22, 3)"),
-        (["edit", "inbetween", "--source", "BADSOURCE", "--keep", "0:40"], "inbetween keeps a start and an end"),
+        (
+            ["generate", "--text", "walk", "--length", "80", "--model", "models:/mmm-text2motion@nope"],
+            "models:/mmm-text2motion@nope: no such registered model",
+        ),
+        (
+            ["edit", "complete", "--source", "BADSOURCE", "--keep", "0:40"],
+            "shape (10, 7), expected features (T, 263) or joints (T, 22, 3)",
+        ),
+        (
+            ["edit", "inbetween", "--source", "BADSOURCE", "--keep", "0:40"],
+            "inbetween keeps a start and an end",
+        ),
         (["generate-long", "--lengths", "80"], "give the prompts either as --text"),
     ],
 )
@@ -246,19 +379,60 @@ def test_cli_bad_input_exits_2_and_writes_nothing(trained, tmp_path, capsys, arg
     assert not dest.exists()
 
 
+@pytest.mark.slow
 def test_cli_estimates_the_length_when_none_is_given(trained, tmp_path, capsys):
     from mmm.training.length import load_length_config, train_length
 
     out = trained["out"]
     common = ["--model", trained["checkpoint"], "--tracking-uri", trained["uri"]]
-    assert main(["generate", "--text", "a person jumps", *common, "--length-model", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "a")]) == 2
+    assert (
+        main(
+            [
+                "generate",
+                "--text",
+                "a person jumps",
+                *common,
+                "--length-model",
+                str(tmp_path / "none.ckpt"),
+                "--out",
+                str(tmp_path / "a"),
+            ]
+        )
+        == 2
+    )
     assert "pass --length FRAMES, or train one with `make train-length`" in capsys.readouterr().err
     assert not (tmp_path / "a").exists()
-    result = train_length(load_length_config([
-        f"data.root={trained['walker']}", "data.synthesize=null", "trainer.max_steps=20", "trainer.val_check_interval=10",
-        "trainer.enable_progress_bar=false", f"output_dir={out}/length", f"stage1_output_dir={out}/s1", f"token_cache_dir={out}/tokens",
-        f"text.cache_dir={out}/text", f"logger.tracking_uri={trained['uri']}", f"logger.artifact_root={out}/art",
-    ]))
-    assert main(["generate", "--text", "a person jumps", *common, "--length-model", result.best_checkpoint, "--out", str(tmp_path / "b")]) == 0
+    result = train_length(
+        load_length_config(
+            [
+                f"data.root={trained['walker']}",
+                "data.synthesize=null",
+                "trainer.max_steps=20",
+                "trainer.val_check_interval=10",
+                "trainer.enable_progress_bar=false",
+                f"output_dir={out}/length",
+                f"stage1_output_dir={out}/s1",
+                f"token_cache_dir={out}/tokens",
+                f"text.cache_dir={out}/text",
+                f"logger.tracking_uri={trained['uri']}",
+                f"logger.artifact_root={out}/art",
+            ]
+        )
+    )
+    assert (
+        main(
+            [
+                "generate",
+                "--text",
+                "a person jumps",
+                *common,
+                "--length-model",
+                result.best_checkpoint,
+                "--out",
+                str(tmp_path / "b"),
+            ]
+        )
+        == 0
+    )
     meta = json.loads((tmp_path / "b/0/meta.json").read_text())
     assert meta["length_frames"] % 4 == 0 and 40 <= meta["length_frames"] <= 196

@@ -1,12 +1,14 @@
-"""The length estimator: shapes, predictions in range, learning a known length, checkpoints, tracked training."""
+"""The length estimator: shapes, predictions in range, learning a known length, checkpoints, tracked
+training."""
 
 import lightning as L
 import pytest
 import torch
 from mlflow.tracking import MlflowClient
 
-from mmm.generation.length import LengthEstimator, LengthEstimatorModule, LengthModelConfig, length_metrics, load_length_estimator
-from mmm.tokenizer.module import OptimConfig
+from mmm.generation.length import LengthEstimator, LengthModelConfig, length_metrics, load_length_estimator
+from mmm.generation.length_module import LengthEstimatorModule
+from mmm.training.optim import OptimConfig
 
 
 def small(dropout=0.0, **kw):
@@ -83,17 +85,28 @@ def cluster_pairs(n, seed):
     return [{"sentence": x[i], "codes": codes[i]} for i in range(n)]
 
 
+@pytest.mark.slow
 def test_module_learns_a_known_length_and_checkpoint_loads_weights_only(tmp_path):
     L.seed_everything(0)
     module = LengthEstimatorModule(
-        12, LengthModelConfig(hidden_dim=64, dropout=0.1), OptimConfig(lr=2e-3, betas=[0.9, 0.999], weight_decay=0.01, warmup_steps=10),
-        text_encoder={"name": "fake", "identity": "fake-0"}, stage1={"identity": "s1"},
+        12,
+        LengthModelConfig(hidden_dim=64, dropout=0.1),
+        OptimConfig(lr=2e-3, betas=[0.9, 0.999], weight_decay=0.01, warmup_steps=10),
+        text_encoder={"name": "fake", "identity": "fake-0"},
+        stage1={"identity": "s1"},
     )
     train = torch.utils.data.DataLoader(cluster_pairs(2048, 0), batch_size=64, shuffle=True)
     val = torch.utils.data.DataLoader(cluster_pairs(512, 1), batch_size=128)
     trainer = L.Trainer(
-        accelerator="cpu", max_steps=200, val_check_interval=200, check_val_every_n_epoch=None, logger=False,
-        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
+        accelerator="cpu",
+        max_steps=200,
+        val_check_interval=200,
+        check_val_every_n_epoch=None,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
     )
     trainer.fit(module, train, val)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
@@ -112,11 +125,21 @@ def test_module_learns_a_known_length_and_checkpoint_loads_weights_only(tmp_path
     trainer.save_checkpoint(path)
     ckpt = torch.load(path, weights_only=True)
     hp = ckpt["hyper_parameters"]
-    assert hp["model"]["hidden_dim"] == 64 and hp["sentence_dim"] == 12 and hp["text_encoder"]["identity"] == "fake-0"
+    assert (
+        hp["model"]["hidden_dim"] == 64
+        and hp["sentence_dim"] == 12
+        and hp["text_encoder"]["identity"] == "fake-0"
+    )
     loaded = load_length_estimator(path)
-    assert not loaded.training and loaded.text_encoder["identity"] == "fake-0" and loaded.stage1 == {"identity": "s1"}
+    assert (
+        not loaded.training
+        and loaded.text_encoder["identity"] == "fake-0"
+        and loaded.stage1 == {"identity": "s1"}
+    )
     module.eval()
-    assert torch.allclose(loaded.logits(batch["sentence"]), module.estimator.logits(batch["sentence"]), atol=1e-6)
+    assert torch.allclose(
+        loaded.logits(batch["sentence"]), module.estimator.logits(batch["sentence"]), atol=1e-6
+    )
     assert torch.equal(loaded.predict(batch["sentence"]), module.estimator.predict(batch["sentence"]))
     with pytest.raises(ValueError, match="not a length estimator checkpoint"):
         torch.save({"hyper_parameters": {"model": {}}, "state_dict": {}}, tmp_path / "other.ckpt")
@@ -126,22 +149,47 @@ def test_module_learns_a_known_length_and_checkpoint_loads_weights_only(tmp_path
 def _train_stage1(root, out):
     from mmm.training.stage1 import load_stage1_config, train_stage1
 
-    return train_stage1(load_stage1_config([
-        f"data.root={root}", "data.synthesize=null", "data.batch_size=8", "model.tokenizer.width=16", "model.tokenizer.num_codes=32",
-        "trainer.max_steps=4", "trainer.val_check_interval=4", "trainer.enable_progress_bar=false", "callbacks.preview_clips=0",
-        "callbacks.usage_plot=false", f"output_dir={out}/s1", f"logger.tracking_uri=sqlite:///{out}/mlflow.db", f"logger.artifact_root={out}/art",
-    ]))
+    return train_stage1(
+        load_stage1_config(
+            [
+                f"data.root={root}",
+                "data.synthesize=null",
+                "data.batch_size=8",
+                "model.tokenizer.width=16",
+                "model.tokenizer.num_codes=32",
+                "trainer.max_steps=4",
+                "trainer.val_check_interval=4",
+                "trainer.enable_progress_bar=false",
+                "callbacks.preview_clips=0",
+                "callbacks.usage_plot=false",
+                f"output_dir={out}/s1",
+                f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
+                f"logger.artifact_root={out}/art",
+            ]
+        )
+    )
 
 
+@pytest.mark.slow
 def test_train_length_end_to_end_is_tracked(walker_dataset, tmp_path):
     from mmm.training.length import load_length_config, train_length
 
     stage1 = _train_stage1(walker_dataset, tmp_path)
     overrides = {
-        "data.root": walker_dataset, "data.synthesize": "null", "data.batch_size": 8, "model.hidden_dim": 16, "trainer.max_steps": 6,
-        "trainer.val_check_interval": 3, "trainer.log_every_n_steps": 1, "trainer.enable_progress_bar": "false",
-        "output_dir": f"{tmp_path}/len", "stage1_output_dir": f"{tmp_path}/s1", "token_cache_dir": f"{tmp_path}/tokens",
-        "text.cache_dir": f"{tmp_path}/text", "logger.tracking_uri": f"sqlite:///{tmp_path}/mlflow.db", "logger.artifact_root": f"{tmp_path}/art",
+        "data.root": walker_dataset,
+        "data.synthesize": "null",
+        "data.batch_size": 8,
+        "model.hidden_dim": 16,
+        "trainer.max_steps": 6,
+        "trainer.val_check_interval": 3,
+        "trainer.log_every_n_steps": 1,
+        "trainer.enable_progress_bar": "false",
+        "output_dir": f"{tmp_path}/len",
+        "stage1_output_dir": f"{tmp_path}/s1",
+        "token_cache_dir": f"{tmp_path}/tokens",
+        "text.cache_dir": f"{tmp_path}/text",
+        "logger.tracking_uri": f"sqlite:///{tmp_path}/mlflow.db",
+        "logger.artifact_root": f"{tmp_path}/art",
     }
     result = train_length(load_length_config([f"{k}={v}" for k, v in overrides.items()]))
     client = MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
@@ -150,15 +198,31 @@ def test_train_length_end_to_end_is_tracked(walker_dataset, tmp_path):
     tags = run.data.tags
     assert tags["mmm.stage"] == "length" and tags["stage1.run_id"] == stage1.run_id
     assert tags["text_encoder"].startswith("minilm-") and len(tags["data.fingerprint"]) == 16
-    assert tags["length.train_pairs"] == "24" and tags["length.val_pairs"] == "3"  # walker items: one caption each
-    assert run.data.params["model.hidden_dim"] == "16" and run.data.params["logger.experiment"] == "mmm-length"
-    expected = {"train/loss", "val/loss", "val/acc", "val/acc_within1", "val/acc_within2", "val/mae_frames", "baseline/acc_within1", "time/fit_s"}
+    assert (
+        tags["length.train_pairs"] == "24" and tags["length.val_pairs"] == "3"
+    )  # walker items: one caption each
+    assert (
+        run.data.params["model.hidden_dim"] == "16" and run.data.params["logger.experiment"] == "mmm-length"
+    )
+    expected = {
+        "train/loss",
+        "val/loss",
+        "val/acc",
+        "val/acc_within1",
+        "val/acc_within2",
+        "val/mae_frames",
+        "baseline/acc_within1",
+        "time/fit_s",
+    }
     assert expected <= set(run.data.metrics)
     assert len(client.get_metric_history(result.run_id, "train/loss")) == 6  # every step
     assert len(client.get_metric_history(result.run_id, "val/acc_within1")) == 2
     artifacts = {f.path for f in client.list_artifacts(result.run_id)}
     assert "config.yaml" in artifacts
-    assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
+    assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {
+        "checkpoints/best.ckpt",
+        "checkpoints/last.ckpt",
+    }
     assert 0.0 <= result.metrics["val/acc_within1"] <= 1.0 and result.metrics["val/mae_frames"] >= 0.0
     # The checkpoint loads without code and predicts from the encoder it names.
     ckpt = torch.load(result.best_checkpoint, weights_only=True)
@@ -167,6 +231,8 @@ def test_train_length_end_to_end_is_tracked(walker_dataset, tmp_path):
     estimator = load_length_estimator(result.best_checkpoint)
     from mmm.text import CaptionEmbeddingCache
 
-    sentence = CaptionEmbeddingCache(f"{tmp_path}/text", tags["text_encoder"]).lookup(["a person turns"]).sentence
+    sentence = (
+        CaptionEmbeddingCache(f"{tmp_path}/text", tags["text_encoder"]).lookup(["a person turns"]).sentence
+    )
     frames = estimator.frames(sentence)
     assert frames.shape == (1,) and 4 <= int(frames) <= 196 and int(frames) % 4 == 0

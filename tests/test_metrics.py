@@ -7,12 +7,22 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import TESTS
 from mmm.evaluation import metrics
 from mmm.evaluation.metrics import (
-    Diversity, FrechetDistance, MultiModality, RPrecision, distance_matrix, diversity, fid, frechet_distance,
-    gaussian_statistics, matching_score, multimodality, r_precision_hits,
+    Diversity,
+    FrechetDistance,
+    MultiModality,
+    RPrecision,
+    distance_matrix,
+    diversity,
+    fid,
+    frechet_distance,
+    gaussian_statistics,
+    matching_score,
+    multimodality,
+    r_precision_hits,
 )
+from tests.conftest import TESTS
 
 # Four texts and four motions in 2-D. Squared distances (rows: texts, columns: motions):
 #   t0 (0,0): m0 1,  m1 25, m2 13, m3 20 -> own motion m0 is the 1st nearest
@@ -109,13 +119,17 @@ def test_frechet_same_covariance_is_squared_mean_distance(sqrt_route):
     sigma = _random_spd(6, 0)
     mu1 = torch.tensor([0.0, 1.0, 2.0, -1.0, 0.5, 3.0], dtype=torch.float64)
     mu2 = torch.tensor([1.0, 1.0, 0.0, 1.0, 0.5, 0.0], dtype=torch.float64)
-    assert frechet_distance(mu1, sigma, mu2, sigma) == pytest.approx(float((mu1 - mu2) @ (mu1 - mu2)), abs=1e-8)
+    assert frechet_distance(mu1, sigma, mu2, sigma) == pytest.approx(
+        float((mu1 - mu2) @ (mu1 - mu2)), abs=1e-8
+    )
     assert float((mu1 - mu2) @ (mu1 - mu2)) == 1 + 4 + 4 + 9
 
 
 def test_fid_of_shifted_samples_is_squared_shift(sqrt_route):
     g = torch.Generator().manual_seed(1)
-    x = torch.randn(400, 6, generator=g, dtype=torch.float64) @ torch.randn(6, 6, generator=g, dtype=torch.float64)
+    x = torch.randn(400, 6, generator=g, dtype=torch.float64) @ torch.randn(
+        6, 6, generator=g, dtype=torch.float64
+    )
     shift = torch.tensor([3.0, 0.0, -4.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     assert fid(x, x + shift) == pytest.approx(25.0, abs=1e-7)
     assert abs(fid(x, x)) < 1e-8
@@ -162,7 +176,9 @@ def test_frechet_drops_a_small_imaginary_part(monkeypatch):
     s1 = torch.diag(torch.tensor([1.0, 4.0], dtype=torch.float64))
     s2 = torch.diag(torch.tensor([4.0, 4.0], dtype=torch.float64))
     # |dmu|^2 = 1; traces 5 + 8; tr sqrt = 2 + 4.
-    assert frechet_distance(torch.zeros(2), s1, torch.tensor([1.0, 0.0]), s2) == pytest.approx(1 + 13 - 12, abs=1e-12)
+    assert frechet_distance(torch.zeros(2), s1, torch.tensor([1.0, 0.0]), s2) == pytest.approx(
+        1 + 13 - 12, abs=1e-12
+    )
 
 
 def test_frechet_retries_with_an_offset_when_the_root_is_not_finite(monkeypatch):
@@ -185,7 +201,7 @@ def test_frechet_retries_with_an_offset_when_the_root_is_not_finite(monkeypatch)
     assert value == pytest.approx(expected, abs=1e-12) and value == pytest.approx(15 - 2 * (3 + 2), abs=1e-5)
 
     calls.clear()
-    monkeypatch.setattr(metrics, "_load_scipy_sqrtm", lambda: (lambda a: np.full_like(a, np.inf)))
+    monkeypatch.setattr(metrics, "_load_scipy_sqrtm", lambda: lambda a: np.full_like(a, np.inf))
     with pytest.raises(ValueError, match="not finite"):
         frechet_distance(torch.zeros(2), s1, torch.zeros(2), s2)
 
@@ -268,7 +284,8 @@ def _dataset(seed=0, n=160, d=6):
     g = torch.Generator().manual_seed(seed)
     text = torch.randn(n, d, generator=g)
     return {
-        "text": text, "motion": text + 0.7 * torch.randn(n, d, generator=g),
+        "text": text,
+        "motion": text + 0.7 * torch.randn(n, d, generator=g),
         "real": torch.randn(n, d, generator=g) @ torch.randn(d, d, generator=g),
         "generated": torch.randn(n + 17, d, generator=g) * 1.4 - 0.2,
         "mm": torch.randn(9, 12, d, generator=g),
@@ -294,7 +311,9 @@ def test_r_precision_metric_hand_checked_and_batched():
     for k in range(3):
         assert out[f"top{k + 1}"].item() == hits[k].item() / 160
     assert 0 < hits[0] < hits[1] < hits[2] < 160
-    assert out["matching_score"].item() == pytest.approx(matching_score(data["text"], data["motion"]), abs=1e-12)
+    assert out["matching_score"].item() == pytest.approx(
+        matching_score(data["text"], data["motion"]), abs=1e-12
+    )
     metric.reset()
     with pytest.raises(ValueError, match="before any update"):
         metric.compute()
@@ -357,11 +376,15 @@ def test_metric_states_reduce_by_sum_or_cat():
 # ---------------------------------------------------------------- DDP
 
 
+@pytest.mark.slow
 @pytest.mark.ddp
 def test_metrics_synchronize_across_two_processes(tmp_path):
     result = subprocess.run(
         [sys.executable, str(TESTS / "ddp_workers/metrics_ddp.py"), str(tmp_path)],
-        capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     assert result.returncode == 0, result.stderr[-3000:]
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
@@ -371,10 +394,14 @@ def test_metrics_synchronize_across_two_processes(tmp_path):
         assert torch.equal(r0[key], r1[key]), key
 
     n = data["text"].shape[0]
-    hits = sum(r_precision_hits(data["text"][b:b + 32], data["motion"][b:b + 32], 3) for b in range(0, n, 32))
+    hits = sum(
+        r_precision_hits(data["text"][b : b + 32], data["motion"][b : b + 32], 3) for b in range(0, n, 32)
+    )
     for k in range(3):
         assert r0[f"top{k + 1}"].item() == hits[k].item() / n
-    assert r0["matching_score"].item() == pytest.approx(matching_score(data["text"], data["motion"]), abs=1e-6)
+    assert r0["matching_score"].item() == pytest.approx(
+        matching_score(data["text"], data["motion"]), abs=1e-6
+    )
     assert r0["fid"].item() == pytest.approx(fid(data["real"], data["generated"]), abs=1e-6)
     # Gathered in rank order = the dataset order, with the generators seeded as in the worker.
     assert r0["diversity"].item() == diversity(data["generated"], 300, torch.Generator().manual_seed(5))

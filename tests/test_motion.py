@@ -8,13 +8,19 @@ import torch
 
 from mmm.motion.features import FeatureLayout, joints_to_features, recover_from_ric
 from mmm.motion.quaternion import (
-    cont6d_to_matrix, gaussian_smooth_time, qbetween, qmul, qrot, quat_about_y, quat_from_axis_angle,
-    quat_to_cont6d, quat_to_matrix, yaw_of,
+    cont6d_to_matrix,
+    gaussian_smooth_time,
+    qbetween,
+    qmul,
+    qrot,
+    quat_about_y,
+    quat_to_cont6d,
+    quat_to_matrix,
+    yaw_of,
 )
 from mmm.motion.skeleton import KIT_SKELETON, T2M_SKELETON, forward_kinematics, mirror_joints, skeleton_for
-
-from conftest import REFERENCE
-from helpers import turning_walker
+from tests.conftest import REFERENCE
+from tests.helpers import turning_walker
 
 
 def random_quats(n, seed=0):
@@ -34,10 +40,16 @@ def test_qrot_matches_rotation_matrix_and_composition():
 def test_qbetween_and_yaw():
     v0, v1 = torch.randn(20, 3, dtype=torch.float64), torch.randn(20, 3, dtype=torch.float64)
     rotated = qrot(qbetween(v0, v1), v0)
-    assert torch.allclose(rotated / rotated.norm(dim=-1, keepdim=True), v1 / v1.norm(dim=-1, keepdim=True), atol=1e-10)
+    assert torch.allclose(
+        rotated / rotated.norm(dim=-1, keepdim=True), v1 / v1.norm(dim=-1, keepdim=True), atol=1e-10
+    )
     # Positive yaw turns +Z towards +X (the body's left): a left turn.
     q = quat_about_y(torch.tensor(math.pi / 2, dtype=torch.float64))
-    assert torch.allclose(qrot(q, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)), torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(
+        qrot(q, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)),
+        torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+        atol=1e-12,
+    )
     assert yaw_of(q).item() == pytest.approx(math.pi / 2)
 
 
@@ -64,10 +76,18 @@ def test_skeletons():
         skeleton_for(100)
     # Standing T-pose of the target skeleton: the lowest point (toes are +z of the ankle at the
     # same height) sits about 0.9 m under the pelvis, which the spec gives as standing height.
-    rest = forward_kinematics(torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(22, 4), torch.zeros(3, dtype=torch.float64), T2M_SKELETON)
+    rest = forward_kinematics(
+        torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(22, 4),
+        torch.zeros(3, dtype=torch.float64),
+        T2M_SKELETON,
+    )
     assert -rest[:, 1].min().item() == pytest.approx(0.103074 * 0 + 0.393623 + 0.432433, abs=0.05)
     assert rest[1, 0] > 0 and rest[2, 0] < 0  # left hip at +X
-    assert torch.allclose(T2M_SKELETON.bone_lengths_of(rest), torch.tensor(T2M_SKELETON.bone_lengths, dtype=torch.float64), atol=1e-9)
+    assert torch.allclose(
+        T2M_SKELETON.bone_lengths_of(rest),
+        torch.tensor(T2M_SKELETON.bone_lengths, dtype=torch.float64),
+        atol=1e-9,
+    )
 
 
 def test_feature_layout_covers_263_in_seven_groups():
@@ -76,7 +96,12 @@ def test_feature_layout_covers_263_in_seven_groups():
     assert layout.dim == 263 and len(groups) == 7
     assert groups[0].start == 0 and groups[-1].stop == 263
     assert all(a.stop == b.start for a, b in zip(groups[:-1], groups[1:]))
-    assert (layout.positions.start, layout.positions.stop, layout.rotations.stop, layout.velocities.stop) == (4, 67, 193, 259)
+    assert (layout.positions.start, layout.positions.stop, layout.rotations.stop, layout.velocities.stop) == (
+        4,
+        67,
+        193,
+        259,
+    )
 
 
 @pytest.mark.skipif(REFERENCE is None, reason="../shared/reference not available")
@@ -134,6 +159,7 @@ def test_round_trip_on_a_turning_motion_and_the_yaw_flip_quirk():
     assert np.abs(recovered_quirky - recovered).max() > 0.1
 
 
+@pytest.mark.slow
 def test_features_are_invariant_to_placement_and_scale():
     joints = turning_walker(turns=0.3).numpy()
     base = joints_to_features(joints)

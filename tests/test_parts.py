@@ -10,14 +10,16 @@ from mlflow.tracking import MlflowClient
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
 from mmm.motion.parts import LOWER_JOINTS, UPPER_JOINTS, merge_parts, part_indices, split_parts
 from mmm.tokenizer.load import load_tokenizer_checkpoint
-from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.parts import PartAwareTokenizer
+from mmm.training.optim import OptimConfig
 
 TINY = TokenizerConfig(width=16, num_codes=32, part_aware=True)
 
 
 # -- the split -------------------------------------------------------------------------------------
+
 
 def test_split_then_merge_is_the_identity_on_reference_data(reference_dir):
     path = reference_dir / "humanml3d" / "new_joint_vecs" / "012314.npy"
@@ -71,6 +73,7 @@ def test_wrong_widths_and_kit_are_refused():
 
 # -- the tokenizer ---------------------------------------------------------------------------------
 
+
 def _trained_once(seed=0) -> PartAwareTokenizer:
     """A tiny part-aware tokenizer whose codebooks were seeded by one training batch, in eval mode."""
     torch.manual_seed(seed)
@@ -80,6 +83,7 @@ def _trained_once(seed=0) -> PartAwareTokenizer:
     return tokenizer.eval()
 
 
+@pytest.mark.slow
 def test_part_aware_tokenizer_shapes():
     tokenizer = PartAwareTokenizer(263, TINY)
     tokenizer.train()
@@ -101,6 +105,7 @@ def test_part_aware_tokenizer_shapes():
         tokenizer.decode(codes[..., 0])
 
 
+@pytest.mark.slow
 def test_decode_parts_combines_the_lower_body_of_one_motion_with_the_upper_of_another():
     tokenizer = _trained_once()
     a, b = torch.randn(2, 40, 263), torch.randn(2, 40, 263) + 1.0
@@ -114,24 +119,38 @@ def test_decode_parts_combines_the_lower_body_of_one_motion_with_the_upper_of_an
 
 # -- training --------------------------------------------------------------------------------------
 
+
+@pytest.mark.slow
 def test_stage1_trains_a_part_aware_tokenizer_with_metrics_per_codebook(walker_dataset, tmp_path):
-    from helpers import train_tiny_stage1
+    from tests.helpers import train_tiny_stage1
 
     result = train_tiny_stage1(
-        walker_dataset, tmp_path, "model.tokenizer.part_aware=true", "trainer.log_every_n_steps=1",
-        "callbacks.reset_every_n_steps=2", "callbacks.usage_plot=true",
+        walker_dataset,
+        tmp_path,
+        "model.tokenizer.part_aware=true",
+        "trainer.log_every_n_steps=1",
+        "callbacks.reset_every_n_steps=2",
+        "callbacks.usage_plot=true",
     )
     client = MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     logged = set(client.get_run(result.run_id).data.metrics)
     per_codebook = {
         f"{group}/{part}/{name}"
         for part in ("lower", "upper")
-        for group, name in [("codebook", "perplexity"), ("codebook", "used_since_reset_fraction"), ("codebook", "used_since_reset"),
-                            ("codebook", "codes_reset_total"), ("collapse", "window_active_fraction"), ("collapse", "perplexity_ratio")]
+        for group, name in [
+            ("codebook", "perplexity"),
+            ("codebook", "used_since_reset_fraction"),
+            ("codebook", "used_since_reset"),
+            ("codebook", "codes_reset_total"),
+            ("collapse", "window_active_fraction"),
+            ("collapse", "perplexity_ratio"),
+        ]
     }
     assert per_codebook | {"codebook/codes_reset_total", "val/mpjpe_root_aligned_mm"} <= logged
     assert "codebook/perplexity" not in logged  # no name that hides which codebook it is
-    assert {"codebook/lower", "codebook/upper"} <= {f.path for f in client.list_artifacts(result.run_id, "codebook")}
+    assert {"codebook/lower", "codebook/upper"} <= {
+        f.path for f in client.list_artifacts(result.run_id, "codebook")
+    }
 
     module = load_tokenizer_checkpoint(result.best_checkpoint)
     assert isinstance(module.tokenizer, PartAwareTokenizer)
@@ -151,8 +170,14 @@ def _module() -> TokenizerModule:
 
 def _fit(module, callbacks, steps, frames=32):
     trainer = L.Trainer(
-        max_steps=steps, callbacks=callbacks, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-        limit_val_batches=0, accelerator="cpu", enable_model_summary=False,
+        max_steps=steps,
+        callbacks=callbacks,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+        enable_model_summary=False,
     )
     data = torch.randn(64, frames, 263)
     trainer.fit(module, torch.utils.data.DataLoader(data, batch_size=16, shuffle=True))
@@ -200,11 +225,15 @@ def test_collapse_of_the_upper_codebook_alone_is_detected_and_named():
     torch.manual_seed(0)
     module = _module()
     module.tokenizer.upper.encoder = DegenerateEncoder()
-    monitor = CollapseMonitor(action="fail", warmup_steps=6, window_steps=3, min_active_fraction=0.1, patience=2)
+    monitor = CollapseMonitor(
+        action="fail", warmup_steps=6, window_steps=3, min_active_fraction=0.1, patience=2
+    )
     with pytest.raises(CodebookCollapseError, match="upper codebook: active codes 3.12%"):
         _fit(module, [monitor], steps=30)
     assert [e.codebook for e in monitor.events] == ["upper"]
-    assert monitor.codebooks["lower"].active_fraction > 0.5 and monitor.codebooks["upper"].active_fraction == pytest.approx(1 / 32)
+    assert monitor.codebooks["lower"].active_fraction > 0.5 and monitor.codebooks[
+        "upper"
+    ].active_fraction == pytest.approx(1 / 32)
 
     # The state round-trips exactly (resume), per codebook.
     restored = CollapseMonitor()
@@ -214,14 +243,39 @@ def test_collapse_of_the_upper_codebook_alone_is_detected_and_named():
         copy = restored.codebooks[name]
         assert torch.equal(copy.usage, health.usage)
         assert (copy.steps_in_window, copy.active_fraction, copy.perplexity, copy.peak, copy.strikes) == (
-            health.steps_in_window, health.active_fraction, health.perplexity, health.peak, health.strikes)
+            health.steps_in_window,
+            health.active_fraction,
+            health.perplexity,
+            health.peak,
+            health.strikes,
+        )
 
 
 def test_collapse_monitor_resumes_from_a_single_codebook_state():
     """Checkpoints of plain runs written before the monitor followed several codebooks."""
-    old = {"usage": torch.ones(8), "steps_in_window": 2, "active_fraction": 0.5, "perplexity": 3.0, "peak": 4.0, "strikes": 1,
-           "events": [{"step": 5, "reason": "r", "active_fraction": 0.1, "perplexity": 1.0, "perplexity_peak": 2.0, "action": "warn"}]}
+    old = {
+        "usage": torch.ones(8),
+        "steps_in_window": 2,
+        "active_fraction": 0.5,
+        "perplexity": 3.0,
+        "peak": 4.0,
+        "strikes": 1,
+        "events": [
+            {
+                "step": 5,
+                "reason": "r",
+                "active_fraction": 0.1,
+                "perplexity": 1.0,
+                "perplexity_peak": 2.0,
+                "action": "warn",
+            }
+        ],
+    }
     monitor = CollapseMonitor()
     monitor.load_state_dict(old)
-    assert list(monitor.codebooks) == [""] and monitor.codebooks[""].strikes == 1 and monitor.active_fraction == 0.5
+    assert (
+        list(monitor.codebooks) == [""]
+        and monitor.codebooks[""].strikes == 1
+        and monitor.active_fraction == 0.5
+    )
     assert monitor.events[0].codebook == "" and monitor.events[0].describe() == "r"

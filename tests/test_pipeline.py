@@ -7,12 +7,12 @@ import time
 
 import numpy as np
 import pytest
-from helpers import PIPELINE_TINY as TINY
-from helpers import pipeline_args
 from mlflow.tracking import MlflowClient
 
 from mmm.cli import main
 from mmm.pipeline.steps import PIPELINES
+from tests.helpers import PIPELINE_TINY as TINY
+from tests.helpers import pipeline_args
 
 
 @pytest.fixture(scope="module")
@@ -35,17 +35,26 @@ def pipeline(workdir, monkeypatch, *extra):
 
 def steps_of(client, parent):
     """The parent's nested runs by step (their names are `01-<step>`, `02-<step>`, ...)."""
-    children = client.search_runs([parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'")
-    assert all(r.info.run_name == f"{int(r.data.tags['mmm.step.order']):02d}-{r.data.tags['mmm.step']}" for r in children)
+    children = client.search_runs(
+        [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    assert all(
+        r.info.run_name == f"{int(r.data.tags['mmm.step.order']):02d}-{r.data.tags['mmm.step']}"
+        for r in children
+    )
     return {r.data.tags["mmm.step"]: r for r in children}
 
 
 def newest_parent(client):
     experiment = client.get_experiment_by_name("mmm-pipeline")
-    return client.search_runs([experiment.experiment_id], "tags.`mmm.pipeline` = 'full' and attributes.run_name LIKE 'pipeline-%'",
-                              order_by=["attributes.start_time DESC"])[0]
+    return client.search_runs(
+        [experiment.experiment_id],
+        "tags.`mmm.pipeline` = 'full' and attributes.run_name LIKE 'pipeline-%'",
+        order_by=["attributes.start_time DESC"],
+    )[0]
 
 
+@pytest.mark.slow
 def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypatch, capsys):
     started = time.perf_counter()
     assert pipeline(workdir, monkeypatch) == 0
@@ -61,13 +70,23 @@ def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypa
     assert [line.split()[0] for line in open(summary)] == PIPELINES["full"]
 
     # Every step's own run is in its experiment, linked from the step's run.
-    for step, experiment in (("evaluator", "mmm-evaluator"), ("stage1", "mmm-stage1"), ("stage2", "mmm-stage2"), ("length", "mmm-length"),
-                             ("evaluate", "mmm-evaluation")):
+    for step, experiment in (
+        ("evaluator", "mmm-evaluator"),
+        ("stage1", "mmm-stage1"),
+        ("stage2", "mmm-stage2"),
+        ("length", "mmm-length"),
+        ("evaluate", "mmm-evaluation"),
+    ):
         run = client.get_run(steps[step].data.tags["output.run_id"])
-        assert client.get_experiment(run.info.experiment_id).name == experiment and run.info.status == "FINISHED"
+        assert (
+            client.get_experiment(run.info.experiment_id).name == experiment and run.info.status == "FINISHED"
+        )
 
     # Three champions, measured on the same data; the text-to-motion one with the champion evaluator.
-    champions = {name: client.get_model_version_by_alias(name, "champion") for name in ("mmm-evaluator", "mmm-tokenizer", "mmm-text2motion")}
+    champions = {
+        name: client.get_model_version_by_alias(name, "champion")
+        for name in ("mmm-evaluator", "mmm-tokenizer", "mmm-text2motion")
+    }
     fingerprint = champions["mmm-tokenizer"].tags["data.fingerprint"]
     assert len(fingerprint) == 16 and champions["mmm-text2motion"].tags["data.fingerprint"] == fingerprint
     assert champions["mmm-text2motion"].tags["evaluator"].startswith("contrastive-")
@@ -81,11 +100,24 @@ def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypa
     assert stage2.data.tags["stage1.reference"] == "models:/mmm-tokenizer@champion"
 
     # Generation defaults to the champion bundle.
-    code = main(["generate", "--text", "a person walks forward", "--length", "48", "--tracking-uri", f"sqlite:///{workdir}/mlflow.db",
-                 "--out", str(workdir / "gen")])
+    code = main(
+        [
+            "generate",
+            "--text",
+            "a person walks forward",
+            "--length",
+            "48",
+            "--tracking-uri",
+            f"sqlite:///{workdir}/mlflow.db",
+            "--out",
+            str(workdir / "gen"),
+        ]
+    )
     assert code == 0
     meta = json.loads((workdir / "gen/0/meta.json").read_text())
-    assert meta["model"]["reference"] == "models:/mmm-text2motion@champion" and str(meta["model"]["version"]) == str(champions["mmm-text2motion"].version)
+    assert meta["model"]["reference"] == "models:/mmm-text2motion@champion" and str(
+        meta["model"]["version"]
+    ) == str(champions["mmm-text2motion"].version)
     assert np.load(workdir / "gen/0/joints.npy").shape == (48, 22, 3)
     listing = capsys.readouterr()
     assert main(["models", "list", "--tracking-uri", f"sqlite:///{workdir}/mlflow.db"]) == 0
@@ -93,16 +125,24 @@ def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypa
     assert "mmm-text2motion:" in listing and "champion" in listing and "generated/fid=" in listing
 
 
+@pytest.mark.slow
 def test_rerun_skips_unchanged_steps_and_force_reruns_what_depends(workdir, monkeypatch):
     client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
-    versions = {name: len(client.search_model_versions(f"name='{name}'")) for name in ("mmm-evaluator", "mmm-tokenizer", "mmm-text2motion")}
+    versions = {
+        name: len(client.search_model_versions(f"name='{name}'"))
+        for name in ("mmm-evaluator", "mmm-tokenizer", "mmm-text2motion")
+    }
 
     started = time.perf_counter()
     assert pipeline(workdir, monkeypatch) == 0
     print(f"[pipeline] full, unchanged rerun: {time.perf_counter() - started:.1f} s")
     steps = steps_of(client, newest_parent(client))
-    assert {name: r.data.tags["step.status"] for name, r in steps.items()} == {name: "skipped" for name in PIPELINES["full"]}
-    assert versions == {name: len(client.search_model_versions(f"name='{name}'")) for name in versions}  # nothing registered again
+    assert {name: r.data.tags["step.status"] for name, r in steps.items()} == {
+        name: "skipped" for name in PIPELINES["full"]
+    }
+    assert versions == {
+        name: len(client.search_model_versions(f"name='{name}'")) for name in versions
+    }  # nothing registered again
 
     # A new stage-2 run: the evaluation and the text-to-motion promotion depend on it; the
     # tokenizer, tokens, evaluator and length estimator do not.
@@ -115,27 +155,45 @@ def test_rerun_skips_unchanged_steps_and_force_reruns_what_depends(workdir, monk
     assert newest.run_id == steps["stage2"].data.tags["output.run_id"]
     # Trained again with the same seed on the same data: the same metrics, a tie, which is not a win.
     newest = client.get_model_version("mmm-text2motion", newest.version)
-    assert newest.aliases == ["challenger"] and newest.tags["promotion"].startswith("challenger: does not beat the champion")
+    assert newest.aliases == ["challenger"] and newest.tags["promotion"].startswith(
+        "challenger: does not beat the champion"
+    )
 
     # A changed step override reruns that step (and its dependants) without --force.
-    assert pipeline(workdir, monkeypatch, f"overrides.length=[{','.join(TINY['length'])},model.dropout=0.3]") == 0
+    assert (
+        pipeline(workdir, monkeypatch, f"overrides.length=[{','.join(TINY['length'])},model.dropout=0.3]")
+        == 0
+    )
     steps = steps_of(client, newest_parent(client))
     assert {name for name, r in steps.items() if r.data.tags["step.status"] == "ran"} == {"length"}
 
 
+@pytest.mark.slow
 def test_a_failing_step_fails_the_parent_and_keeps_the_good_state(workdir, monkeypatch, capsys):
     client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
     # An evaluation override that cannot be applied: the step fails, the steps before it are skipped.
-    assert pipeline(workdir, monkeypatch, f"overrides.evaluate=[{','.join(TINY['evaluate'])},protocol.no_such_key=1]") == 2
+    assert (
+        pipeline(
+            workdir, monkeypatch, f"overrides.evaluate=[{','.join(TINY['evaluate'])},protocol.no_such_key=1]"
+        )
+        == 2
+    )
     assert "no_such_key" in capsys.readouterr().err
     parent = newest_parent(client)
     assert parent.info.status == "FAILED"
     steps = steps_of(client, parent)
-    assert steps["evaluate"].info.status == "FAILED" and steps["evaluate"].data.tags["step.status"] == "failed"
-    assert "no_such_key" in open(client.download_artifacts(steps["evaluate"].info.run_id, "error.txt", str(workdir))).read()
-    before = PIPELINES["full"][:PIPELINES["full"].index("evaluate")]
+    assert (
+        steps["evaluate"].info.status == "FAILED" and steps["evaluate"].data.tags["step.status"] == "failed"
+    )
+    assert (
+        "no_such_key"
+        in open(client.download_artifacts(steps["evaluate"].info.run_id, "error.txt", str(workdir))).read()
+    )
+    before = PIPELINES["full"][: PIPELINES["full"].index("evaluate")]
     # Length's override is back to TINY after the previous test's change: it runs again, the rest is reused.
-    assert {s: steps[s].data.tags["step.status"] for s in before} == {s: "ran" if s == "length" else "skipped" for s in before}
+    assert {s: steps[s].data.tags["step.status"] for s in before} == {
+        s: "ran" if s == "length" else "skipped" for s in before
+    }
     assert "promote-text2motion" not in steps  # nothing ran after the failure
     state = json.loads((workdir / "state.json").read_text())
     assert set(state) >= set(PIPELINES["full"])  # the state of the good runs is kept
@@ -146,6 +204,7 @@ def test_a_failing_step_fails_the_parent_and_keeps_the_good_state(workdir, monke
     assert {r.data.tags["step.status"] for r in steps.values()} == {"skipped"}
 
 
+@pytest.mark.slow
 def test_parts_pipeline_trains_and_promotes_the_part_aware_model(workdir, monkeypatch):
     import mlflow
 
@@ -156,28 +215,48 @@ def test_parts_pipeline_trains_and_promotes_the_part_aware_model(workdir, monkey
         "stage2_parts": TINY["stage2"],
         "promote": [*TINY["promote"], "upper_body.max_sources=4"],
     }
-    argv = ["pipeline", "parts", *pipeline_args(workdir, f"sqlite:///{workdir}/mlflow.db"),
-            *[f"overrides.{step}=[{','.join(items)}]" for step, items in tiny_parts.items()]]
+    argv = [
+        "pipeline",
+        "parts",
+        *pipeline_args(workdir, f"sqlite:///{workdir}/mlflow.db"),
+        *[f"overrides.{step}=[{','.join(items)}]" for step, items in tiny_parts.items()],
+    ]
     monkeypatch.chdir(workdir)
     previous = mlflow.get_tracking_uri()
     try:
         assert main(argv) == 0
         client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
         experiment = client.get_experiment_by_name("mmm-pipeline")
-        parent = client.search_runs([experiment.experiment_id], "attributes.run_name LIKE 'pipeline-parts-%'", order_by=["attributes.start_time DESC"])[0]
+        parent = client.search_runs(
+            [experiment.experiment_id],
+            "attributes.run_name LIKE 'pipeline-parts-%'",
+            order_by=["attributes.start_time DESC"],
+        )[0]
         steps = steps_of(client, parent)
-        assert set(steps) == set(PIPELINES["parts"]) and all(r.data.tags["step.status"] == "ran" for r in steps.values())
+        assert set(steps) == set(PIPELINES["parts"]) and all(
+            r.data.tags["step.status"] == "ran" for r in steps.values()
+        )
         stage1 = client.get_run(steps["stage1-parts"].data.tags["output.run_id"])
-        assert client.get_experiment(stage1.info.experiment_id).name == "mmm-stage1-parts" and "codebook/upper/perplexity" in stage1.data.metrics
+        assert (
+            client.get_experiment(stage1.info.experiment_id).name == "mmm-stage1-parts"
+            and "codebook/upper/perplexity" in stage1.data.metrics
+        )
         champion = client.get_model_version_by_alias("mmm-upperbody", "champion")
         assert champion.run_id == steps["stage2-parts"].data.tags["output.run_id"]
         # Measured on the synthetic labels: 4 walking/squatting test clips x 3 upper-body prompts.
-        assert champion.tags["upper_body.edits"] == "12" and 0.0 <= float(champion.tags["metric.upper_body/both"]) <= 1.0
+        assert (
+            champion.tags["upper_body.edits"] == "12"
+            and 0.0 <= float(champion.tags["metric.upper_body/both"]) <= 1.0
+        )
         assert TextToMotion.load(None, tracking_uri=f"sqlite:///{workdir}/mlflow.db", parts=True).part_aware
         # The whole-body champion is untouched, and a rerun skips everything.
         assert client.get_model_version_by_alias("mmm-text2motion", "champion").run_id != champion.run_id
         assert main(argv) == 0
-        parent = client.search_runs([experiment.experiment_id], "attributes.run_name LIKE 'pipeline-parts-%'", order_by=["attributes.start_time DESC"])[0]
+        parent = client.search_runs(
+            [experiment.experiment_id],
+            "attributes.run_name LIKE 'pipeline-parts-%'",
+            order_by=["attributes.start_time DESC"],
+        )[0]
         assert {r.data.tags["step.status"] for r in steps_of(client, parent).values()} == {"skipped"}
     finally:
         mlflow.set_tracking_uri(previous)

@@ -15,11 +15,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from helpers import stage2_overrides, train_tiny_stage1
 from mlflow.tracking import MlflowClient
 
 from mmm.config import ConfigError
 from mmm.registry.versions import Criterion, promote_version, register_version, version_tags
+from tests.helpers import stage2_overrides, train_tiny_stage1
 
 
 def sha256(path) -> str:
@@ -30,12 +30,24 @@ def stage1_config(root, out, *extra):
     """The overrides of helpers.train_tiny_stage1 (same store and output folder under `out`), plus `extra`."""
     from mmm.training.stage1 import load_stage1_config
 
-    return load_stage1_config([
-        f"data.root={root}", "data.synthesize=null", "data.batch_size=8", "model.tokenizer.width=16", "model.tokenizer.num_codes=32",
-        "trainer.max_steps=4", "trainer.val_check_interval=4", "trainer.enable_progress_bar=false", "callbacks.preview_clips=0",
-        "callbacks.usage_plot=false", f"output_dir={out}/s1", f"logger.tracking_uri=sqlite:///{out}/mlflow.db", f"logger.artifact_root={out}/art",
-        *extra,
-    ])
+    return load_stage1_config(
+        [
+            f"data.root={root}",
+            "data.synthesize=null",
+            "data.batch_size=8",
+            "model.tokenizer.width=16",
+            "model.tokenizer.num_codes=32",
+            "trainer.max_steps=4",
+            "trainer.val_check_interval=4",
+            "trainer.enable_progress_bar=false",
+            "callbacks.preview_clips=0",
+            "callbacks.usage_plot=false",
+            f"output_dir={out}/s1",
+            f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
+            f"logger.artifact_root={out}/art",
+            *extra,
+        ]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -45,18 +57,30 @@ def stage1_run(walker_dataset, tmp_path_factory):
     return {"out": out, "result": train_tiny_stage1(walker_dataset, out), "uri": f"sqlite:///{out}/mlflow.db"}
 
 
-# -- items 7, 8: resume never writes beside a foreign checkpoint; registered weights are immutable ---------------
-def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_elsewhere(stage1_run, walker_dataset, tmp_path, monkeypatch):
+# -- items 7, 8: resume never writes beside a foreign checkpoint; registered weights are immutable
+# ---------------
+@pytest.mark.slow
+def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_elsewhere(
+    stage1_run, walker_dataset, tmp_path, monkeypatch
+):
     from mmm.registry.promote import load_promote_config, promote
     from mmm.resolve import resolve_checkpoint
     from mmm.training.stage1 import train_stage1
 
     monkeypatch.chdir(tmp_path)  # the download cache (outputs/cache/models) lands here
     out, first, uri = stage1_run["out"], stage1_run["result"], stage1_run["uri"]
-    decision = promote("tokenizer", load_promote_config([
-        f"data.root={walker_dataset}", "data.synthesize=null", f"logger.tracking_uri={uri}", f"logger.artifact_root={out}/art",
-        f"candidate={first.run_id}",
-    ]))
+    decision = promote(
+        "tokenizer",
+        load_promote_config(
+            [
+                f"data.root={walker_dataset}",
+                "data.synthesize=null",
+                f"logger.tracking_uri={uri}",
+                f"logger.artifact_root={out}/art",
+                f"candidate={first.run_id}",
+            ]
+        ),
+    )
     client = MlflowClient(uri)
     version = client.get_model_version("mmm-tokenizer", decision.version)
     registered_digest = sha256(first.best_checkpoint)
@@ -72,23 +96,50 @@ def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_else
     foreign = elsewhere / "copy.ckpt"
     shutil.copyfile(first.last_checkpoint, foreign)
     before = sha256(foreign)
-    resumed = train_stage1(stage1_config(walker_dataset, out, "trainer.max_steps=8", "data.batch_size=4", "trainer.resume_restart_epoch=true"),
-                           resume=str(foreign))
-    assert sorted(p.name for p in elsewhere.iterdir()) == ["copy.ckpt"] and sha256(foreign) == before  # nothing written beside it
+    resumed = train_stage1(
+        stage1_config(
+            walker_dataset,
+            out,
+            "trainer.max_steps=8",
+            "data.batch_size=4",
+            "trainer.resume_restart_epoch=true",
+        ),
+        resume=str(foreign),
+    )
+    assert (
+        sorted(p.name for p in elsewhere.iterdir()) == ["copy.ckpt"] and sha256(foreign) == before
+    )  # nothing written beside it
     run_dir = Path(resumed.checkpoint_dir).parent
-    assert run_dir.parent == (out / "s1").resolve() and run_dir != Path(first.checkpoint_dir).parent  # a new run folder of the stage
+    assert (
+        run_dir.parent == (out / "s1").resolve() and run_dir != Path(first.checkpoint_dir).parent
+    )  # a new run folder of the stage
     assert torch.load(resumed.last_checkpoint, map_location="cpu", weights_only=True)["global_step"] == 8
     assert resumed.run_id == first.run_id  # the same MLflow run goes on, and re-uploads its checkpoints/
 
     # The run's checkpoints/best.ckpt is now another file; the registered version still loads its own copy.
     uploaded = client.download_artifacts(first.run_id, "checkpoints/best.ckpt", str(tmp_path / "dl"))
     assert sha256(uploaded) != registered_digest
-    _, local, _ = resolve_checkpoint(f"models:/mmm-tokenizer/{decision.version}", uri, "mmm-stage1", str(out / "s1"), "tokenizer", "-", "stage1",
-                                     cache_dir=str(tmp_path / "cache"))
+    _, local, _ = resolve_checkpoint(
+        f"models:/mmm-tokenizer/{decision.version}",
+        uri,
+        "mmm-stage1",
+        str(out / "s1"),
+        "tokenizer",
+        "-",
+        "stage1",
+        cache_dir=str(tmp_path / "cache"),
+    )
     assert sha256(local) == registered_digest
 
     # A registered copy altered in the store is refused when the version is loaded.
-    stored = Path(client.download_artifacts(first.run_id, f"registered/mmm-tokenizer-{registered_digest[:12]}", str(tmp_path / "dl2"))) / "best.ckpt"
+    stored = (
+        Path(
+            client.download_artifacts(
+                first.run_id, f"registered/mmm-tokenizer-{registered_digest[:12]}", str(tmp_path / "dl2")
+            )
+        )
+        / "best.ckpt"
+    )
     artifact_root = Path(client.get_run(first.run_id).info.artifact_uri.removeprefix("file://"))
     frozen = artifact_root / "registered" / f"mmm-tokenizer-{registered_digest[:12]}" / "best.ckpt"
     assert sha256(stored) == sha256(frozen) == registered_digest
@@ -96,48 +147,73 @@ def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_else
     altered[len(altered) // 2] ^= 0xFF  # same size, other content
     frozen.write_bytes(bytes(altered))
     with pytest.raises(FileNotFoundError, match="sha256"):
-        resolve_checkpoint(f"models:/mmm-tokenizer/{decision.version}", uri, "mmm-stage1", str(out / "s1"), "tokenizer", "-", "stage1",
-                           cache_dir=str(tmp_path / "cache2"))
+        resolve_checkpoint(
+            f"models:/mmm-tokenizer/{decision.version}",
+            uri,
+            "mmm-stage1",
+            str(out / "s1"),
+            "tokenizer",
+            "-",
+            "stage1",
+            cache_dir=str(tmp_path / "cache2"),
+        )
 
 
-# -- item 10: a resume that would silently change the run is refused ---------------------------------------------
+# -- item 10: a resume that would silently change the run is refused
+# ---------------------------------------------
+@pytest.mark.slow
 def test_resume_refuses_another_batch_size_or_learning_rate_and_writes_nothing(stage1_run, walker_dataset):
     from mmm.training.stage1 import train_stage1
 
     out, first = stage1_run["out"], stage1_run["result"]
     last = Path(first.last_checkpoint)
     before = {p.name: sha256(p) for p in last.parent.iterdir()}
-    with pytest.raises(ValueError, match=r"batch_size 8 in the checkpoint, 4 now.*trainer.resume_restart_epoch=true"):
-        train_stage1(stage1_config(walker_dataset, out, "trainer.max_steps=8", "data.batch_size=4"), resume=str(last))
+    with pytest.raises(
+        ValueError, match=r"batch_size 8 in the checkpoint, 4 now.*trainer.resume_restart_epoch=true"
+    ):
+        train_stage1(
+            stage1_config(walker_dataset, out, "trainer.max_steps=8", "data.batch_size=4"), resume=str(last)
+        )
     with pytest.raises(ValueError, match=r"optim.lr: 0.001 in the checkpoint, 0.0005 now"):
-        train_stage1(stage1_config(walker_dataset, out, "trainer.max_steps=8", "optim.lr=0.0005"), resume=str(last))
+        train_stage1(
+            stage1_config(walker_dataset, out, "trainer.max_steps=8", "optim.lr=0.0005"), resume=str(last)
+        )
     assert {p.name: sha256(p) for p in last.parent.iterdir()} == before
 
 
 def test_a_changed_world_size_is_refused_unless_the_epoch_restarts():
-    from mmm.training.common import RunState
+    from mmm.callbacks.checkpoints import RunState
 
     def checkpoint():
-        return {"data_position": {"batch_size": 8, "world_size": 1},
-                "loops": {"fit_loop": {"state_dict": {"combined_loader": [{"epoch": 3, "batches": 5}]}}}}
+        return {
+            "data_position": {"batch_size": 8, "world_size": 1},
+            "loops": {"fit_loop": {"state_dict": {"combined_loader": [{"epoch": 3, "batches": 5}]}}},
+        }
 
     module = SimpleNamespace(hparams={})
     with pytest.raises(ValueError, match="world_size 1 in the checkpoint, 2 now"):
         RunState(batch_size=8).check_resume(SimpleNamespace(world_size=2), module, checkpoint())
     restarted = checkpoint()
-    RunState(batch_size=8, restart_epoch=True).on_load_checkpoint(SimpleNamespace(world_size=2), module, restarted)
+    RunState(batch_size=8, restart_epoch=True).on_load_checkpoint(
+        SimpleNamespace(world_size=2), module, restarted
+    )
     assert restarted["loops"]["fit_loop"]["state_dict"]["combined_loader"] == [{"epoch": 3, "batches": 0}]
     same = checkpoint()
-    RunState(batch_size=8).check_resume(SimpleNamespace(world_size=1), module, same)  # nothing changed: accepted as is
+    RunState(batch_size=8).check_resume(
+        SimpleNamespace(world_size=1), module, same
+    )  # nothing changed: accepted as is
     assert same == checkpoint()
 
 
+@pytest.mark.slow
 def test_stage2_resume_with_another_stage1_model_is_refused_naming_both(trained, tmp_path):
     from mmm.training.stage2 import load_stage2_config, train_stage2
 
     walker = trained["walker"]
     other = train_tiny_stage1(walker, tmp_path / "other", "seed=1")  # same codebook shape, other weights
-    recorded = torch.load(trained["checkpoint"], map_location="cpu", weights_only=True)["hyper_parameters"]["stage1"]["identity"]
+    recorded = torch.load(trained["checkpoint"], map_location="cpu", weights_only=True)["hyper_parameters"][
+        "stage1"
+    ]["identity"]
     copy = tmp_path / "copy" / "stage2.ckpt"
     copy.parent.mkdir()
     shutil.copyfile(trained["checkpoint"], copy)
@@ -148,11 +224,15 @@ def test_stage2_resume_with_another_stage1_model_is_refused_naming_both(trained,
     from mmm.fingerprint import tensors_fingerprint
     from mmm.tokenizer.load import load_tokenizer_checkpoint
 
-    assert recorded in message and tensors_fingerprint(load_tokenizer_checkpoint(other.best_checkpoint).state_dict()) in message
+    assert (
+        recorded in message
+        and tensors_fingerprint(load_tokenizer_checkpoint(other.best_checkpoint).state_dict()) in message
+    )
     assert not (tmp_path / "s2").exists() or not any((tmp_path / "s2").glob("*/checkpoints/*.ckpt"))
 
 
-# -- item 9: like with like; unmeasured metrics never promote; criteria validated --------------------------------
+# -- item 9: like with like; unmeasured metrics never promote; criteria validated
+# --------------------------------
 @pytest.fixture
 def client(tmp_path):
     return MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
@@ -166,16 +246,20 @@ def add(client, name, fid, protocol=None):
 CRITERIA = [Criterion("generated/fid", "min", 0.0)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fid", [float("nan"), float("inf"), None])
 def test_unmeasured_metrics_never_promote_even_without_a_champion(client, fid):
     tags = version_tags({"generated/fid": fid} if fid is not None else {}, "d1", "e1", "cfg")
-    version = register_version(client, "m", "runs:/0123456789abcdef0123456789abcdef/bundle", None, tags).version
+    version = register_version(
+        client, "m", "runs:/0123456789abcdef0123456789abcdef/bundle", None, tags
+    ).version
     decision = promote_version(client, "m", version, CRITERIA)
     assert (decision.promoted, decision.alias) == (False, "challenger")
     assert decision.reason.startswith("not measured: generated/fid missing")
     assert client.get_registered_model("m").aliases == {"challenger": version}
 
 
+@pytest.mark.slow
 def test_a_candidate_measured_with_another_protocol_is_not_compared(client):
     paper = {"split": "test", "protocol.replications": 20, "protocol.seed": 0, "evaluator": "e1"}
     champion = add(client, "m", 0.5, paper)
@@ -183,17 +267,31 @@ def test_a_candidate_measured_with_another_protocol_is_not_compared(client):
     quick = add(client, "m", 0.1, {**paper, "protocol.replications": 2})
     decision = promote_version(client, "m", quick, CRITERIA)
     assert (decision.promoted, decision.alias) == (False, "challenger")
-    assert "measured with another protocol than the champion (protocol.replications 2 vs 20)" in decision.reason
+    assert (
+        "measured with another protocol than the champion (protocol.replications 2 vs 20)" in decision.reason
+    )
     assert client.get_model_version_by_alias("m", "champion").version == champion
     same = add(client, "m", 0.1, dict(paper))
     assert promote_version(client, "m", same, CRITERIA).promoted
 
 
-@pytest.mark.parametrize("criterion, complaint", [
-    ("{metric: generated/fid, mode: best, margin: 0.0}", "criteria.text2motion[0].mode='best' must be min"),
-    ("{metric: generated/fid, mode: min, margin: -0.1}", "criteria.text2motion[0].margin=-0.1 must be a finite number >= 0"),
-    ("{metric: generated/fid, mode: min, margin: nan}", "criteria.text2motion[0].margin=nan must be a finite number >= 0"),
-])
+@pytest.mark.parametrize(
+    "criterion, complaint",
+    [
+        (
+            "{metric: generated/fid, mode: best, margin: 0.0}",
+            "criteria.text2motion[0].mode='best' must be min",
+        ),
+        (
+            "{metric: generated/fid, mode: min, margin: -0.1}",
+            "criteria.text2motion[0].margin=-0.1 must be a finite number >= 0",
+        ),
+        (
+            "{metric: generated/fid, mode: min, margin: nan}",
+            "criteria.text2motion[0].margin=nan must be a finite number >= 0",
+        ),
+    ],
+)
 def test_criteria_are_validated_when_the_config_is_loaded(criterion, complaint):
     from mmm.registry.promote import load_promote_config
 
@@ -212,15 +310,22 @@ def _promote_rounds(uri: str, rounds: int, version: str, barrier) -> None:
         promote_version(client, f"m{r}", version, CRITERIA)
 
 
+@pytest.mark.slow
 def test_two_concurrent_promotions_always_leave_the_better_model_champion(tmp_path):
     uri, rounds = f"sqlite:///{tmp_path}/mlflow.db", 8
     client = MlflowClient(uri)
     for r in range(rounds):
         promote_version(client, f"m{r}", add(client, f"m{r}", 0.9), CRITERIA)  # v1: the champion both beat
-        assert (str(add(client, f"m{r}", 0.1)), str(add(client, f"m{r}", 0.5))) == ("2", "3")  # v2 the better, v3 the worse
+        assert (str(add(client, f"m{r}", 0.1)), str(add(client, f"m{r}", 0.5))) == (
+            "2",
+            "3",
+        )  # v2 the better, v3 the worse
     context = multiprocessing.get_context("spawn")
     barrier = context.Barrier(2)
-    racers = [context.Process(target=_promote_rounds, args=(uri, rounds, version, barrier)) for version in ("2", "3")]
+    racers = [
+        context.Process(target=_promote_rounds, args=(uri, rounds, version, barrier))
+        for version in ("2", "3")
+    ]
     for p in racers:
         p.start()
     for p in racers:
@@ -230,7 +335,8 @@ def test_two_concurrent_promotions_always_leave_the_better_model_champion(tmp_pa
     assert champions == ["2"] * rounds
 
 
-# -- item 11: concurrency of run folders, pipelines and token caches ---------------------------------------------
+# -- item 11: concurrency of run folders, pipelines and token caches
+# ---------------------------------------------
 def _fake_run(output_dir: Path, name: str, age: float) -> Path:
     last = output_dir / name / "checkpoints" / "last.ckpt"
     last.parent.mkdir(parents=True)
@@ -242,7 +348,16 @@ def _fake_run(output_dir: Path, name: str, age: float) -> Path:
 def test_resume_last_skips_a_run_another_process_is_writing(tmp_path, monkeypatch):
     from mmm.training.runs import RunLock, claim_run_directory, find_last_checkpoint, resume_target
 
-    for var in ("MMM_RUN_DIR", "TORCHELASTIC_RUN_ID", "SLURM_JOB_ID", "SLURM_STEP_ID", "RANK", "LOCAL_RANK", "SLURM_PROCID", "NODE_RANK"):
+    for var in (
+        "MMM_RUN_DIR",
+        "TORCHELASTIC_RUN_ID",
+        "SLURM_JOB_ID",
+        "SLURM_STEP_ID",
+        "RANK",
+        "LOCAL_RANK",
+        "SLURM_PROCID",
+        "NODE_RANK",
+    ):
         monkeypatch.delenv(var, raising=False)
     older, newer = _fake_run(tmp_path, "older", 100), _fake_run(tmp_path, "newer", 10)
     assert find_last_checkpoint(tmp_path) == newer
@@ -280,6 +395,7 @@ def test_two_launches_in_one_allocation_get_different_run_folders(tmp_path, monk
     assert len(ports) == 2
 
 
+@pytest.mark.slow
 def test_pipelines_on_one_state_file_run_one_at_a_time(tmp_path):
     from mmm.pipeline.runner import Context, Step, run_steps, state_lock
 
@@ -296,6 +412,7 @@ def test_pipelines_on_one_state_file_run_one_at_a_time(tmp_path):
     assert not worker.is_alive() and len(ran) == 1 and state_file.exists()
 
 
+@pytest.mark.slow
 def test_a_token_cache_finished_by_another_process_meanwhile_is_kept(trained, tmp_path, monkeypatch):
     """Two `mmm tokenize` at once: the second to finish finds the first one's folder in place."""
     from mmm.data import tokens as tokens_module
@@ -316,11 +433,11 @@ def test_a_token_cache_finished_by_another_process_meanwhile_is_kept(trained, tm
     assert [p.name for p in folder.parent.iterdir()] == ["abc-def"]  # no temporary folder left
 
 
-# -- item 12: pipeline keys -------------------------------------------------------------------------------------
+# -- item 12: pipeline keys
+# -------------------------------------------------------------------------------------
 def test_dataset_fingerprint_notices_a_rewrite_that_keeps_size_and_mtime(tmp_path):
-    from helpers import write_walker_dataset
-
     from mmm.fingerprint import dataset_fingerprint
+    from tests.helpers import write_walker_dataset
 
     root = write_walker_dataset(tmp_path / "ds", num_clips=10)
     first = dataset_fingerprint(root)
@@ -336,8 +453,11 @@ def test_dataset_fingerprint_notices_a_rewrite_that_keeps_size_and_mtime(tmp_pat
     (root / "labels" / "000001.json").write_text("{}")
     plain = dataset_fingerprint(root)
     with_labels = dataset_fingerprint(root, ("labels", "new_joints"))
-    (root / "labels" / "000001.json").write_text("{\"x\": 1}")
-    assert dataset_fingerprint(root) == plain and dataset_fingerprint(root, ("labels", "new_joints")) != with_labels
+    (root / "labels" / "000001.json").write_text('{"x": 1}')
+    assert (
+        dataset_fingerprint(root) == plain
+        and dataset_fingerprint(root, ("labels", "new_joints")) != with_labels
+    )
 
 
 def test_step_keys_include_the_resolved_config_and_the_code_version(walker_dataset, tmp_path, monkeypatch):
@@ -350,7 +470,11 @@ def test_step_keys_include_the_resolved_config_and_the_code_version(walker_datas
     monkeypatch.setenv("MMM_CONF_DIR", str(conf))
 
     def key() -> str:
-        cfg = steps.to_object(steps.load_pipeline_config([f"data.root={walker_dataset}", "data.synthesize=null", f"state_file={tmp_path}/s.json"]))
+        cfg = steps.to_object(
+            steps.load_pipeline_config(
+                [f"data.root={walker_dataset}", "data.synthesize=null", f"state_file={tmp_path}/s.json"]
+            )
+        )
         step = steps.step_stage1()
         return step_key(step.name, step.inputs(Context(cfg, f"sqlite:///{tmp_path}/mlflow.db")))
 

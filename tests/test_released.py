@@ -53,10 +53,20 @@ def vq_layout(D=263, W=512, C=32, K=8192, down=2, depth=3) -> dict[str, tuple]:
 
 
 def trans_layout(C=32, K=8192, E=1024, clip=512, cross=2, base=7, head=9, block=51) -> dict[str, tuple]:
-    shapes = {"trans_base.learn_tok_emb.weight": (3, C), "trans_base.to_emb.weight": (E, C), "trans_base.to_emb.bias": (E,),
-              "trans_base.cond_emb.weight": (E, clip), "trans_base.cond_emb.bias": (E,), "trans_base.word_emb.weight": (E, clip),
-              "trans_base.word_emb.bias": (E,), "trans_base.pos_embedding.weight": (block, E), "trans_base.pos_embed.embed": (block, 1, E),
-              "trans_head.ln_f.weight": (E,), "trans_head.ln_f.bias": (E,), "trans_head.head.weight": (K, E)}
+    shapes = {
+        "trans_base.learn_tok_emb.weight": (3, C),
+        "trans_base.to_emb.weight": (E, C),
+        "trans_base.to_emb.bias": (E,),
+        "trans_base.cond_emb.weight": (E, clip),
+        "trans_base.cond_emb.bias": (E,),
+        "trans_base.word_emb.weight": (E, clip),
+        "trans_base.word_emb.bias": (E,),
+        "trans_base.pos_embedding.weight": (block, E),
+        "trans_base.pos_embed.embed": (block, 1, E),
+        "trans_head.ln_f.weight": (E,),
+        "trans_head.ln_f.bias": (E,),
+        "trans_head.head.weight": (K, E),
+    }
 
     def block_of(name, is_cross):
         for ln in ("ln1", "ln2") + (("ln3",) if is_cross else ()):
@@ -114,7 +124,13 @@ def test_paper_size_layout_maps_every_key_onto_the_released_variant():
     mapped, inside, tsizes = transformer_from_released(trans, "trans")
     assert set(inside) == set(net)
     cfg = tsizes.config(num_heads=16)
-    assert (cfg.num_layers, cfg.num_cross_layers, cfg.embed_dim, cfg.max_tokens, cfg.variant) == (18, 2, 1024, 50, "released")
+    assert (cfg.num_layers, cfg.num_cross_layers, cfg.embed_dim, cfg.max_tokens, cfg.variant) == (
+        18,
+        2,
+        1024,
+        50,
+        "released",
+    )
     assert (sizes.width, sizes.num_codes, sizes.code_dim, sizes.down_t, sizes.depth) == (512, 8192, 32, 2, 3)
     with torch.device("meta"):
         tok = TokenizerModule(263, sizes.config(), {}, {})
@@ -131,7 +147,11 @@ def test_paper_size_layout_maps_every_key_onto_the_released_variant():
 def test_missing_extra_or_misshaped_keys_are_refused_by_name(which, problem):
     net, trans = released_pair()
     state = net if which == "vq" else trans
-    key = "vqvae.decoder.model.2.0.model.1.conv2.weight" if which == "vq" else "trans_head.blocks.2.attn.value.bias"
+    key = (
+        "vqvae.decoder.model.2.0.model.1.conv2.weight"
+        if which == "vq"
+        else "trans_head.blocks.2.attn.value.bias"
+    )
     if problem == "missing":
         del state[key]
     elif problem == "extra":
@@ -182,15 +202,43 @@ def release(tmp_path_factory):
     torch.save({k: v.half() for k, v in clip.model.state_dict().items()}, root / "clip.bin")
     (root / "meta").mkdir()
     np.save(root / "meta" / "mean.npy", np.random.default_rng(0).normal(size=263).astype(np.float32) * 0.1)
-    np.save(root / "meta" / "std.npy", np.random.default_rng(1).uniform(0.5, 1.5, size=263).astype(np.float32))
-    return {"root": root, "net": net, "trans": trans, "vq": root / "vq.pth", "transformer": root / "trans.pth", "clip": root / "clip.bin",
-            "vocab": vocab, "stats": root / "meta"}
+    np.save(
+        root / "meta" / "std.npy", np.random.default_rng(1).uniform(0.5, 1.5, size=263).astype(np.float32)
+    )
+    return {
+        "root": root,
+        "net": net,
+        "trans": trans,
+        "vq": root / "vq.pth",
+        "transformer": root / "trans.pth",
+        "clip": root / "clip.bin",
+        "vocab": vocab,
+        "stats": root / "meta",
+    }
 
 
 def import_args(release, tmp, *extra):
-    return ["import", "released", "--vq", str(release["vq"]), "--transformer", str(release["transformer"]), "--stats", str(release["stats"]),
-            "--clip", str(release["clip"]), "--clip-vocab", str(release["vocab"]), "--heads", "2", "--out-dir", str(tmp / "imported"),
-            "--tracking-uri", f"sqlite:///{tmp}/mlflow.db", *extra]
+    return [
+        "import",
+        "released",
+        "--vq",
+        str(release["vq"]),
+        "--transformer",
+        str(release["transformer"]),
+        "--stats",
+        str(release["stats"]),
+        "--clip",
+        str(release["clip"]),
+        "--clip-vocab",
+        str(release["vocab"]),
+        "--heads",
+        "2",
+        "--out-dir",
+        str(tmp / "imported"),
+        "--tracking-uri",
+        f"sqlite:///{tmp}/mlflow.db",
+        *extra,
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -200,6 +248,7 @@ def imported(release, tmp_path_factory):
     return {"tmp": tmp, "uri": f"sqlite:///{tmp}/mlflow.db"}
 
 
+@pytest.mark.slow
 def test_import_registers_both_models_tagged_with_the_source_files(release, imported):
     from mlflow import MlflowClient
 
@@ -209,71 +258,190 @@ def test_import_registers_both_models_tagged_with_the_source_files(release, impo
     t2m = client.get_model_version_by_alias("mmm-text2motion", "released")
     assert tok.tags["mmm.imported"] == t2m.tags["mmm.imported"] == "released"
     assert tok.tags["source.vq.sha256"] == t2m.tags["source.vq.sha256"] == sha["vq"]
-    assert t2m.tags["source.transformer.sha256"] == sha["transformer"] and t2m.tags["source.clip.sha256"] == sha["clip"]
+    assert (
+        t2m.tags["source.transformer.sha256"] == sha["transformer"]
+        and t2m.tags["source.clip.sha256"] == sha["clip"]
+    )
     # The imported checkpoints: the release's statistics and settings, its weights unchanged.
-    ckpt = torch.load(next((imported["tmp"] / "imported").glob("released-*/transformer-*.ckpt")), weights_only=True)
+    ckpt = torch.load(
+        next((imported["tmp"] / "imported").glob("released-*/transformer-*.ckpt")), weights_only=True
+    )
     hp = ckpt["hyper_parameters"]
-    assert hp["model"]["variant"] == "released" and hp["model"]["num_cross_layers"] == 2 and hp["corruption"]["cond_drop"] == 0.0
+    assert (
+        hp["model"]["variant"] == "released"
+        and hp["model"]["num_cross_layers"] == 2
+        and hp["corruption"]["cond_drop"] == 0.0
+    )
     assert (hp["text_encoder"]["precision"], hp["text_encoder"]["words"]) == ("float16", "all")
     key = release["trans"]["trans_base.blocks.0.attn.key.weight"]
     assert torch.equal(ckpt["state_dict"]["transformer.layers.0.attn.kv.weight"][:32], key)
-    tok_ckpt = torch.load(next((imported["tmp"] / "imported").glob("released-*/tokenizer.ckpt")), weights_only=True)
+    tok_ckpt = torch.load(
+        next((imported["tmp"] / "imported").glob("released-*/tokenizer.ckpt")), weights_only=True
+    )
     assert torch.equal(tok_ckpt["state_dict"]["std"], torch.from_numpy(np.load(release["stats"] / "std.npy")))
     # Importing the same files again reuses the versions.
     assert main(import_args(release, imported["tmp"])) == 0
     assert len(client.search_model_versions("name='mmm-text2motion'")) == 1
 
 
+@pytest.mark.slow
 def test_imported_models_generate_edit_and_serve(release, imported, tmp_path, capsys):
     import mlflow
 
     model = ["--model", "models:/mmm-text2motion@released", "--tracking-uri", imported["uri"]]
     out = tmp_path / "gen"
-    assert main(["generate", "--text", "a person walks", "--length", "48", "--num-samples", "2", "--out", str(out), *model]) == 0
+    assert (
+        main(
+            [
+                "generate",
+                "--text",
+                "a person walks",
+                "--length",
+                "48",
+                "--num-samples",
+                "2",
+                "--out",
+                str(out),
+                *model,
+            ]
+        )
+        == 0
+    )
     joints = np.load(out / "0" / "joints.npy")
     assert joints.shape == (48, 22, 3) and np.isfinite(joints).all()
-    assert main(["generate", "--text", "a person walks", "--length", "48", "--out", str(tmp_path / "rel"), "--decoding", "released", *model]) == 0
+    assert (
+        main(
+            [
+                "generate",
+                "--text",
+                "a person walks",
+                "--length",
+                "48",
+                "--out",
+                str(tmp_path / "rel"),
+                "--decoding",
+                "released",
+                *model,
+            ]
+        )
+        == 0
+    )
     source = np.load(out / "0" / "features.npy")
-    assert main(["edit", "inbetween", "--source", str(out / "0" / "features.npy"), "--keep", "0:16,32:48", "--text", "hello",
-                 "--out", str(tmp_path / "edit"), *model]) == 0
+    assert (
+        main(
+            [
+                "edit",
+                "inbetween",
+                "--source",
+                str(out / "0" / "features.npy"),
+                "--keep",
+                "0:16,32:48",
+                "--text",
+                "hello",
+                "--out",
+                str(tmp_path / "edit"),
+                *model,
+            ]
+        )
+        == 0
+    )
     edited = np.load(tmp_path / "edit" / "0" / "features.npy")
     assert edited.shape == source.shape
-    assert main(["edit", "complete", "--source", str(out / "0" / "features.npy"), "--keep", "0:24", "--out", str(tmp_path / "done"), *model]) == 0
+    assert (
+        main(
+            [
+                "edit",
+                "complete",
+                "--source",
+                str(out / "0" / "features.npy"),
+                "--keep",
+                "0:24",
+                "--out",
+                str(tmp_path / "done"),
+                *model,
+            ]
+        )
+        == 0
+    )
     mlflow.set_tracking_uri(imported["uri"])
     served = mlflow.pyfunc.load_model("models:/mmm-text2motion@released")
     rows = served.predict({"text": ["a person walks"], "length": [40], "seed": [3]})
     assert np.asarray(rows[0]["joints"]).shape == (40, 22, 3)
 
 
+@pytest.mark.slow
 def test_export_then_import_gives_identical_weights(release, tmp_path):
     from mmm.generation.model import TextToMotion
     from mmm.released.importer import export_released, import_released
 
-    first = import_released(release["vq"], release["stats"], release["transformer"], release["clip"], release["vocab"], heads=2,
-                            out_dir=tmp_path / "a", register=False)
+    first = import_released(
+        release["vq"],
+        release["stats"],
+        release["transformer"],
+        release["clip"],
+        release["vocab"],
+        heads=2,
+        out_dir=tmp_path / "a",
+        register=False,
+    )
     # The CLIP files the checkpoint records lie outside outputs/: they are read only when named.
-    model = TextToMotion.from_files(first.transformer_checkpoint, first.tokenizer_checkpoint,
-                                    text_files={"weights": str(release["clip"]), "vocab": str(release["vocab"])})
+    model = TextToMotion.from_files(
+        first.transformer_checkpoint,
+        first.tokenizer_checkpoint,
+        text_files={"weights": str(release["clip"]), "vocab": str(release["vocab"])},
+    )
     net, trans = export_released(model.tokenizer, model.transformer)
     # What the release's own files hold comes back, but the unused learned pos_embedding (not kept).
-    assert set(net["net"]) == set(release["net"]) and all(torch.equal(net["net"][k], release["net"][k]) for k in net["net"])
+    assert set(net["net"]) == set(release["net"]) and all(
+        torch.equal(net["net"][k], release["net"][k]) for k in net["net"]
+    )
     assert set(trans["trans"]) == set(release["trans"])
     differ = [k for k in trans["trans"] if not torch.equal(trans["trans"][k], release["trans"][k])]
     assert differ == ["trans_base.pos_embedding.weight"]
     torch.save(net, tmp_path / "vq.pth")
     torch.save(trans, tmp_path / "trans.pth")
-    second = import_released(tmp_path / "vq.pth", release["stats"], tmp_path / "trans.pth", release["clip"], release["vocab"], heads=2,
-                             out_dir=tmp_path / "b", register=False)
-    for a, b in ((first.tokenizer_checkpoint, second.tokenizer_checkpoint), (first.transformer_checkpoint, second.transformer_checkpoint)):
-        sa, sb = torch.load(a, weights_only=True)["state_dict"], torch.load(b, weights_only=True)["state_dict"]
+    second = import_released(
+        tmp_path / "vq.pth",
+        release["stats"],
+        tmp_path / "trans.pth",
+        release["clip"],
+        release["vocab"],
+        heads=2,
+        out_dir=tmp_path / "b",
+        register=False,
+    )
+    for a, b in (
+        (first.tokenizer_checkpoint, second.tokenizer_checkpoint),
+        (first.transformer_checkpoint, second.transformer_checkpoint),
+    ):
+        sa, sb = (
+            torch.load(a, weights_only=True)["state_dict"],
+            torch.load(b, weights_only=True)["state_dict"],
+        )
         assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
+@pytest.mark.slow
 def test_cli_export_writes_the_released_layout(imported, tmp_path):
-    assert main(["export", "released", "--model", "models:/mmm-text2motion@released", "--tracking-uri", imported["uri"],
-                 "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "export",
+                "released",
+                "--model",
+                "models:/mmm-text2motion@released",
+                "--tracking-uri",
+                imported["uri"],
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     assert len(torch.load(tmp_path / "vq.pth", weights_only=True)["net"]) == len(vq_layout(**SMALL_VQ))
-    assert len(torch.load(tmp_path / "trans.pth", weights_only=True)["trans"]) == len(trans_layout(**SMALL_TRANS)) + len(vq_layout(**SMALL_VQ))
+    assert len(torch.load(tmp_path / "trans.pth", weights_only=True)["trans"]) == len(
+        trans_layout(**SMALL_TRANS)
+    ) + len(vq_layout(**SMALL_VQ))
 
 
 def _bad_inputs(release, tmp):
@@ -284,7 +452,10 @@ def _bad_inputs(release, tmp):
     truncated = tmp / "truncated.pth"
     truncated.write_bytes(release["vq"].read_bytes()[:2000])
     upper = tmp / "upper.pth"
-    torch.save({"net": {"encoder_upper.model.0.weight": torch.zeros(2), "quantizer_lower.codebook": torch.zeros(2)}}, upper)
+    torch.save(
+        {"net": {"encoder_upper.model.0.weight": torch.zeros(2), "quantizer_lower.codebook": torch.zeros(2)}},
+        upper,
+    )
     wrong_stats = tmp / "stats"
     wrong_stats.mkdir()
     np.save(wrong_stats / "mean.npy", np.zeros(251, np.float32))
@@ -304,6 +475,7 @@ def _bad_inputs(release, tmp):
     ]
 
 
+@pytest.mark.slow
 def test_bad_files_exit_2_naming_the_file_and_change_nothing(release, tmp_path, capsys):
     from mlflow import MlflowClient
 
@@ -319,11 +491,39 @@ def test_bad_files_exit_2_naming_the_file_and_change_nothing(release, tmp_path, 
         assert main(args) == 2, changes
         err = capsys.readouterr().err
         assert needle in err and "Traceback" not in err, (changes, err)
-        assert not (tmp_path / "imported").exists() or not any((tmp_path / "imported").rglob("*.ckpt")), changes
-    assert main(["import", "released-upperbody", "--vq", str(release["vq"]), "--stats", str(release["stats"]), "--tracking-uri", uri]) == 2
+        assert not (tmp_path / "imported").exists() or not any((tmp_path / "imported").rglob("*.ckpt")), (
+            changes
+        )
+    assert (
+        main(
+            [
+                "import",
+                "released-upperbody",
+                "--vq",
+                str(release["vq"]),
+                "--stats",
+                str(release["stats"]),
+                "--tracking-uri",
+                uri,
+            ]
+        )
+        == 2
+    )
     assert "height" in capsys.readouterr().err
-    assert main(import_args(release, tmp_path)[:4] + ["--transformer", str(release["transformer"]), "--stats", str(release["stats"]),
-                                                      "--tracking-uri", uri]) == 2
+    assert (
+        main(
+            import_args(release, tmp_path)[:4]
+            + [
+                "--transformer",
+                str(release["transformer"]),
+                "--stats",
+                str(release["stats"]),
+                "--tracking-uri",
+                uri,
+            ]
+        )
+        == 2
+    )
     assert "--clip" in capsys.readouterr().err
     assert MlflowClient(uri).search_registered_models() == []
 
@@ -337,8 +537,12 @@ def twin_models(cross: int = 1):
     one's head bias zeroed, its null text unused."""
     torch.manual_seed(0)
     codebook = torch.randn(20, 6)
-    fixed = MaskedMotionTransformer(codebook, TransformerConfig(**{**CFG, "num_cross_layers": cross}), 12, 10).eval()
-    released = MaskedMotionTransformer(codebook, TransformerConfig(**{**CFG, "num_cross_layers": cross, "variant": "released"}), 12, 10).eval()
+    fixed = MaskedMotionTransformer(
+        codebook, TransformerConfig(**{**CFG, "num_cross_layers": cross}), 12, 10
+    ).eval()
+    released = MaskedMotionTransformer(
+        codebook, TransformerConfig(**{**CFG, "num_cross_layers": cross, "variant": "released"}), 12, 10
+    ).eval()
     with torch.no_grad():
         for p in fixed.parameters():
             p.add_(0.1 * torch.randn_like(p))
@@ -354,7 +558,7 @@ def batch(B=3, M=10, K=20, Lw=7, seed=1):
     tokens = torch.randint(0, K, (B, M), generator=g)
     tokens[torch.rand(B, M, generator=g) < 0.3] = K + 2
     for b, n in enumerate(lengths.tolist()):
-        tokens[b, n], tokens[b, n + 1:] = K, K + 1
+        tokens[b, n], tokens[b, n + 1 :] = K, K + 1
     word_mask = torch.arange(Lw)[None] < torch.tensor([7, 4, 2])[:B, None]
     return tokens, torch.randn(B, 12, generator=g), torch.randn(B, Lw, 10, generator=g), word_mask
 
@@ -389,7 +593,10 @@ def test_released_cross_attention_reads_every_word_position():
     full = torch.ones_like(word_mask)
     with torch.no_grad():
         hook = with_second_table(fixed, tokens.shape[1])
-        fixed_masked, fixed_full = fixed(tokens, sentence, words, word_mask), fixed(tokens, sentence, words, full)
+        fixed_masked, fixed_full = (
+            fixed(tokens, sentence, words, word_mask),
+            fixed(tokens, sentence, words, full),
+        )
         hook.remove()
         theirs = released(tokens, sentence, words, word_mask)
     assert torch.allclose(theirs, fixed_full, atol=1e-5)  # the mask is ignored ...
@@ -411,7 +618,9 @@ def test_released_text_dropout_is_zero_text_with_the_sentence_hidden():
         b = released(tokens, torch.randn_like(sentence), torch.randn_like(words), word_mask, drop)
         zero_text = released(tokens, torch.zeros_like(sentence), torch.zeros_like(words), word_mask)
     assert torch.equal(a[drop], b[drop])  # nothing of the text reaches a dropped sample
-    assert not torch.allclose(a[drop], zero_text[drop], atol=1e-4)  # the sentence token is hidden, not just zero
+    assert not torch.allclose(
+        a[drop], zero_text[drop], atol=1e-4
+    )  # the sentence token is hidden, not just zero
     assert not hasattr(released, "null_sentence")
 
 
@@ -435,11 +644,17 @@ def test_released_variant_equals_the_documented_forward_pass():
         return block.mlp[2](F.gelu(block.mlp[0](x)))
 
     with torch.no_grad():
-        vectors = torch.where((tokens < K)[..., None], model.codebook[tokens.clamp(max=K - 1)], model.special.weight[(tokens - K).clamp(min=0)])
+        vectors = torch.where(
+            (tokens < K)[..., None],
+            model.codebook[tokens.clamp(max=K - 1)],
+            model.special.weight[(tokens - K).clamp(min=0)],
+        )
         x = model.token_proj(vectors) + table(M, E)
         w = model.word_proj(words)
         for block in model.cross_layers:
-            x = x + attend(block.attn, block.ln_x(x), block.ln_words(w), torch.ones(B, w.shape[1], dtype=torch.bool))
+            x = x + attend(
+                block.attn, block.ln_x(x), block.ln_words(w), torch.ones(B, w.shape[1], dtype=torch.bool)
+            )
             x = x + mlp(block, block.ln2(x))
         x = torch.cat((model.sentence_proj(sentence)[:, None], x), 1) + table(M + 1, E)
         visible = torch.cat((torch.ones(B, 1, dtype=torch.bool), tokens != K + 1), 1)
@@ -490,12 +705,18 @@ def test_released_decoding_passes_and_masked_counts():
         S = torch.tensor(float(round(10 * L / 49))) + 1e-8  # float32, as the release computes it
         for s, tokens in enumerate(model.calls):
             t = torch.clip(s / S, max=1)
-            expected = max(int(torch.floor(torch.cos(t * math.pi / 2) * L)), 1)  # 6 of 14 at t = 2/3: float32 rounds cos down
+            expected = max(
+                int(torch.floor(torch.cos(t * math.pi / 2) * L)), 1
+            )  # 6 of 14 at t = 2/3: float32 rounds cos down
             assert int((tokens == model.mask_id).sum()) == expected, (L, s)
     model = Recorder()  # a batch always runs every step
-    sample_tokens(model, text_for(3), torch.tensor([3, 20, 49]), cfg, generator=torch.Generator().manual_seed(0))
+    sample_tokens(
+        model, text_for(3), torch.tensor([3, 20, 49]), cfg, generator=torch.Generator().manual_seed(0)
+    )
     assert len(model.calls) == 10
-    assert all(int((c[0] == model.mask_id).sum()) == 1 for c in model.calls[2:])  # the 3-code sample, finished, re-predicts one
+    assert all(
+        int((c[0] == model.mask_id).sum()) == 1 for c in model.calls[2:]
+    )  # the 3-code sample, finished, re-predicts one
 
 
 def test_released_decoding_remasks_the_least_confident_of_the_last_draw():
@@ -503,7 +724,13 @@ def test_released_decoding_remasks_the_least_confident_of_the_last_draw():
 
     model = Recorder()
     L = 30
-    out = sample_tokens(model, text_for(1), torch.tensor([L]), SamplingConfig(decoding="released", temperature=0), generator=None)
+    out = sample_tokens(
+        model,
+        text_for(1),
+        torch.tensor([L]),
+        SamplingConfig(decoding="released", temperature=0),
+        generator=None,
+    )
     probs = model.logits[0].softmax(-1)
     drawn = model.logits[0].argmax(-1)
     assert torch.equal(out.tokens[0, :L], drawn[:L])  # temperature 0: the most likely code everywhere
@@ -518,13 +745,25 @@ def test_released_decoding_is_seeded_and_keeps_given_codes():
     from mmm.generation.sampler import SamplingConfig, sample_tokens
 
     cfg = SamplingConfig(decoding="released")
-    runs = [sample_tokens(Recorder(), text_for(2), torch.tensor([12, 30]), cfg, generator=torch.Generator().manual_seed(s)).tokens for s in (5, 5, 6)]
+    runs = [
+        sample_tokens(
+            Recorder(), text_for(2), torch.tensor([12, 30]), cfg, generator=torch.Generator().manual_seed(s)
+        ).tokens
+        for s in (5, 5, 6)
+    ]
     assert torch.equal(runs[0], runs[1]) and not torch.equal(runs[0], runs[2])
     keep_mask = torch.zeros(2, 30, dtype=torch.bool)
     keep_mask[:, :6] = True
     keep = torch.full((2, 30), 3)
-    out = sample_tokens(Recorder(), text_for(2), torch.tensor([12, 30]), cfg, keep_tokens=keep, keep_mask=keep_mask,
-                        generator=torch.Generator().manual_seed(0)).tokens
+    out = sample_tokens(
+        Recorder(),
+        text_for(2),
+        torch.tensor([12, 30]),
+        cfg,
+        keep_tokens=keep,
+        keep_mask=keep_mask,
+        generator=torch.Generator().manual_seed(0),
+    ).tokens
     assert (out[:, :6] == 3).all()
 
 
@@ -535,7 +774,13 @@ def test_released_decoding_refuses_what_the_release_does_not_do():
         with pytest.raises(ValueError, match="released decoding"):
             SamplingConfig(decoding="released", **bad)
     with pytest.raises(ValueError, match="decoding=package"):
-        sample_tokens(Recorder(), text_for(1), torch.tensor([5]), SamplingConfig(decoding="released"), no_text=torch.tensor([True]))
+        sample_tokens(
+            Recorder(),
+            text_for(1),
+            torch.tensor([5]),
+            SamplingConfig(decoding="released"),
+            no_text=torch.tensor([True]),
+        )
 
 
 # -- evaluator-style statistics -----------------------------------------------------------------------------
@@ -548,7 +793,9 @@ def test_evaluator_style_std_matches_the_released_statistics(reference_dir):
     ratio = ours / released
     assert np.abs(ratio - 1).max() < 0.011  # within 1.1% everywhere (the release's own data snapshot)
     scaled = np.r_[0:4, 259:263]
-    assert np.allclose(std[scaled] / ours[scaled], 25.0) and np.array_equal(np.delete(ours, scaled), np.delete(std, scaled).astype(np.float32))
+    assert np.allclose(std[scaled] / ours[scaled], 25.0) and np.array_equal(
+        np.delete(ours, scaled), np.delete(std, scaled).astype(np.float32)
+    )
 
 
 def test_data_stats_evaluator_style_writes_a_stats_folder(walker_dataset, tmp_path, capsys):
@@ -573,24 +820,44 @@ def test_stage1_normalizes_with_the_configured_statistics(walker_dataset, tmp_pa
     files.mkdir()
     np.save(files / "mean.npy", np.full(263, 0.5, np.float32))
     np.save(files / "std.npy", np.full(263, 2.0, np.float32))
-    dm = TokenizerDataModule(DataConfig(root=str(walker_dataset), synthesize=None, window=64), 0,
-                             NormalizationConfig(statistics=statistics, dir=str(files) if statistics == "files" else None))
+    dm = TokenizerDataModule(
+        DataConfig(root=str(walker_dataset), synthesize=None, window=64),
+        0,
+        NormalizationConfig(statistics=statistics, dir=str(files) if statistics == "files" else None),
+    )
     dm.setup("fit")
     std = np.load(walker_dataset / "Std.npy")
-    expected = {"evaluator_style": np.r_[std[:4] / 25, std[4:-4], std[-4:] / 25], "dataset": std, "files": np.full(263, 2.0)}[statistics]
+    expected = {
+        "evaluator_style": np.r_[std[:4] / 25, std[4:-4], std[-4:] / 25],
+        "dataset": std,
+        "files": np.full(263, 2.0),
+    }[statistics]
     assert np.allclose(dm.std, expected, rtol=1e-6)
     window = dm.datasets["train"][0]
     assert window.shape == (64, 263)
 
 
+@pytest.mark.slow
 def test_imported_models_evaluate(imported, tmp_path, capsys):
     from mmm.data.synthetic.generate import generate_dataset
 
     data = tmp_path / "synthetic"
     generate_dataset(data, num_clips=30, seed=0)
-    assert main(["evaluate", "text2motion=models:/mmm-text2motion@released", "what=[adherence]", "adherence_max_items=4",
-                 f"data.root={data}", f"logger.tracking_uri={imported['uri']}", f"logger.artifact_root={tmp_path}/art",
-                 f"output_dir={tmp_path}/eval"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "text2motion=models:/mmm-text2motion@released",
+                "what=[adherence]",
+                "adherence_max_items=4",
+                f"data.root={data}",
+                f"logger.tracking_uri={imported['uri']}",
+                f"logger.artifact_root={tmp_path}/art",
+                f"output_dir={tmp_path}/eval",
+            ]
+        )
+        == 0
+    )
     assert "Prompt adherence" in (tmp_path / "eval" / "evaluation.md").read_text()
 
 
@@ -603,17 +870,49 @@ def test_recipe_paper_sets_the_released_recipe_for_every_command():
     from mmm.training.stage2 import load_stage2_config
 
     s1 = load_stage1_config(["recipe=paper"])
-    assert (s1.model.tokenizer.width, s1.model.tokenizer.num_codes, s1.optim.lr, s1.optim.warmup_steps, list(s1.optim.milestones)) == (512, 8192, 2e-4, 1000, [200000])
-    assert (s1.data.batch_size, s1.trainer.max_steps, s1.normalization.statistics, s1.normalization.feat_bias) == (256, 300000, "evaluator_style", 25.0)
+    assert (
+        s1.model.tokenizer.width,
+        s1.model.tokenizer.num_codes,
+        s1.optim.lr,
+        s1.optim.warmup_steps,
+        list(s1.optim.milestones),
+    ) == (512, 8192, 2e-4, 1000, [200000])
+    assert (
+        s1.data.batch_size,
+        s1.trainer.max_steps,
+        s1.normalization.statistics,
+        s1.normalization.feat_bias,
+    ) == (256, 300000, "evaluator_style", 25.0)
     s2 = load_stage2_config(["recipe=paper"])
-    assert (s2.model.transformer.num_layers, s2.model.transformer.num_cross_layers, s2.model.transformer.variant) == (18, 2, "fixed")
-    assert (s2.text.encoder, s2.text.clip_precision, s2.corruption.cond_drop, s2.corruption.mask_schedule, s2.corruption.pkeep) == ("clip", "float16", 0.0, "uniform", 0.5)
-    assert (s2.data.batch_size, s2.optim.lr, list(s2.optim.betas), s2.optim.weight_decay, list(s2.optim.milestones), s2.trainer.max_steps) == \
-        (128, 2e-4, [0.5, 0.9], 1e-6, [150000], 300000)
+    assert (
+        s2.model.transformer.num_layers,
+        s2.model.transformer.num_cross_layers,
+        s2.model.transformer.variant,
+    ) == (18, 2, "fixed")
+    assert (
+        s2.text.encoder,
+        s2.text.clip_precision,
+        s2.corruption.cond_drop,
+        s2.corruption.mask_schedule,
+        s2.corruption.pkeep,
+    ) == ("clip", "float16", 0.0, "uniform", 0.5)
+    assert (
+        s2.data.batch_size,
+        s2.optim.lr,
+        list(s2.optim.betas),
+        s2.optim.weight_decay,
+        list(s2.optim.milestones),
+        s2.trainer.max_steps,
+    ) == (128, 2e-4, [0.5, 0.9], 1e-6, [150000], 300000)
     assert load_length_config(["recipe=paper"]).text.encoder == "clip"
     assert load_pipeline_config(["recipe=paper"]).overrides.stage2 == ["recipe=paper"]
     # The command line still wins, and the part-aware commands take the recipe of the config they extend.
-    assert load_stage1_config(["recipe=paper", "trainer=cpu", "data.batch_size=8"], parts=True).trainer.accelerator == "cpu"
+    assert (
+        load_stage1_config(
+            ["recipe=paper", "trainer=cpu", "data.batch_size=8"], parts=True
+        ).trainer.accelerator
+        == "cpu"
+    )
     assert load_stage1_config(["recipe=paper", "data.batch_size=8"]).data.batch_size == 8
     with pytest.raises(ConfigError, match="recipes: paper"):
         load_stage1_config(["recipe=nope"])

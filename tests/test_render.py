@@ -10,8 +10,7 @@ import torch
 from PIL import Image
 
 from mmm.motion.skeleton import KIT_SKELETON, T2M_SKELETON, forward_kinematics
-from mmm.render import EncoderNotFound, frames, render_files, render_frames, render_gif, render_mp4
-from mmm.render import stick
+from mmm.render import EncoderNotFound, frames, render_files, render_frames, render_gif, render_mp4, stick
 from mmm.render.stick import COLOR
 
 REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "humanml3d"
@@ -20,7 +19,9 @@ RIGHT = (COLOR["right_leg"], COLOR["right_arm"])
 LIMBS = LEFT + RIGHT + (COLOR["spine"], COLOR["head"])
 
 
-def rest_pose(num_frames: int = 1, step=(0.0, 0.0, 0.0), skeleton=T2M_SKELETON, offsets=None, root_height=0.83):
+def rest_pose(
+    num_frames: int = 1, step=(0.0, 0.0, 0.0), skeleton=T2M_SKELETON, offsets=None, root_height=0.83
+):
     """The rest pose (arms hanging, facing +Z) for num_frames, the root moving by `step` per frame."""
     quats = torch.zeros(num_frames, skeleton.num_joints, 4, dtype=torch.float64)
     quats[..., 0] = 1.0
@@ -163,7 +164,10 @@ def test_bad_files_raise_value_error_naming_file_and_shape(tmp_path):
         "wrong_shape.npy": (np.zeros((10, 22, 2), np.float32), ["(10, 22, 2)", "(T, 22, 3)", "(T, 263)"]),
         "wrong_width.npy": (np.zeros((10, 262), np.float32), ["(10, 262)", "(T, 263)"]),
         "empty.npy": (np.zeros((0, 22, 3), np.float32), ["(0, 22, 3)", "0 frames"]),
-        "nan.npy": (np.where(np.arange(4)[:, None, None] == 2, np.nan, rest_pose(4)), ["NaN", "(4, 22, 3)", "[2]"]),
+        "nan.npy": (
+            np.where(np.arange(4)[:, None, None] == 2, np.nan, rest_pose(4)),
+            ["NaN", "(4, 22, 3)", "[2]"],
+        ),
     }
     for name, (array, expected) in cases.items():
         path = tmp_path / name
@@ -202,8 +206,9 @@ def test_render_files_gif_with_skeleton_fps(tmp_path):
 
 
 def test_png_contact_sheet_size(tmp_path):
-    out = render_frames([rest_pose(10), rest_pose(25)], tmp_path / "sheet.png", ["one", "two"], num_frames=4,
-                        size=(100, 90))
+    out = render_frames(
+        [rest_pose(10), rest_pose(25)], tmp_path / "sheet.png", ["one", "two"], num_frames=4, size=(100, 90)
+    )
     with Image.open(out) as im:
         assert im.size == (400, 180)
         rgb = np.asarray(im.convert("RGB"))
@@ -211,7 +216,7 @@ def test_png_contact_sheet_size(tmp_path):
     # every cell of both rows shows a figure
     for row in range(2):
         for col in range(4):
-            assert left_leg[row * 90:(row + 1) * 90, col * 100:(col + 1) * 100].sum() > 5
+            assert left_leg[row * 90 : (row + 1) * 90, col * 100 : (col + 1) * 100].sum() > 5
 
 
 def test_gif_leaves_no_temporary_file(tmp_path, monkeypatch):
@@ -219,6 +224,7 @@ def test_gif_leaves_no_temporary_file(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["anim.gif"]
     with Image.open(out) as gif:
         assert gif.n_frames == 8 and gif.size == (192, 96) and gif.info["duration"] == 100
+
     # a failing writer leaves neither a partial output nor a temporary file
     def broken_save(self, fp, *args, **kwargs):
         Path(fp).write_bytes(b"GIF89a partial")
@@ -233,8 +239,9 @@ def test_gif_leaves_no_temporary_file(tmp_path, monkeypatch):
 def test_mp4_written_when_an_encoder_exists(tmp_path):
     if stick._find_ffmpeg() is None:
         pytest.skip("no MP4 encoder installed (pip install imageio-ffmpeg)")
-    out = render_mp4([rest_pose(10, step=(0, 0, 0.02)), rest_pose(6)], tmp_path / "a.mp4", ["a", "b"],
-                     size=(101, 99))  # odd sizes are padded for yuv420p
+    out = render_mp4(
+        [rest_pose(10, step=(0, 0, 0.02)), rest_pose(6)], tmp_path / "a.mp4", ["a", "b"], size=(101, 99)
+    )  # odd sizes are padded for yuv420p
     assert out == tmp_path / "a.mp4"
     data = out.read_bytes()
     assert len(data) > 500 and data[4:8] == b"ftyp"

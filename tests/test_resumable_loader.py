@@ -2,7 +2,7 @@
 
 import torch
 
-from mmm.data import sampling
+from mmm.data import resumable as sampling
 from mmm.data.resumable import ResumableDataLoader, ShardedRandomSampler
 
 

@@ -48,20 +48,30 @@ def registered(trained, store, tmp_path_factory):
 
     from mmm.registry.bundle import log_bundle
 
-    stage1 = torch.load(trained["checkpoint"], map_location="cpu", weights_only=True)["hyper_parameters"]["stage1"]["checkpoint"]
+    stage1 = torch.load(trained["checkpoint"], map_location="cpu", weights_only=True)["hyper_parameters"][
+        "stage1"
+    ]["checkpoint"]
     staging = tmp_path_factory.mktemp("bundle-src")
     stage2_copy, stage1_copy = staging / "s2.ckpt", staging / "s1.ckpt"
     shutil.copyfile(trained["checkpoint"], stage2_copy)
     shutil.copyfile(stage1, stage1_copy)
     client = MlflowClient(store)
-    experiment = client.create_experiment("mmm-bundle-test", artifact_location=(Path(trained["out"]) / "bundle-art").as_uri())
+    experiment = client.create_experiment(
+        "mmm-bundle-test", artifact_location=(Path(trained["out"]) / "bundle-art").as_uri()
+    )
     t0 = time.perf_counter()
     with mlflow.start_run(experiment_id=experiment) as run:
         info = log_bundle(stage2_copy, stage1_copy, registered_model_name=NAME, tags={"purpose": "test"})
     _report("log_bundle (incl. registration)", time.perf_counter() - t0)
     shutil.rmtree(staging)
     client.set_registered_model_alias(NAME, "champion", str(info.registered_model_version))
-    return {"info": info, "run_id": run.info.run_id, "stage2": trained["checkpoint"], "stage1": stage1, "uri": f"models:/{NAME}@champion"}
+    return {
+        "info": info,
+        "run_id": run.info.run_id,
+        "stage2": trained["checkpoint"],
+        "stage1": stage1,
+        "uri": f"models:/{NAME}@champion",
+    }
 
 
 @pytest.fixture(scope="module")
@@ -74,6 +84,7 @@ def served_model(registered):
     return model
 
 
+@pytest.mark.slow
 def test_registered_bundle_records_identity_and_requirements(registered, store):
     from mlflow import MlflowClient
     from mlflow.models import Model
@@ -88,16 +99,26 @@ def test_registered_bundle_records_identity_and_requirements(registered, store):
     assert version.tags["mmm.stage1.identity"] == expected["stage1"]["identity"]
     assert version.tags["purpose"] == "test"
     logged = client.get_logged_model(registered["info"].model_id)
-    assert logged.source_run_id == registered["run_id"] and logged.tags["mmm.text_encoder"] == expected["text_encoder"]
+    assert (
+        logged.source_run_id == registered["run_id"]
+        and logged.tags["mmm.text_encoder"] == expected["text_encoder"]
+    )
     meta = Model.load(registered["uri"]).metadata["mmm"]
-    assert meta["text_encoder"] == expected["text_encoder"] and meta["max_frames"] == 196 and meta["default_length"] == 120
+    assert (
+        meta["text_encoder"] == expected["text_encoder"]
+        and meta["max_frames"] == 196
+        and meta["default_length"] == 120
+    )
     import mlflow
 
-    reqs = Path(mlflow.artifacts.download_artifacts(f"{registered['uri']}/requirements.txt")).read_text().split()
+    reqs = (
+        Path(mlflow.artifacts.download_artifacts(f"{registered['uri']}/requirements.txt")).read_text().split()
+    )
     assert any(r.startswith("mmm-motion[text]==") for r in reqs) and f"mlflow=={mlflow.__version__}" in reqs
     assert any(r.startswith("torch==") and "+" not in r for r in reqs)
 
 
+@pytest.mark.slow
 def test_pyfunc_generates_requested_lengths_deterministically(served_model):
     texts = ["a person walks forward", "a person turns around"]
     t0 = time.perf_counter()
@@ -122,27 +143,48 @@ def test_pyfunc_generates_requested_lengths_deterministically(served_model):
     assert np.asarray(default[0]["joints"]).shape == (120, 22, 3)
 
 
+@pytest.mark.slow
 def test_raw_input_forms_and_params(served_model):
     model = served_model.unwrap_python_model()
-    records = model.predict(None, [{"text": "a person walks forward", "length": 40}, {"text": "a person sits", "length": None}])
-    columns = model.predict(None, {"text": ["a person walks forward", "a person sits"], "length": [40, float("nan")]})
+    records = model.predict(
+        None, [{"text": "a person walks forward", "length": 40}, {"text": "a person sits", "length": None}]
+    )
+    columns = model.predict(
+        None, {"text": ["a person walks forward", "a person sits"], "length": [40, float("nan")]}
+    )
     assert [o["length"] for o in records] == [40, 120] == [o["length"] for o in columns]
     assert np.array_equal(np.asarray(records[0]["joints"]), np.asarray(columns[0]["joints"]))
     scalar = model.predict(None, {"text": "a person walks forward", "length": 40})
     assert np.array_equal(np.asarray(scalar[0]["joints"]), np.asarray(records[0]["joints"]))
-    greedy = served_model.predict(pd.DataFrame({"text": ["a person walks forward"], "length": [40]}), params={"temperature": 0.0, "max_iterations": 2})
+    greedy = served_model.predict(
+        pd.DataFrame({"text": ["a person walks forward"], "length": [40]}),
+        params={"temperature": 0.0, "max_iterations": 2},
+    )
     assert np.asarray(greedy[0]["joints"]).shape == (40, 22, 3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "rows, message",
     [
         ({"text": ["a person walks", "  "], "length": [80, 80]}, "row 1: text is empty"),
         ({"text": ["a person walks"], "length": [10]}, "row 0: length 10 frames is outside 40..196"),
-        ({"text": ["a person walks", "a person runs"], "length": [80, 500]}, "row 1: length 500 frames is outside 40..196"),
-        ({"text": ["a person walks"], "seed": [-3]}, r"row 0: seed -3 is not allowed: an integer from 0 to 2\^63-1"),
-        ({"text": ["a person walks", "a person runs"], "seed": [1, 2**63]}, r"row 1: seed 9223372036854775808 is not allowed: an integer from 0 to 2\^63-1"),
-        ({"text": ["a person walks", "a person runs"], "seed": [1.5, None]}, "row 0: seed must be an integer, got 1.5"),
+        (
+            {"text": ["a person walks", "a person runs"], "length": [80, 500]},
+            "row 1: length 500 frames is outside 40..196",
+        ),
+        (
+            {"text": ["a person walks"], "seed": [-3]},
+            r"row 0: seed -3 is not allowed: an integer from 0 to 2\^63-1",
+        ),
+        (
+            {"text": ["a person walks", "a person runs"], "seed": [1, 2**63]},
+            r"row 1: seed 9223372036854775808 is not allowed: an integer from 0 to 2\^63-1",
+        ),
+        (
+            {"text": ["a person walks", "a person runs"], "seed": [1.5, None]},
+            "row 0: seed must be an integer, got 1.5",
+        ),
     ],
 )
 def test_bad_rows_are_refused_by_name(served_model, rows, message):
@@ -153,6 +195,7 @@ def test_bad_rows_are_refused_by_name(served_model, rows, message):
     assert isinstance(err.value, MlflowException) and err.value.get_http_status_code() == 400
 
 
+@pytest.mark.slow
 def test_bad_requests_never_reach_the_model(served_model):
     from mlflow.exceptions import MlflowException
 
@@ -174,11 +217,14 @@ def test_bad_requests_never_reach_the_model(served_model):
         raw.predict(None, [{"text": "a person walks"}], params={"steps": 3})
 
 
+@pytest.mark.slow
 def test_rows_may_mix_given_and_absent_seed_and_length(served_model):
     """seed and length are optional per row: a request where some rows give them and others do
     not is answered, each row as if it were alone with the defaults spelled out."""
     texts = ["a person walks forward", "a person turns around", "a person jumps"]
-    mixed = served_model.predict(pd.DataFrame({"text": texts, "length": [80, None, 44], "seed": [7, None, np.nan]}))
+    mixed = served_model.predict(
+        pd.DataFrame({"text": texts, "length": [80, None, 44], "seed": [7, None, np.nan]})
+    )
     assert [(o["length"], o["seed"]) for o in mixed] == [(80, 7), (120, 0), (44, 0)]
     for row, (text, frames, seed) in zip(mixed, zip(texts, [80, 120, 44], [7, 0, 0])):
         alone = served_model.predict(pd.DataFrame({"text": [text], "length": [frames], "seed": [seed]}))[0]
@@ -188,6 +234,7 @@ def test_rows_may_mix_given_and_absent_seed_and_length(served_model):
     assert np.array_equal(np.asarray(records[0]["joints"]), np.asarray(mixed[0]["joints"]))
 
 
+@pytest.mark.slow
 def test_requests_are_bounded_in_rows(registered, served_model):
     """More rows than the bundle's max_rows (64 unless the loader's model_config says otherwise)
     are refused with HTTP 400 before anything is generated."""
@@ -205,6 +252,7 @@ def test_requests_are_bounded_in_rows(registered, served_model):
     assert [o["length"] for o in small.predict(rows.head(2))] == [40, 40]
 
 
+@pytest.mark.slow
 def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, store, tmp_path):
     from mmm.generation.model import TextToMotion
     from mmm.generation.sampler import SamplingConfig
@@ -219,7 +267,9 @@ def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, sto
     for key in ("stage1", "text_encoder"):
         assert model.identity[key] == original.identity[key]
     direct = model.generate(["a person walks forward"], [80], SamplingConfig(), seed=0).joints[0]
-    via_pyfunc = served_model.predict(pd.DataFrame({"text": ["a person walks forward"], "length": [80]}))[0]["joints"]
+    via_pyfunc = served_model.predict(pd.DataFrame({"text": ["a person walks forward"], "length": [80]}))[0][
+        "joints"
+    ]
     assert np.array_equal(direct, np.asarray(via_pyfunc, dtype=direct.dtype))
 
     import mlflow
@@ -234,6 +284,7 @@ def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, sto
         bundle_checkpoints(other.model_uri, store, dst=tmp_path / "other")
 
 
+@pytest.mark.slow
 def test_log_bundle_refuses_mismatched_checkpoints(registered, tmp_path):
     import mlflow
 
@@ -245,7 +296,9 @@ def test_log_bundle_refuses_mismatched_checkpoints(registered, tmp_path):
     ckpt = torch.load(registered["stage1"], map_location="cpu", weights_only=True)
     name = next(k for k, v in ckpt["state_dict"].items() if v.is_floating_point())
     ckpt["state_dict"][name] = ckpt["state_dict"][name] + 1.0
-    ckpt["weights_fingerprint"] = tensors_fingerprint(ckpt["state_dict"])  # a retrained model: intact, other weights
+    ckpt["weights_fingerprint"] = tensors_fingerprint(
+        ckpt["state_dict"]
+    )  # a retrained model: intact, other weights
     torch.save(ckpt, tmp_path / "retrained.ckpt")
     experiment = mlflow.get_experiment_by_name("mmm-bundle-test").experiment_id
     with mlflow.start_run(experiment_id=experiment) as run:
@@ -253,17 +306,39 @@ def test_log_bundle_refuses_mismatched_checkpoints(registered, tmp_path):
             log_bundle(registered["stage2"], tmp_path / "retrained.ckpt")
         with pytest.raises(ValueError, match="not a stage-2"):
             log_bundle(registered["stage1"], registered["stage1"])
-    assert mlflow.MlflowClient().search_logged_models([experiment], filter_string=f"source_run_id = '{run.info.run_id}'").to_list() == []
+    assert (
+        mlflow.MlflowClient()
+        .search_logged_models([experiment], filter_string=f"source_run_id = '{run.info.run_id}'")
+        .to_list()
+        == []
+    )
 
 
 def test_localize_text_files_points_at_bundled_files(tmp_path):
     from mmm.resolve import localize_text_files
 
-    ckpt = {"hyper_parameters": {"text_encoder": {"name": "clip-vit-b32", "identity": "x", "weights": "/train/clip.bin", "vocab": "/train/v.gz"}}, "state_dict": {"w": torch.ones(2)}}
+    ckpt = {
+        "hyper_parameters": {
+            "text_encoder": {
+                "name": "clip-vit-b32",
+                "identity": "x",
+                "weights": "/train/clip.bin",
+                "vocab": "/train/v.gz",
+            }
+        },
+        "state_dict": {"w": torch.ones(2)},
+    }
     torch.save(ckpt, tmp_path / "s2.ckpt")
-    out = localize_text_files(tmp_path / "s2.ckpt", {"weights": str(tmp_path / "w.bin"), "vocab": str(tmp_path / "v.gz")}, tmp_path)
+    out = localize_text_files(
+        tmp_path / "s2.ckpt", {"weights": str(tmp_path / "w.bin"), "vocab": str(tmp_path / "v.gz")}, tmp_path
+    )
     text = torch.load(out, weights_only=True)["hyper_parameters"]["text_encoder"]
-    assert text == {"name": "clip-vit-b32", "identity": "x", "weights": str(tmp_path / "w.bin"), "vocab": str(tmp_path / "v.gz")}
+    assert text == {
+        "name": "clip-vit-b32",
+        "identity": "x",
+        "weights": str(tmp_path / "w.bin"),
+        "vocab": str(tmp_path / "v.gz"),
+    }
 
 
 # -- a real server -----------------------------------------------------------------------------
@@ -278,8 +353,8 @@ def readme_serve_block() -> tuple[list[str], dict]:
     that example posts."""
     text = README.read_text()
     assert SERVE_MARKER in text, f"README.md has no {SERVE_MARKER} ...--> marker before its serving block"
-    after = text[text.index(SERVE_MARKER):]
-    block = after[after.index("```bash\n") + len("```bash\n"):]
+    after = text[text.index(SERVE_MARKER) :]
+    block = after[after.index("```bash\n") + len("```bash\n") :]
     block = block[: block.index("```")]
     lines = block.replace("\\\n", " ").splitlines()
     curl = next(i for i, line in enumerate(lines) if line.lstrip().startswith("curl "))
@@ -287,12 +362,13 @@ def readme_serve_block() -> tuple[list[str], dict]:
     return [line for line in lines[:curl] if line.strip()], json.loads(body)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_readme_serve_command_answers_invocations(registered, store, tmp_path):
     """The README's serve block run as written (entering the environment as it says, then its
     serve command), in a shell whose PATH lacks the environment's bin, on the test's model and a
     free port; queried with the README's request, then stopped."""
-    from servers import free_port, post, running
+    from tests.helpers.servers import free_port, post, running
 
     repo = REPO
     lines, readme_request = readme_serve_block()
@@ -301,10 +377,19 @@ def test_readme_serve_command_answers_invocations(registered, store, tmp_path):
     path = os.pathsep.join(p for p in os.environ.get("PATH", "").split(os.pathsep) if p not in venv_bins)
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "MODEL", "PORT")}
-    env.update(PATH=path, MODEL=registered["uri"], PORT=str(port), MLFLOW_TRACKING_URI=store, MLFLOW_REGISTRY_URI=store,
-               HF_HUB_OFFLINE="1", TRANSFORMERS_OFFLINE="1")
+    env.update(
+        PATH=path,
+        MODEL=registered["uri"],
+        PORT=str(port),
+        MLFLOW_TRACKING_URI=store,
+        MLFLOW_REGISTRY_URI=store,
+        HF_HUB_OFFLINE="1",
+        TRANSFORMERS_OFFLINE="1",
+    )
     base = f"http://127.0.0.1:{port}"
-    with running(["bash", "-c", "set -e\n" + "\n".join(lines)], base, tmp_path / "server.log", repo, env) as startup:
+    with running(
+        ["bash", "-c", "set -e\n" + "\n".join(lines)], base, tmp_path / "server.log", repo, env
+    ) as startup:
         _report("README serve command start-up (to /health 200)", startup)
         t0 = time.perf_counter()
         status, answer = post(f"{base}/invocations", readme_request)
@@ -316,7 +401,10 @@ def test_readme_serve_command_answers_invocations(registered, store, tmp_path):
         for p, r in zip(predictions, asked):
             frames = r.get("length", 120)
             assert p["length"] == frames and p["seed"] == r.get("seed", 0)
-            assert np.asarray(p["joints"]).shape == (frames, 22, 3) and np.asarray(p["features"]).shape == (frames, 263)
+            assert np.asarray(p["joints"]).shape == (frames, 22, 3) and np.asarray(p["features"]).shape == (
+                frames,
+                263,
+            )
 
         t0 = time.perf_counter()
         status, again = post(f"{base}/invocations", readme_request)
@@ -324,14 +412,30 @@ def test_readme_serve_command_answers_invocations(registered, store, tmp_path):
         assert status == 200 and again["predictions"][0]["joints"] == predictions[0]["joints"]
 
         # Rows that give a seed or a length and rows that do not, in one request.
-        status, mixed = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks forward", "length": 80, "seed": 3},
-                                                                           {"text": "a person jumps"}]})
+        status, mixed = post(
+            f"{base}/invocations",
+            {
+                "dataframe_records": [
+                    {"text": "a person walks forward", "length": 80, "seed": 3},
+                    {"text": "a person jumps"},
+                ]
+            },
+        )
         assert status == 200, mixed
         assert [(p["length"], p["seed"]) for p in mixed["predictions"]] == [(80, 3), (120, 0)]
 
-        status, error = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "length": 80}, {"text": "", "length": 80}]})
+        status, error = post(
+            f"{base}/invocations",
+            {"dataframe_records": [{"text": "a person walks", "length": 80}, {"text": "", "length": 80}]},
+        )
         assert status == 400 and "row 1: text is empty" in error["message"], error
-        status, error = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "seed": 2**63}]})
-        assert status == 400 and "row 0: seed 9223372036854775808 is not allowed: an integer from 0 to 2^63-1" in error["message"], error
+        status, error = post(
+            f"{base}/invocations", {"dataframe_records": [{"text": "a person walks", "seed": 2**63}]}
+        )
+        assert (
+            status == 400
+            and "row 0: seed 9223372036854775808 is not allowed: an integer from 0 to 2^63-1"
+            in error["message"]
+        ), error
         status, error = post(f"{base}/invocations", {"dataframe_records": [{"text": "a person walks"}] * 65})
         assert status == 400 and "the request has 65 rows; at most 64 per request" in error["message"], error

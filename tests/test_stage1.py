@@ -12,9 +12,10 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
-from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule, warmup_step_schedule
+from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.quantizer import EMAQuantizer
+from mmm.training.optim import OptimConfig, warmup_step_schedule
 from mmm.training.stage1 import load_stage1_config, train_stage1
 
 TESTS = Path(__file__).resolve().parent
@@ -90,8 +91,14 @@ def test_lr_schedule_warmup_and_decay():
 
 def _fit(module, data, callbacks, steps):
     trainer = L.Trainer(
-        max_steps=steps, callbacks=callbacks, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-        limit_val_batches=0, accelerator="cpu", enable_model_summary=False,
+        max_steps=steps,
+        callbacks=callbacks,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+        enable_model_summary=False,
     )
     trainer.fit(module, torch.utils.data.DataLoader(data, batch_size=16, shuffle=True))
     return trainer
@@ -104,32 +111,44 @@ class DegenerateEncoder(torch.nn.Module):
         return torch.zeros(x.shape[0], 32, x.shape[2] // 4) + 0.0 * x.mean()
 
 
+@pytest.mark.slow
 def test_collapse_is_detected_and_a_healthy_run_is_not():
     torch.manual_seed(0)
     data = torch.randn(256, 64, 263)
-    healthy = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig())
+    healthy = TokenizerModule(
+        263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig()
+    )
     monitor = CollapseMonitor(action="fail", warmup_steps=10, window_steps=5, min_active_fraction=0.1)
     _fit(healthy, data, [CodebookReset(5), monitor], 40)
     assert monitor.events == [] and monitor.active_fraction > 0.5
 
-    degenerate = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig())
+    degenerate = TokenizerModule(
+        263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig()
+    )
     degenerate.tokenizer.encoder = DegenerateEncoder()
-    warn = CollapseMonitor(action="warn", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2)
+    warn = CollapseMonitor(
+        action="warn", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2
+    )
     with pytest.warns(UserWarning, match="codebook collapse at step"):
         _fit(degenerate, data, [warn], 30)
     assert warn.events and warn.events[0].step >= 10 and warn.active_fraction == pytest.approx(1 / 64)
 
-    stop = CollapseMonitor(action="stop", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2)
+    stop = CollapseMonitor(
+        action="stop", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2
+    )
     degenerate.tokenizer.quantizer.initialized.fill_(False)
     with pytest.warns(UserWarning, match="stopping the run"):
         trainer = _fit(degenerate, data, [stop], 100)
     assert trainer.global_step < 100 and stop.events[0].action == "stop"
 
-    fail = CollapseMonitor(action="fail", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2)
+    fail = CollapseMonitor(
+        action="fail", warmup_steps=10, window_steps=5, min_active_fraction=0.1, patience=2
+    )
     with pytest.raises(CodebookCollapseError, match="active codes 1.56%"):
         _fit(degenerate, data, [fail], 100)
 
 
+@pytest.mark.slow
 def test_resetting_every_iteration_churns_the_codebook():
     """Supplementary C: a reset every iteration keeps replacing codes (the paper reports collapse
     and divergence); every 20 steps leaves a stable codebook."""
@@ -137,19 +156,31 @@ def test_resetting_every_iteration_churns_the_codebook():
     data = torch.randn(256, 64, 263)
     counts = {}
     for every in (1, 20):
-        module = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig())
+        module = TokenizerModule(
+            263, TokenizerConfig(width=32, num_codes=64), OptimConfig(warmup_steps=5), TokenizerLossConfig()
+        )
         reset = CodebookReset(every)
         _fit(module, data, [reset], 40)
         counts[every] = reset.total_reset
     assert counts[1] > 5 * max(counts[20], 1)
 
 
+@pytest.mark.slow
 @pytest.mark.ddp
 @pytest.mark.parametrize("variant", ["whole", "parts"])
 def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_path, variant):
     result = subprocess.run(
-        [sys.executable, str(TESTS / "ddp_workers/stage1_ddp.py"), str(walker_dataset), str(tmp_path), *(["parts"] if variant == "parts" else [])],
-        capture_output=True, text=True, timeout=180, env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        [
+            sys.executable,
+            str(TESTS / "ddp_workers/stage1_ddp.py"),
+            str(walker_dataset),
+            str(tmp_path),
+            *(["parts"] if variant == "parts" else []),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     assert result.returncode == 0, result.stderr[-3000:]
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
@@ -164,20 +195,32 @@ def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_pa
 
 def _stage1_overrides(root, out, steps, **extra):
     items = {
-        "data.root": root, "data.synthesize": "null", "data.batch_size": 8, "model.tokenizer.width": 32,
-        "model.tokenizer.num_codes": 64, "trainer.max_steps": steps, "trainer.val_check_interval": 5,
-        "trainer.enable_progress_bar": "false", "optim.warmup_steps": 5, "callbacks.reset_every_n_steps": 3,
-        "callbacks.preview_clips": 2, "output_dir": out / "runs", "logger.tracking_uri": f"sqlite:///{out}/mlflow.db",
+        "data.root": root,
+        "data.synthesize": "null",
+        "data.batch_size": 8,
+        "model.tokenizer.width": 32,
+        "model.tokenizer.num_codes": 64,
+        "trainer.max_steps": steps,
+        "trainer.val_check_interval": 5,
+        "trainer.enable_progress_bar": "false",
+        "optim.warmup_steps": 5,
+        "callbacks.reset_every_n_steps": 3,
+        "callbacks.preview_clips": 2,
+        "output_dir": out / "runs",
+        "logger.tracking_uri": f"sqlite:///{out}/mlflow.db",
         "logger.artifact_root": out / "artifacts",
     }
     items.update(extra)
     return [f"{k}={v}" for k, v in items.items()]
 
 
+@pytest.mark.slow
 def test_resume_continues_the_run_and_matches_an_uninterrupted_one(walker_dataset, tmp_path):
     straight = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path / "a", 20)))
     first = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path / "b", 10)))
-    resumed = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path / "b", 20)), resume="last")
+    resumed = train_stage1(
+        load_stage1_config(_stage1_overrides(walker_dataset, tmp_path / "b", 20)), resume="last"
+    )
     assert resumed.run_id == first.run_id and resumed.checkpoint_dir == first.checkpoint_dir
 
     def state(path):
@@ -199,6 +242,9 @@ def test_resume_continues_the_run_and_matches_an_uninterrupted_one(walker_datase
     assert {"checkpoints", "previews", "codebook", "config.yaml"} <= artifacts
     previews = [f.path for f in client.list_artifacts(first.run_id, "previews")]
     assert len(previews) == 4 and all(p.endswith(".gif") for p in previews)  # validations at 5, 10, 15, 20
-    assert {f.path for f in client.list_artifacts(first.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
+    assert {f.path for f in client.list_artifacts(first.run_id, "checkpoints")} == {
+        "checkpoints/best.ckpt",
+        "checkpoints/last.ckpt",
+    }
     history = client.get_metric_history(first.run_id, "val/mpjpe_root_aligned_mm")
     assert len(history) == 4 and all(np.isfinite(m.value) for m in history)

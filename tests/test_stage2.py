@@ -14,12 +14,12 @@ from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
 from mmm.data.humanml3d import Caption, DataError, MotionItem
 from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
-from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.optim import OptimConfig
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt, sequence_mean
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
-
-from helpers import stage2_overrides, train_tiny_stage1
+from tests.helpers import stage2_overrides, train_tiny_stage1
 
 TESTS = Path(__file__).resolve().parent
 K = 16
@@ -27,7 +27,9 @@ K = 16
 
 def tiny_transformer(cross=1, layers=3, dropout=0.0):
     torch.manual_seed(0)
-    cfg = TransformerConfig(embed_dim=32, num_heads=4, num_layers=layers, num_cross_layers=cross, dropout=dropout, max_tokens=12)
+    cfg = TransformerConfig(
+        embed_dim=32, num_heads=4, num_layers=layers, num_cross_layers=cross, dropout=dropout, max_tokens=12
+    )
     return MaskedMotionTransformer(torch.randn(K, 8), cfg, sentence_dim=6, word_dim=5).eval()
 
 
@@ -40,8 +42,13 @@ def batch_of(lengths, M=12, words=4, seed=0):
         tokens[i, n] = K
     word_mask = torch.zeros(len(lengths), words, dtype=torch.bool)
     word_mask[:, :2] = True
-    return {"tokens": tokens, "lengths": lengths, "sentence": torch.randn(len(lengths), 6, generator=g),
-            "words": torch.randn(len(lengths), words, 5, generator=g), "word_mask": word_mask}
+    return {
+        "tokens": tokens,
+        "lengths": lengths,
+        "sentence": torch.randn(len(lengths), 6, generator=g),
+        "words": torch.randn(len(lengths), words, 5, generator=g),
+        "word_mask": word_mask,
+    }
 
 
 def test_transformer_shapes_and_paper_size():
@@ -55,7 +62,9 @@ def test_transformer_shapes_and_paper_size():
     count = sum(p.numel() for p in paper.parameters())
     assert 225e6 < count < 240e6  # method.md: about 230M
     with torch.device("meta"):
-        tiny = MaskedMotionTransformer(torch.empty(512, 32), TransformerConfig(embed_dim=192, num_heads=4, num_layers=6), 384, 384)
+        tiny = MaskedMotionTransformer(
+            torch.empty(512, 32), TransformerConfig(embed_dim=192, num_heads=4, num_layers=6), 384, 384
+        )
     assert sum(p.numel() for p in tiny.parameters()) < 5e6
 
 
@@ -67,7 +76,9 @@ def test_padding_and_masked_words_do_not_leak():
     words[:, 2:] = 1e3  # masked word positions
     assert torch.allclose(m(b["tokens"], b["sentence"], words, b["word_mask"]), base, atol=1e-5)
     # A shorter padded sequence gives the same logits at its real positions.
-    assert torch.allclose(m(b["tokens"][:, :7], b["sentence"], b["words"], b["word_mask"])[:, :6], base[:, :6], atol=1e-5)
+    assert torch.allclose(
+        m(b["tokens"][:, :7], b["sentence"], b["words"], b["word_mask"])[:, :6], base[:, :6], atol=1e-5
+    )
     # Positional encoding is there: shifting the sequence by one changes the logits.
     shifted = torch.roll(b["tokens"], 1, dims=1)
     assert (m(shifted, b["sentence"], b["words"], b["word_mask"])[0, 1:6] - base[0, :5]).abs().max() > 1e-3
@@ -80,8 +91,16 @@ def test_dropped_text_and_zero_cross_layers_are_finite():
     out = m(b["tokens"], b["sentence"], b["words"], b["word_mask"], drop_text=torch.tensor([True, True]))
     assert torch.isfinite(out).all()
     m2 = tiny_transformer(cross=2)
-    dropped = m2(b["tokens"], b["sentence"], b["words"], b["word_mask"] | True, drop_text=torch.tensor([True, False]))
-    other_text = m2(b["tokens"], b["sentence"] * 5, b["words"] * 5, b["word_mask"] | True, drop_text=torch.tensor([True, False]))
+    dropped = m2(
+        b["tokens"], b["sentence"], b["words"], b["word_mask"] | True, drop_text=torch.tensor([True, False])
+    )
+    other_text = m2(
+        b["tokens"],
+        b["sentence"] * 5,
+        b["words"] * 5,
+        b["word_mask"] | True,
+        drop_text=torch.tensor([True, False]),
+    )
     assert torch.allclose(dropped[0], other_text[0], atol=1e-6)  # a dropped text is ignored entirely
     assert (dropped[1] - other_text[1]).abs().max() > 1e-5  # a kept one is not
 
@@ -119,28 +138,45 @@ def test_sequence_mean_weights_each_sequence_equally():
 
 def test_module_losses_and_validation_accuracy():
     module = MaskedTransformerModule(
-        torch.randn(K, 8), TransformerConfig(embed_dim=32, num_heads=4, num_layers=2, dropout=0.0, max_tokens=12),
-        OptimConfig(warmup_steps=0), CorruptionConfig(loss_on="masked"), 6, 5,
+        torch.randn(K, 8),
+        TransformerConfig(embed_dim=32, num_heads=4, num_layers=2, dropout=0.0, max_tokens=12),
+        OptimConfig(warmup_steps=0),
+        CorruptionConfig(loss_on="masked"),
+        6,
+        5,
     )
     b = batch_of([5, 9])
     c = corrupt(b["tokens"], b["lengths"], K, module.corruption_cfg, torch.Generator().manual_seed(0))
     logits = module.transformer(c.inputs, b["sentence"], b["words"], b["word_mask"])
     loss, correct = module.loss(logits, b["tokens"], c)
-    manual = torch.nn.functional.cross_entropy(logits.transpose(1, 2), b["tokens"].clamp(max=K - 1), reduction="none")
+    manual = torch.nn.functional.cross_entropy(
+        logits.transpose(1, 2), b["tokens"].clamp(max=K - 1), reduction="none"
+    )
     expected = torch.stack([manual[i][c.masked[i]].mean() for i in range(2)]).mean()
     assert loss.item() == pytest.approx(expected.item(), rel=1e-6)
     assert correct.shape == (2, 12)
 
 
 def make_item(name, motion_id, start, length, captions):
-    return MotionItem(name, motion_id, np.zeros((length, 263), np.float32), [Caption(c, (), 0.0, 0.0) for c in captions], start=start)
+    return MotionItem(
+        name,
+        motion_id,
+        np.zeros((length, 263), np.float32),
+        [Caption(c, (), 0.0, 0.0) for c in captions],
+        start=start,
+    )
 
 
 def test_token_text_dataset_spans_augmentation_and_collator():
     tokens = {"000001": np.arange(30)}
-    items = [make_item("000001", "000001", 0, 120, ["a", "b"]), make_item("000001#40-100", "000001", 40, 60, ["c"])]
+    items = [
+        make_item("000001", "000001", 0, 120, ["a", "b"]),
+        make_item("000001#40-100", "000001", 40, 60, ["c"]),
+    ]
     ds = TokenTextDataset(items, tokens, seed=0)
-    assert np.array_equal(TokenTextDataset(items, tokens, augment=False)[1]["tokens"].numpy(), np.arange(10, 25))
+    assert np.array_equal(
+        TokenTextDataset(items, tokens, augment=False)[1]["tokens"].numpy(), np.arange(10, 25)
+    )
     lengths = {len(ds[2 * k]["tokens"]) for k in range(60)}
     assert lengths == {29, 30}  # one code dropped at the head or tail in about a third of draws
     assert {ds[2 * k]["caption"] for k in range(60)} == {"a", "b"}
@@ -151,17 +187,25 @@ def test_token_text_dataset_spans_augmentation_and_collator():
             from mmm.text import TextEmbedding
 
             n = len(captions)
-            return TextEmbedding(torch.zeros(n, 6), torch.zeros(n, 3, 5), torch.ones(n, 3, dtype=torch.bool), 0)
+            return TextEmbedding(
+                torch.zeros(n, 6), torch.zeros(n, 3, 5), torch.ones(n, 3, dtype=torch.bool), 0
+            )
 
-    batch = TokenBatchCollator(Cache(), num_codes=64, max_tokens=50)([{"tokens": torch.tensor([1, 2, 3]), "caption": "x", "name": "a"},
-                                                                        {"tokens": torch.tensor([4]), "caption": "y", "name": "b"}])
+    batch = TokenBatchCollator(Cache(), num_codes=64, max_tokens=50)(
+        [
+            {"tokens": torch.tensor([1, 2, 3]), "caption": "x", "name": "a"},
+            {"tokens": torch.tensor([4]), "caption": "y", "name": "b"},
+        ]
+    )
     assert batch["tokens"].tolist() == [[1, 2, 3, 64], [4, 64, 65, 65]]
     assert batch["lengths"].tolist() == [3, 1] and batch["words"].shape == (2, 3, 5)
 
 
 def tiny_tokenizer(feature_dim=263, seed=0):
     torch.manual_seed(seed)
-    module = TokenizerModule(feature_dim, TokenizerConfig(width=16, num_codes=K, code_dim=8), OptimConfig(), TokenizerLossConfig())
+    module = TokenizerModule(
+        feature_dim, TokenizerConfig(width=16, num_codes=K, code_dim=8), OptimConfig(), TokenizerLossConfig()
+    )
     module.train()
     module.tokenizer(torch.randn(4, 64, feature_dim))  # seed the codebook
     return module.eval()
@@ -190,17 +234,34 @@ def test_tokens_are_cached_per_tokenizer_and_data(walker_dataset, tmp_path):
 def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):
     from mmm.data.datamodule import DataConfig, TokenTextDataModule
 
-    dm = TokenTextDataModule(DataConfig(root=str(walker_dataset), synthesize=None), 0, tiny_tokenizer(feature_dim=251), "x", None, None, str(tmp_path))
+    dm = TokenTextDataModule(
+        DataConfig(root=str(walker_dataset), synthesize=None),
+        0,
+        tiny_tokenizer(feature_dim=251),
+        "x",
+        None,
+        None,
+        str(tmp_path),
+    )
     with pytest.raises(DataError, match="reads 251-d features but data 'synthetic' has 263"):
         dm.prepare_data()
 
 
+@pytest.mark.slow
 @pytest.mark.ddp
 @pytest.mark.parametrize("variant", ["whole", "parts"])
 def test_ddp_ranks_agree(tmp_path, variant):
     result = subprocess.run(
-        [sys.executable, str(TESTS / "ddp_workers/stage2_ddp.py"), str(tmp_path), *(["parts"] if variant == "parts" else [])],
-        capture_output=True, text=True, timeout=180, env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        [
+            sys.executable,
+            str(TESTS / "ddp_workers/stage2_ddp.py"),
+            str(tmp_path),
+            *(["parts"] if variant == "parts" else []),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     assert result.returncode == 0, result.stderr[-3000:]
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
@@ -210,6 +271,7 @@ def test_ddp_ranks_agree(tmp_path, variant):
     assert r0["val_loss"] == r1["val_loss"] and r0["val_acc"] == r1["val_acc"]  # reduced across ranks
 
 
+@pytest.mark.slow
 def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_dataset, tmp_path):
     from mmm.training.stage2 import load_stage2_config, train_stage2
 
@@ -223,7 +285,10 @@ def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_da
     assert len(run.data.tags["data.fingerprint"]) == 16
     assert run.data.params["model.transformer.embed_dim"] == "32"
     assert {"val/loss", "val/acc_masked", "val/acc_unmasked", "train/loss"} <= set(run.data.metrics)
-    assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {"checkpoints/best.ckpt", "checkpoints/last.ckpt"}
+    assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {
+        "checkpoints/best.ckpt",
+        "checkpoints/last.ckpt",
+    }
     previews = sorted(f.path for f in client.list_artifacts(result.run_id, "previews"))
     assert previews == ["previews/generation_step0000003.gif", "previews/generation_step0000006.gif"]
     ckpt = torch.load(result.last_checkpoint, weights_only=True)
@@ -232,10 +297,13 @@ def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_da
     # The explicit reference wins, and resuming with a tokenizer of another codebook is refused.
     from mmm.training.stage2 import check_codebook
 
-    with pytest.raises(ValueError, match=r"codebook of shape \[32, 32\], but the stage-1 model has \[64, 32\]"):
+    with pytest.raises(
+        ValueError, match=r"codebook of shape \[32, 32\], but the stage-1 model has \[64, 32\]"
+    ):
         check_codebook(Path(result.last_checkpoint), [64, 32])
 
 
+@pytest.mark.slow
 def test_stage1_references_resolve_to_the_same_model(walker_dataset, tmp_path):
     from mmm.tokenizer.load import ModelNotFound, load_tokenizer, resolve_tokenizer
 
@@ -243,17 +311,28 @@ def test_stage1_references_resolve_to_the_same_model(walker_dataset, tmp_path):
     trained = train_tiny_stage1(walker_dataset, tmp_path)
     client = MlflowClient(uri)
     client.create_registered_model("mmm-tokenizer")
-    version = client.create_model_version("mmm-tokenizer", source=f"runs:/{trained.run_id}/checkpoints", run_id=trained.run_id)
+    version = client.create_model_version(
+        "mmm-tokenizer", source=f"runs:/{trained.run_id}/checkpoints", run_id=trained.run_id
+    )
     client.set_registered_model_alias("mmm-tokenizer", "champion", version.version)
     identities = set()
-    for reference in (trained.run_id, f"runs:/{trained.run_id}", "models:/mmm-tokenizer@champion", f"models:/mmm-tokenizer/{version.version}", trained.best_checkpoint, None):
+    for reference in (
+        trained.run_id,
+        f"runs:/{trained.run_id}",
+        "models:/mmm-tokenizer@champion",
+        f"models:/mmm-tokenizer/{version.version}",
+        trained.best_checkpoint,
+        None,
+    ):
         module, source = load_tokenizer(reference, uri, f"{tmp_path}/s1")
         identities.add(source.identity)
         assert source.checkpoint.endswith("best.ckpt") and module.quantizer.num_codes == 32
     assert len(identities) == 1
     with pytest.raises(ModelNotFound, match="models:/mmm-tokenizer@nope: no such registered model version"):
         resolve_tokenizer("models:/mmm-tokenizer@nope", uri)
-    with pytest.raises(ModelNotFound, match="no-such.ckpt: no such checkpoint file, MLflow run id or models:/ URI"):
+    with pytest.raises(
+        ModelNotFound, match="no-such.ckpt: no such checkpoint file, MLflow run id or models:/ URI"
+    ):
         resolve_tokenizer("no-such.ckpt", uri)
     with pytest.raises(ModelNotFound, match="run `make train-stage1` first"):
         resolve_tokenizer(None, f"sqlite:///{tmp_path}/empty.db", f"{tmp_path}/none")

@@ -16,14 +16,17 @@ from mmm.motion.skeleton import T2M_SKELETON, mirror_joints
 NUM_CLIPS = 60
 SEED = 7
 PARAMS = {
-    "stand": {}, "raise_arms": {}, "sit": {},
+    "stand": {},
+    "raise_arms": {},
+    "sit": {},
     "walk": {"direction": {"forward", "backward", "left", "right"}, "speed": {"slow", "normal", "fast"}},
     "run": {"direction": {"forward"}},
     "turn": {"side": {"left", "right"}, "angle": {90, 180}},
     "circle": {"side": {"clockwise", "counterclockwise"}},
     "jump": {"count": {1, 2, 3}, "mode": {"in_place", "forward"}},
     "squat": {"count": {1, 2, 3}},
-    "wave": {"hand": {"left", "right", "both"}}, "punch": {"hand": {"left", "right", "both"}},
+    "wave": {"hand": {"left", "right", "both"}},
+    "punch": {"hand": {"left", "right", "both"}},
     "kick": {"foot": {"left", "right"}},
 }
 
@@ -39,12 +42,18 @@ def ids_of(root, split="all"):
     return [line.strip() for line in (root / f"{split}.txt").read_text().splitlines() if line.strip()]
 
 
+@pytest.mark.slow
 def test_layout_shapes_and_dtypes(dataset):
     root, summary = dataset
     clip_ids = [f"{i:06d}" for i in range(NUM_CLIPS)]
     expected = sorted(clip_ids + ["M" + i for i in clip_ids])
     assert summary["clips"] == NUM_CLIPS and summary["motions"] == 2 * NUM_CLIPS
-    for sub, ext in (("new_joint_vecs", ".npy"), ("new_joints", ".npy"), ("texts", ".txt"), ("labels", ".json")):
+    for sub, ext in (
+        ("new_joint_vecs", ".npy"),
+        ("new_joints", ".npy"),
+        ("texts", ".txt"),
+        ("labels", ".json"),
+    ):
         assert sorted(p.name[: -len(ext)] for p in (root / sub).iterdir()) == expected, sub
     assert not list(root.parent.glob(".ds.*")), "temporary folders must be gone"
     lengths = []
@@ -67,6 +76,7 @@ def test_layout_shapes_and_dtypes(dataset):
         assert arr.shape == (263,) and arr.dtype == np.float32
 
 
+@pytest.mark.slow
 def test_labels_name_actions_and_parameters_as_the_spec(dataset):
     root, summary = dataset
     composites = 0
@@ -97,6 +107,7 @@ LINE = re.compile(r"^[^#]+#[^#]+#[0-9.]+#[0-9.]+$")
 TOKEN = re.compile(r"^[a-z0-9]+/([A-Z]+)$")
 
 
+@pytest.mark.slow
 def test_caption_lines_parse_and_subspans_point_at_the_parts(dataset):
     root, _ = dataset
     for motion_id in ids_of(root):
@@ -124,13 +135,19 @@ def test_caption_lines_parse_and_subspans_point_at_the_parts(dataset):
 
 
 WORDS = {
-    "forward": {"forward", "forwards", "ahead"}, "backward": {"backward", "backwards", "back"},
-    "left": {"left"}, "right": {"right"},
-    "clockwise": {"clockwise"}, "counterclockwise": {"counterclockwise", "anticlockwise"},
+    "forward": {"forward", "forwards", "ahead"},
+    "backward": {"backward", "backwards", "back"},
+    "left": {"left"},
+    "right": {"right"},
+    "clockwise": {"clockwise"},
+    "counterclockwise": {"counterclockwise", "anticlockwise"},
     "slow": {"slowly", "slow", "leisurely", "strolls"},
     "fast": {"quickly", "fast", "briskly", "rapidly", "quick", "brisk", "hurried", "hurries", "strides"},
-    1: {"once", "one", "single", "a"}, 2: {"twice", "two", "2"}, 3: {"three", "3", "thrice"},
-    180: {"around", "180", "half"}, "in_place": {"place", "spot", "up"},
+    1: {"once", "one", "single", "a"},
+    2: {"twice", "two", "2"},
+    3: {"three", "3", "thrice"},
+    180: {"around", "180", "half"},
+    "in_place": {"place", "spot", "up"},
 }
 
 
@@ -142,7 +159,9 @@ def test_captions_name_every_label_parameter():
             combos = [dict(c, **{k: v}) for c in combos for v in sorted(values, key=str)]
         for p in combos:
             for _ in range(20):
-                for line in clip_captions(rng, [{"action": action, "params": p, "start": 0, "end": 60}], [action == "sit"]):
+                for line in clip_captions(
+                    rng, [{"action": action, "params": p, "start": 0, "end": 60}], [action == "sit"]
+                ):
                     words = set(line.split("#")[0].split())
                     assert words <= set(LEXICON), line
                     for value in p.values():
@@ -154,6 +173,7 @@ def test_captions_name_every_label_parameter():
                         assert not words & (WORDS["slow"] | WORDS["fast"]), line
 
 
+@pytest.mark.slow
 def test_mirrors_swap_sides_in_joints_captions_and_labels(dataset):
     root, _ = dataset
     swapped_words = 0
@@ -178,23 +198,36 @@ def test_mirrors_swap_sides_in_joints_captions_and_labels(dataset):
         m_joints = np.load(root / "new_joints" / f"{mid}.npy")
         np.testing.assert_allclose(m_joints, mirror_joints(joints, T2M_SKELETON).numpy(), atol=2e-4)
     assert swapped_words > 0
-    assert mirror_caption_line("a man waves his left hand#a/DET man/NOUN wave/VERB his/DET left/ADJ hand/NOUN#0.0#0.0") == \
-        "a man waves his right hand#a/DET man/NOUN wave/VERB his/DET right/ADJ hand/NOUN#0.0#0.0"
-    assert mirror_caption_line("x walks in a clockwise circle#x/X#1.5#3.0").startswith("x walks in a counterclockwise circle#")
+    assert (
+        mirror_caption_line(
+            "a man waves his left hand#a/DET man/NOUN wave/VERB his/DET left/ADJ hand/NOUN#0.0#0.0"
+        )
+        == "a man waves his right hand#a/DET man/NOUN wave/VERB his/DET right/ADJ hand/NOUN#0.0#0.0"
+    )
+    assert mirror_caption_line("x walks in a clockwise circle#x/X#1.5#3.0").startswith(
+        "x walks in a counterclockwise circle#"
+    )
     assert mirror_params({"side": "clockwise", "angle": 90}) == {"side": "counterclockwise", "angle": 90}
 
 
 def test_feature_space_mirror_equals_mirroring_the_joints():
     rng = np.random.default_rng(3)
-    for action, params in (("walk", {"direction": "left", "speed": "normal"}), ("turn", {"side": "left", "angle": 180}),
-                           ("kick", {"foot": "right"}), ("wave", {"hand": "left"})):
+    for action, params in (
+        ("walk", {"direction": "left", "speed": "normal"}),
+        ("turn", {"side": "left", "angle": 180}),
+        ("kick", {"foot": "right"}),
+        ("wave", {"hand": "left"}),
+    ):
         world, _ = make_motion([PartSpec(action, params, 70)], rng)
         feats = joints_to_features(torch.from_numpy(world), retarget=False).numpy()
-        direct = joints_to_features(mirror_joints(torch.from_numpy(world), T2M_SKELETON), retarget=False).numpy()
+        direct = joints_to_features(
+            mirror_joints(torch.from_numpy(world), T2M_SKELETON), retarget=False
+        ).numpy()
         np.testing.assert_allclose(gen.mirror_features(feats), direct, atol=1e-9)
         assert not np.allclose(feats, direct, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_splits_are_disjoint_cover_everything_and_keep_mirrors_together(dataset):
     root, summary = dataset
     split = {name: ids_of(root, name) for name in ("train", "val", "test", "train_val", "all")}
@@ -209,6 +242,7 @@ def test_splits_are_disjoint_cover_everything_and_keep_mirrors_together(dataset)
     assert summary["splits"] == {"train": 96, "val": 6, "test": 18}
 
 
+@pytest.mark.slow
 def test_mean_std_are_the_reference_statistics_of_all_files(dataset):
     root, _ = dataset
     stacked = np.concatenate([np.load(p) for p in sorted((root / "new_joint_vecs").glob("*.npy"))])
@@ -221,6 +255,7 @@ def test_mean_std_are_the_reference_statistics_of_all_files(dataset):
     assert (saved > 0).all()
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_bytes_and_another_seed_differs(dataset, tmp_path):
     root, _ = dataset
     again = tmp_path / "again"
@@ -245,7 +280,14 @@ def test_refuses_to_overwrite_and_replaces_atomically(tmp_path):
     assert (out / "keep.txt").read_text() == "mine"
     summary = gen.generate_dataset(out, num_clips=3, seed=0, progress=False, overwrite=True)
     assert summary["clips"] == 3 and not (out / "keep.txt").exists()
-    assert (out / "all.txt").read_text().split() == ["000000", "000001", "000002", "M000000", "M000001", "M000002"]
+    assert (out / "all.txt").read_text().split() == [
+        "000000",
+        "000001",
+        "000002",
+        "M000000",
+        "M000001",
+        "M000002",
+    ]
     assert all((out / f"{s}.txt").read_text().split() for s in ("train", "val", "test"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"], "no temporary folder left"
     (tmp_path / "empty").mkdir()
@@ -269,6 +311,7 @@ def test_a_crash_leaves_no_half_written_dataset(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_feet_do_not_slide_while_in_contact(dataset):
     """Horizontal speed of the foot joints on frames whose contact label is 1 (measured on the
     default dataset: toes median 0.000 m/s, 90th percentile 0.015 m/s; ankles 0.000 / 0.09 m/s,
@@ -291,6 +334,7 @@ def test_feet_do_not_slide_while_in_contact(dataset):
     assert np.mean(toes < 0.01) > 0.85
 
 
+@pytest.mark.slow
 def test_statistics_resemble_real_humanml3d(dataset, reference_dir):
     """Mean/Std against ../shared/reference/humanml3d (measured on the default 1,500 clips: root
     height mean 0.82 vs 0.94, contacts 0.82 vs 0.85, group stds 0.67-2.1x the real ones)."""
@@ -301,8 +345,10 @@ def test_statistics_resemble_real_humanml3d(dataset, reference_dir):
     assert abs(real_mean[3] - 0.94) < 0.01
     assert abs(mean[3] - real_mean[3]) < 0.16, ("root height", mean[3], real_mean[3])
     assert np.all(np.abs(mean[-4:] - real_mean[-4:]) < 0.12), ("contacts", mean[-4:], real_mean[-4:])
-    for name, group in zip(("yaw", "root velocity", "height", "positions", "rotations", "velocities", "contacts"),
-                           FeatureLayout(22).groups()):
+    for name, group in zip(
+        ("yaw", "root velocity", "height", "positions", "rotations", "velocities", "contacts"),
+        FeatureLayout(22).groups(),
+    ):
         ratio = std[group][0] / real_std[group][0]
         assert 0.4 < ratio < 3.0, (name, ratio)
     # Forward root velocity is positive on average (people mostly walk forwards), as in the real data.

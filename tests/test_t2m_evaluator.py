@@ -22,7 +22,22 @@ from mmm.evaluation.t2m import (
 
 REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
 
-VOCAB = ["sos", "eos", "unk", "a", "man", "walk", "walks", "forward", "slowly", "person", "the", "left", "hand", "raise"]
+VOCAB = [
+    "sos",
+    "eos",
+    "unk",
+    "a",
+    "man",
+    "walk",
+    "walks",
+    "forward",
+    "slowly",
+    "person",
+    "the",
+    "left",
+    "hand",
+    "raise",
+]
 
 
 def _glove(tmp: Path, seed: int = 0) -> Path:
@@ -64,7 +79,14 @@ def test_frozen_eval_and_published_key_layout():
     ev.train()
     assert not ev.training and not ev.movement_encoder.main[1].training  # dropout stays off
     mov = ev.movement_encoder.state_dict()
-    assert set(mov) == {"main.0.weight", "main.0.bias", "main.3.weight", "main.3.bias", "out_net.weight", "out_net.bias"}
+    assert set(mov) == {
+        "main.0.weight",
+        "main.0.bias",
+        "main.3.weight",
+        "main.3.bias",
+        "out_net.weight",
+        "out_net.bias",
+    }
     assert mov["main.0.weight"].shape == (512, 247, 4)  # KIT: 251 - 4 contact dims
     gru = {f"gru.{w}_{k}_l0{s}" for w in ("weight", "bias") for k in ("ih", "hh") for s in ("", "_reverse")}
     head = {f"output_net.{i}.{p}" for i in (0, 1, 3) for p in ("weight", "bias")}
@@ -102,7 +124,9 @@ def test_motion_packing(evaluator):
     # padded longer with arbitrary values: padding never reaches the embedding
     padded = torch.cat([motion, 5 * torch.randn(1, 80, 263, generator=g)], dim=1)
     assert _close(evaluator.embed_motions(padded, [60]), alone)
-    assert _close(evaluator.embed_motions(torch.cat([motion, torch.full((1, 8, 263), float("nan"))], 1), [60]), alone)
+    assert _close(
+        evaluator.embed_motions(torch.cat([motion, torch.full((1, 8, 263), float("nan"))], 1), [60]), alone
+    )
     # other, longer and shorter, samples in the batch, in any order
     others = torch.randn(3, 140, 263, generator=g)
     batch = torch.cat([others[:1], padded, others[1:]])
@@ -194,7 +218,9 @@ def test_checkpoint_wrong_keys_and_shapes(tmp_path, saved_evaluator):
     msg = str(e.value)
     assert "movement_encoder" in msg and "main.0.weight" in msg and "conv.0.weight" in msg
     with pytest.raises(EvaluatorCheckpointError, match="text_encoder"):
-        ev.load_checkpoint({"movement_encoder": ck["movement_encoder"], "motion_encoder": ck["motion_encoder"]})
+        ev.load_checkpoint(
+            {"movement_encoder": ck["movement_encoder"], "motion_encoder": ck["motion_encoder"]}
+        )
     # a KIT-ML checkpoint into the HumanML3D evaluator: shape mismatch named
     _, kit = _random_checkpoint("kit", 8)
     with pytest.raises(EvaluatorCheckpointError, match=r"main\.0\.weight: shape \(512, 247, 4\)"):
@@ -348,7 +374,9 @@ def test_restricted_unpickler(tmp_path):
     # the loader goes through it too
     _glove(tmp_path / "g")
     (tmp_path / "g" / "our_vab_idx.pkl").write_bytes(pickle.dumps(_Evil(str(target))))
-    with pytest.raises(DataError, match="our_vab_idx.pkl: not a readable vocabulary pickle .*mkdir"):  # the CLI's exit 2
+    with pytest.raises(
+        DataError, match="our_vab_idx.pkl: not a readable vocabulary pickle .*mkdir"
+    ):  # the CLI's exit 2
         WordVectorizer.load(tmp_path / "g")
     assert not target.exists()
     # other harmless but non-allowed classes are refused as well
@@ -387,7 +415,8 @@ def test_matches_published_pipeline_layout(evaluator):
 # encoder's input width: 263 - 4 = 259 (t2m) or 251 - 4 = 247 (kit).
 _BIGRU_TAIL = (
     "gru.weight_ih_l0", "gru.weight_hh_l0", "gru.bias_ih_l0", "gru.bias_hh_l0",
-    "gru.weight_ih_l0_reverse", "gru.weight_hh_l0_reverse", "gru.bias_ih_l0_reverse", "gru.bias_hh_l0_reverse",
+    "gru.weight_ih_l0_reverse", "gru.weight_hh_l0_reverse",
+    "gru.bias_ih_l0_reverse", "gru.bias_hh_l0_reverse",
 )  # fmt: skip
 PUBLISHED_LAYOUT = {
     "movement_encoder": [
@@ -462,7 +491,9 @@ def _published_layout_checkpoint(dataset, seed):
         comp: {k: 0.05 * torch.randn(_published_shape(shape, dataset), generator=g) for k, shape in keys}
         for comp, keys in PUBLISHED_LAYOUT.items()
     }
-    ck.update(opt_text_encoder=_adam_state_like(), opt_motion_encoder=_adam_state_like(), epoch=97, iter=123456)
+    ck.update(
+        opt_text_encoder=_adam_state_like(), opt_motion_encoder=_adam_state_like(), epoch=97, iter=123456
+    )
     return ck
 
 
@@ -473,6 +504,7 @@ def test_published_key_table_is_complete():
     assert [k for k, _ in PUBLISHED_LAYOUT["motion_encoder"]][3:11] == list(_BIGRU_TAIL)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dataset", ["t2m", "kit"])
 def test_published_layout_checkpoint_loads_strict_and_every_key_is_consumed(tmp_path, glove_dir, dataset):
     ck = _published_layout_checkpoint(dataset, seed={"t2m": 21, "kit": 22}[dataset])

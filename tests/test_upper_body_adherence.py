@@ -26,7 +26,12 @@ def focused_dataset(root):
     generate_dataset(root, num_clips=1000, seed=0, progress=False)
     for split in ("train", "val", "test", "train_val", "all"):
         ids = (root / f"{split}.txt").read_text().split()
-        keep = [i for i in ids if {p["action"] for p in json.loads((root / "labels" / f"{i}.json").read_text())["parts"]} <= KEPT_ACTIONS]
+        keep = [
+            i
+            for i in ids
+            if {p["action"] for p in json.loads((root / "labels" / f"{i}.json").read_text())["parts"]}
+            <= KEPT_ACTIONS
+        ]
         (root / f"{split}.txt").write_text("\n".join(keep) + "\n")
     return root
 
@@ -39,18 +44,55 @@ def trained(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("upper-body")
     root = focused_dataset(out / "data")
-    common = [f"data.root={root}", "data.synthesize=null", f"logger.tracking_uri=sqlite:///{out}/mlflow.db", f"logger.artifact_root={out}/art",
-              "trainer.enable_progress_bar=false"]
+    common = [
+        f"data.root={root}",
+        "data.synthesize=null",
+        f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
+        f"logger.artifact_root={out}/art",
+        "trainer.enable_progress_bar=false",
+    ]
     started = time.perf_counter()
-    stage1 = train_stage1(load_stage1_config([*common, f"output_dir={out}/s1", "callbacks.preview_clips=0", "callbacks.usage_plot=false",
-                                              f"trainer.max_steps={STAGE1_STEPS}", f"trainer.val_check_interval={STAGE1_STEPS}"], parts=True))
+    stage1 = train_stage1(
+        load_stage1_config(
+            [
+                *common,
+                f"output_dir={out}/s1",
+                "callbacks.preview_clips=0",
+                "callbacks.usage_plot=false",
+                f"trainer.max_steps={STAGE1_STEPS}",
+                f"trainer.val_check_interval={STAGE1_STEPS}",
+            ],
+            parts=True,
+        )
+    )
     stage1_seconds = time.perf_counter() - started
-    stage2 = train_stage2(load_stage2_config([*common, f"stage1={stage1.best_checkpoint}", f"output_dir={out}/s2", f"token_cache_dir={out}/tokens",
-                                              f"text.cache_dir={out}/text", "callbacks.preview_captions=1", f"trainer.max_steps={STAGE2_STEPS}",
-                                              f"trainer.val_check_interval={STAGE2_STEPS}"], parts=True))
-    print(f"[upper body] stage1-parts {stage1_seconds:.0f} s, stage2-parts {time.perf_counter() - started - stage1_seconds:.0f} s")
+    stage2 = train_stage2(
+        load_stage2_config(
+            [
+                *common,
+                f"stage1={stage1.best_checkpoint}",
+                f"output_dir={out}/s2",
+                f"token_cache_dir={out}/tokens",
+                f"text.cache_dir={out}/text",
+                "callbacks.preview_captions=1",
+                f"trainer.max_steps={STAGE2_STEPS}",
+                f"trainer.val_check_interval={STAGE2_STEPS}",
+            ],
+            parts=True,
+        )
+    )
+    print(
+        f"[upper body] stage1-parts {stage1_seconds:.0f} s, stage2-parts "
+        f"{time.perf_counter() - started - stage1_seconds:.0f} s"
+    )
     model = TextToMotion.from_files(stage2.best_checkpoint, stage1.best_checkpoint)
-    return {"model": model, "root": root, "stage1": stage1, "stage2": stage2, "uri": f"sqlite:///{out}/mlflow.db"}
+    return {
+        "model": model,
+        "root": root,
+        "stage1": stage1,
+        "stage2": stage2,
+        "uri": f"sqlite:///{out}/mlflow.db",
+    }
 
 
 @pytest.mark.slow
@@ -60,7 +102,9 @@ def test_edits_do_the_requested_upper_action_and_keep_the_lower_one(trained):
     model, root = trained["model"], trained["root"]
     result = upper_body_adherence(model, root, "test", max_sources=10, lower_mask=0.5, seed=0)
     print(f"[upper body] {json.dumps(result)}")
-    assert result["edits"] == 3 * result["sources"] >= 15 and {k.split(" on ")[1] for k in result["per_action"]} == {"walk", "squat"}
+    assert result["edits"] == 3 * result["sources"] >= 15 and {
+        k.split(" on ")[1] for k in result["per_action"]
+    } == {"walk", "squat"}
     # The lower body is kept: every source whose action survives the tokenizer keeps it after the edit.
     assert result["lower"] >= result["source_reconstructed"] - 0.05 and result["source_reconstructed"] >= 0.8
     # The requested upper-body action is there in most edits, for each of the three actions.
@@ -70,7 +114,9 @@ def test_edits_do_the_requested_upper_action_and_keep_the_lower_one(trained):
     # walking sources in one run, and 600 or 900 stage-2 steps alike); each action must appear.
     for action, least in (("wave", 0.3), ("raise_arms", 0.3), ("punch", 0.1)):
         done = sum(result["per_action"].get(f"{action} on {lower}", [0, 0])[0] for lower in ("walk", "squat"))
-        total = sum(result["per_action"].get(f"{action} on {lower}", [0, 0])[1] for lower in ("walk", "squat"))
+        total = sum(
+            result["per_action"].get(f"{action} on {lower}", [0, 0])[1] for lower in ("walk", "squat")
+        )
         assert done / total >= least, (action, done, total)
 
 
@@ -81,18 +127,43 @@ def test_the_lower_body_condition_is_what_limits_the_upper_body(trained):
     from mmm.evaluation.upper_body import upper_body_adherence
 
     model, root = trained["model"], trained["root"]
-    constrained = upper_body_adherence(model, root, "test", max_sources=10, lower_mask=0.0, seed=0, sampling=SamplingConfig(guidance_scale=1.0))
-    free = upper_body_adherence(model, root, "test", max_sources=10, lower_mask=1.0, seed=0, sampling=SamplingConfig(guidance_scale=1.0))
-    print(f"[upper body] lower shown, no guidance: {constrained['upper']:.2f}; lower hidden: {free['upper']:.2f}")
+    constrained = upper_body_adherence(
+        model,
+        root,
+        "test",
+        max_sources=10,
+        lower_mask=0.0,
+        seed=0,
+        sampling=SamplingConfig(guidance_scale=1.0),
+    )
+    free = upper_body_adherence(
+        model,
+        root,
+        "test",
+        max_sources=10,
+        lower_mask=1.0,
+        seed=0,
+        sampling=SamplingConfig(guidance_scale=1.0),
+    )
+    print(
+        f"[upper body] lower shown, no guidance: {constrained['upper']:.2f}; lower hidden: "
+        f"{free['upper']:.2f}"
+    )
     assert free["upper"] >= constrained["upper"] + 0.2
-    assert free["lower"] == pytest.approx(constrained["lower"], abs=0.1)  # the legs are the source's either way
+    assert free["lower"] == pytest.approx(
+        constrained["lower"], abs=0.1
+    )  # the legs are the source's either way
 
 
 @pytest.mark.slow
 def test_part_aware_runs_log_per_codebook_metrics_and_previews(trained):
     client = MlflowClient(trained["uri"])
     stage1 = client.get_run(trained["stage1"].run_id)
-    assert {"codebook/lower/perplexity", "codebook/upper/perplexity", "collapse/upper/window_active_fraction"} <= set(stage1.data.metrics)
+    assert {
+        "codebook/lower/perplexity",
+        "codebook/upper/perplexity",
+        "collapse/upper/window_active_fraction",
+    } <= set(stage1.data.metrics)
     assert stage1.data.metrics["val/mpjpe_root_aligned_mm"] < 80
     previews = [f.path for f in client.list_artifacts(trained["stage2"].run_id, "previews")]
     assert previews and previews[0].endswith(".gif")

@@ -84,7 +84,9 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     path = Path(path)
     host = socket.gethostname()
     removed = []
-    ours = f".{path.name}.{host}-"  # another machine's files are left alone: no way to tell if their writer runs
+    ours = (
+        f".{path.name}.{host}-"  # another machine's files are left alone: no way to tell if their writer runs
+    )
     for candidate in path.parent.glob(f"{ours}*{TEMP_SUFFIX}"):
         pid = candidate.name[len(ours) :].split(".", 1)[0]
         if not pid.isdigit() or _running(int(pid)):
@@ -124,7 +126,7 @@ def file_lock(path: str | Path) -> Iterator[None]:
     The kernel releases it when its process dies, so a killed holder never blocks the next one.
     Where fcntl does not exist (Windows) the block runs unlocked."""
     try:
-        import fcntl
+        import fcntl  # optional: POSIX only
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return

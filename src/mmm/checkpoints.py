@@ -24,15 +24,22 @@ from pathlib import Path
 
 import torch
 
+from mmm.fingerprint import tensors_fingerprint
+from mmm.kinds import KINDS
+
 FINGERPRINT_KEY = "weights_fingerprint"  # tensors_fingerprint(state_dict) at save time
 OUTPUTS_ROOT = "outputs"  # the package's output folder, relative to the working directory
 
-# kind -> (what it is, how to make one)
-KINDS = {
-    "stage1": ("stage-1 (motion tokenizer) checkpoint", "`make train-stage1` writes outputs/stage1/<run>/checkpoints/best.ckpt"),
-    "stage2": ("stage-2 (text-to-motion transformer) checkpoint", "`make train-stage2` writes outputs/stage2/<run>/checkpoints/best.ckpt"),
-    "length": ("length estimator checkpoint", "`make train-length` writes outputs/length/<run>/checkpoints/best.ckpt"),
-    "evaluator": ("contrastive evaluator checkpoint", "`make train-evaluator` writes outputs/evaluator/<run>/checkpoints/best.ckpt"),
+# checkpoint family (the model kind that writes it; the part-aware kinds write the same families)
+# -> (what it is, how to make one)
+CHECKPOINTS = {
+    name: (what, f"`{KINDS[name].train}` writes {KINDS[name].output_dir}/<run>/checkpoints/best.ckpt")
+    for name, what in {
+        "stage1": "stage-1 (motion tokenizer) checkpoint",
+        "stage2": "stage-2 (text-to-motion transformer) checkpoint",
+        "length": "length estimator checkpoint",
+        "evaluator": "contrastive evaluator checkpoint",
+    }.items()
 }
 # Where each kind is passed, for a file given in the wrong place.
 _PASSED_AS = {
@@ -48,7 +55,7 @@ class CheckpointError(ValueError):
 
 
 def checkpoint_kind(ckpt: dict) -> str | None:
-    """"stage1", "stage2", "length" or "evaluator" from what a checkpoint holds; None: none of them."""
+    """ "stage1", "stage2", "length" or "evaluator" from what a checkpoint holds; None: none of them."""
     hp = ckpt.get("hyper_parameters") or {}
     state = ckpt.get("state_dict") or {}
     if not isinstance(hp, dict) or not isinstance(state, dict):
@@ -73,8 +80,6 @@ def _describe(ckpt: dict) -> str:
 
 
 def weights_fingerprint(ckpt: dict) -> str:
-    from mmm.fingerprint import tensors_fingerprint
-
     return tensors_fingerprint(ckpt.get("state_dict") or {})
 
 
@@ -99,22 +104,36 @@ def read_torch_file(path: str | Path, what: str, fix: str, map_location: str | t
         lines = [line.strip() for line in message.splitlines() if line.strip()]
         detail = lines[0].split(". ")[0][:200] if lines else type(e).__name__
         if "Unsupported global" in message:
-            found = (f"it holds objects other than tensors and plain containers ({detail}), which this package never "
-                     "unpickles (they could run code)")
+            found = (
+                f"it holds objects other than tensors and plain containers ({detail}), which this package "
+                "never "
+                "unpickles (they could run code)"
+            )
         elif "central directory" in str(e) or "zip archive" in str(e) or isinstance(e, EOFError):
-            found = f"it is truncated or damaged ({detail}); copy or download it again, or use the run's other checkpoint (last.ckpt/best.ckpt)"
+            found = (
+                f"it is truncated or damaged ({detail}); copy or download it again, or use the run's other "
+                "checkpoint (last.ckpt/best.ckpt)"
+            )
         else:
             found = f"it is not a PyTorch checkpoint at all ({type(e).__name__}: {detail})"
         raise CheckpointError(f"{path} is not a {what}: {found}. {fix}") from None
 
 
-def load_checkpoint(path: str | Path, kind: str | None, expected_fingerprint: str | None = None,
-                    map_location: str | torch.device = "cpu") -> dict:
+def load_checkpoint(
+    path: str | Path,
+    kind: str | None,
+    expected_fingerprint: str | None = None,
+    map_location: str | torch.device = "cpu",
+) -> dict:
     """The checkpoint dict at `path`, checked: readable with weights_only=True, of `kind`
-    (KINDS; None: any of them), and with weights whose fingerprint is the one recorded in it at
+    (CHECKPOINTS; None: any of them), and with weights whose fingerprint is the one recorded in it at
     save time (when recorded) and `expected_fingerprint` (when given). CheckpointError otherwise."""
-    what, make = KINDS[kind] if kind else ("checkpoint of this package", "")
-    fix = f"Give the path of a {what}; {make}." if kind else "Give the path of a checkpoint written by this package's training."
+    what, make = CHECKPOINTS[kind] if kind else ("checkpoint of this package", "")
+    fix = (
+        f"Give the path of a {what}; {make}."
+        if kind
+        else "Give the path of a checkpoint written by this package's training."
+    )
     ckpt = read_torch_file(path, what, fix, map_location)
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path} is not a {what}: it holds a {type(ckpt).__name__}, not a dict. {fix}")
@@ -122,27 +141,36 @@ def load_checkpoint(path: str | Path, kind: str | None, expected_fingerprint: st
     if found is None:
         raise CheckpointError(f"{path} is not a {what}: it holds {_describe(ckpt)}. {fix}")
     if kind is not None and found != kind:
-        raise CheckpointError(f"{path} is a {KINDS[found][0]}, not a {what}; pass it {_PASSED_AS[found]}. {fix}")
+        raise CheckpointError(
+            f"{path} is a {CHECKPOINTS[found][0]}, not a {what}; pass it {_PASSED_AS[found]}. {fix}"
+        )
     recorded = ckpt.get(FINGERPRINT_KEY)
     if recorded is not None or expected_fingerprint is not None:
         actual = weights_fingerprint(ckpt)
-        for expected, source in ((recorded, "recorded in the file when it was saved"), (expected_fingerprint, "expected by the registry")):
+        for expected, source in (
+            (recorded, "recorded in the file when it was saved"),
+            (expected_fingerprint, "expected by the registry"),
+        ):
             if expected is not None and actual != expected:
                 raise CheckpointError(
-                    f"{path}: its weights have fingerprint {actual}, but {expected} was {source}; the file was changed or damaged "
-                    f"after it was written. Use an intact copy (download it again, or the run's own checkpoints/best.ckpt)."
+                    f"{path}: its weights have fingerprint {actual}, but {expected} was {source}; the file "
+                    "was changed or damaged "
+                    "after it was written. Use an intact copy (download it again, or the run's own "
+                    "checkpoints/best.ckpt)."
                 )
     return ckpt
 
 
 def load_state(module: torch.nn.Module, state: dict, path: str | Path, kind: str) -> None:
-    """module.load_state_dict(state), a mismatch (missing, unexpected or mis-shaped weights) a CheckpointError."""
+    """module.load_state_dict(state), a mismatch (missing, unexpected or mis-shaped weights) a
+    CheckpointError."""
     try:
         module.load_state_dict(state)
     except (RuntimeError, KeyError, ValueError) as e:
         detail = str(e).strip().splitlines()[0][:300]
         raise CheckpointError(
-            f"{path}: its weights do not fit the {KINDS[kind][0]} its hyper-parameters describe ({detail}); the file was edited or "
+            f"{path}: its weights do not fit the {CHECKPOINTS[kind][0]} its hyper-parameters describe "
+            f"({detail}); the file was edited or "
             f"mixed from two models. Use the checkpoint as training wrote it."
         ) from None
 
@@ -163,11 +191,18 @@ def trusted_recorded_path(recorded: str | Path | None) -> Path | None:
 
 def outside_outputs(recorded: str | Path | None) -> bool:
     """True for a recorded path that exists but lies outside `outputs/` (refused unless passed)."""
-    return bool(recorded) and Path(recorded).exists() and not Path(recorded).resolve().is_relative_to(Path(OUTPUTS_ROOT).resolve())
+    return (
+        bool(recorded)
+        and Path(recorded).exists()
+        and not Path(recorded).resolve().is_relative_to(Path(OUTPUTS_ROOT).resolve())
+    )
 
 
 # Text-encoder options a checkpoint records (text/encoders.py TextConfig.options()).
-TEXT_FILE_OPTIONS = {"weights": "--clip-weights", "vocab": "--clip-vocab"}  # option -> the CLI flag that passes it
+TEXT_FILE_OPTIONS = {
+    "weights": "--clip-weights",
+    "vocab": "--clip-vocab",
+}  # option -> the CLI flag that passes it
 TEXT_PLAIN_OPTIONS = ("activation", "precision", "words")
 
 
@@ -183,11 +218,16 @@ def text_encoder_options(recorded: dict, given: dict | None, source: str | Path)
     recorded = dict(recorded or {})
     name = recorded.get("name")
     if not name:
-        raise CheckpointError(f"{source}: records no text encoder; it was not written by this package's training")
+        raise CheckpointError(
+            f"{source}: records no text encoder; it was not written by this package's training"
+        )
     given = {k: str(v) for k, v in (given or {}).items() if v is not None}
     unknown = sorted(set(given) - set(TEXT_FILE_OPTIONS))
     if unknown:
-        raise ValueError(f"text-encoder files {', '.join(unknown)} are not options of a text encoder; give {', '.join(TEXT_FILE_OPTIONS)}")
+        raise ValueError(
+            f"text-encoder files {', '.join(unknown)} are not options of a text encoder; give "
+            f"{', '.join(TEXT_FILE_OPTIONS)}"
+        )
     options: dict = {}
     for key, value in recorded.items():
         if key in ("name", "identity") or value is None:
@@ -201,15 +241,20 @@ def text_encoder_options(recorded: dict, given: dict | None, source: str | Path)
             if trusted is None:
                 where = "outside outputs/" if Path(value).exists() else "not on this machine"
                 raise CheckpointError(
-                    f"{source}: its text encoder {name} was trained with the {key} file {value}, which is {where}; a file a checkpoint "
-                    f"names is read only from outputs/ or when you name it: pass {TEXT_FILE_OPTIONS[key]} PATH "
-                    f"(from Python: text_files={{'{key}': PATH}}). The encoder's fingerprint is checked either way."
+                    f"{source}: its text encoder {name} was trained with the {key} file {value}, which is "
+                    f"{where}; a file a checkpoint "
+                    f"names is read only from outputs/ or when you name it: pass {TEXT_FILE_OPTIONS[key]} "
+                    "PATH "
+                    f"(from Python: text_files={{'{key}': PATH}}). The encoder's fingerprint is checked "
+                    "either way."
                 )
             options[key] = str(trusted)
         else:
             raise CheckpointError(
-                f"{source}: records the text-encoder option {key}={value!r}, which is never taken from a checkpoint "
-                f"(only {', '.join(TEXT_PLAIN_OPTIONS)} and the files {', '.join(TEXT_FILE_OPTIONS)}); use a checkpoint written by this package's training"
+                f"{source}: records the text-encoder option {key}={value!r}, which is never taken from a "
+                "checkpoint "
+                f"(only {', '.join(TEXT_PLAIN_OPTIONS)} and the files {', '.join(TEXT_FILE_OPTIONS)}); use a "
+                "checkpoint written by this package's training"
             )
     options.update(given)
     return name, options

@@ -65,7 +65,7 @@ def _choices(defaults, where: Path) -> dict[str, str]:
     for entry in defaults:
         if not isinstance(entry, DictConfig) or len(entry) != 1:
             raise ConfigError(f"{where}: each defaults entry must be one 'group: option', got {entry}")
-        (group, option), = entry.items()
+        ((group, option),) = entry.items()
         choices[str(group)] = str(option)
     return choices
 
@@ -74,15 +74,24 @@ def _recipe(directory: Path, recipe: str, names: list[str]) -> DictConfig:
     """The recipe's settings for the first of `names` it has a file for."""
     folder = directory / RECIPE / recipe
     if not folder.is_dir():
-        known = sorted(p.name for p in (directory / RECIPE).iterdir() if p.is_dir()) if (directory / RECIPE).is_dir() else []
+        known = (
+            sorted(p.name for p in (directory / RECIPE).iterdir() if p.is_dir())
+            if (directory / RECIPE).is_dir()
+            else []
+        )
         raise ConfigError(f"recipe={recipe}: no {folder}; recipes: {', '.join(known) or 'none'}")
     for candidate in names:
         if (folder / f"{candidate}.yaml").is_file():
             return _load_yaml(folder / f"{candidate}.yaml")
-    raise ConfigError(f"recipe={recipe} has no settings for {names[0]} (it covers: {', '.join(sorted(p.stem for p in folder.glob('*.yaml')))})")
+    raise ConfigError(
+        f"recipe={recipe} has no settings for {names[0]} (it covers: "
+        f"{', '.join(sorted(p.stem for p in folder.glob('*.yaml')))})"
+    )
 
 
-def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None, directory: Path | None = None) -> DictConfig:
+def compose(
+    name: str, overrides: Sequence[str] = (), schema: type | None = None, directory: Path | None = None
+) -> DictConfig:
     """Compose conf/<name>.yaml with its defaults and `overrides`; validate against `schema`."""
     directory = directory or conf_dir()
     primary = _load_yaml(directory / f"{name}.yaml")
@@ -91,7 +100,9 @@ def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None
     if base_name is not None:
         base = _load_yaml(directory / f"{base_name}.yaml")
         if "extends" in base:
-            raise ConfigError(f"{directory / name}.yaml extends {base_name}.yaml, which extends another: one level only")
+            raise ConfigError(
+                f"{directory / name}.yaml extends {base_name}.yaml, which extends another: one level only"
+            )
         base_defaults = list(base.pop("defaults", []))
         own = list(primary.pop("defaults", []))
         primary = OmegaConf.merge(base, primary)
@@ -102,13 +113,18 @@ def compose(name: str, overrides: Sequence[str] = (), schema: type | None = None
     dotted, chosen, recipe = [], {}, None
     for item in overrides:
         if "=" not in item:
-            raise ConfigError(f"override {item!r} is not key=value (e.g. trainer.max_steps=500 or model=paper)")
+            raise ConfigError(
+                f"override {item!r} is not key=value (e.g. trainer.max_steps=500 or model=paper)"
+            )
         key, value = item.split("=", 1)
         if key == RECIPE:
             recipe = value
         elif "." not in key and (directory / key).is_dir():
             if not (directory / key / f"{value}.yaml").exists():
-                raise ConfigError(f"{key}={value}: no {directory / key / value}.yaml; options: {', '.join(_options(directory, key))}")
+                raise ConfigError(
+                    f"{key}={value}: no {directory / key / value}.yaml; options: "
+                    f"{', '.join(_options(directory, key))}"
+                )
             chosen[key] = value
         else:
             dotted.append(item)
@@ -143,3 +159,9 @@ def config_hash(cfg: DictConfig) -> str:
     """Short stable hash of a resolved config (tags runs and registered models)."""
     text = OmegaConf.to_yaml(cfg, resolve=True, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def as_config(cls: type, value):
+    """`value` as a `cls` dataclass: a dict (as checkpoints keep hyper-parameters) is unpacked,
+    anything else is returned as it is."""
+    return cls(**value) if isinstance(value, dict) else value

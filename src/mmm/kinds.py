@@ -34,41 +34,91 @@ class ModelKind:
         return self.name.endswith("-parts")
 
 
-KINDS: dict[str, ModelKind] = {k.name: k for k in (
-    ModelKind(
-        "stage1", "motion tokenizer", "mmm-stage1", "outputs/stage1", "train_stage1", "make train-stage1", "stage1",
-        "mmm-tokenizer", "tokenizer",
-        "Stage 1: the motion tokenizer (VQ-VAE). Charts: `train/*` losses, `codebook/*` usage and resets, `collapse/*` "
-        "(the collapse monitor), `val/mpjpe_root_aligned_mm` and `val/mpjpe_global_mm`. Images: `previews/reconstruction` "
-        "(reference above reconstruction, one per validation: use the step slider).",
-    ),
-    ModelKind(
-        "stage1-parts", "part-aware tokenizer", "mmm-stage1-parts", "outputs/stage1-parts", "train_stage1_parts",
-        "make train-stage1-parts", "stage1", None, None,
-        "Stage 1 of the part-aware model (upper-body editing): two codebooks, charts per codebook "
-        "(`codebook/lower/*`, `codebook/upper/*`).",
-    ),
-    ModelKind(
-        "stage2", "text-to-motion model", "mmm-stage2", "outputs/stage2", "train_stage2", "make train-stage2", "stage2",
-        "mmm-text2motion", "text2motion",
-        "Stage 2: the masked transformer. Charts: `train/*` loss and token accuracies, `val/*`. Images: `previews/generation` "
-        "(reference above generated, one per validation). Tags link the stage-1 run and registered version it was trained on.",
-    ),
-    ModelKind(
-        "stage2-parts", "part-aware model", "mmm-stage2-parts", "outputs/stage2-parts", "train_stage2_parts",
-        "make train-stage2-parts", "stage2", "mmm-upperbody", "upperbody",
-        "Stage 2 of the part-aware model: upper-body codes from the text given the lower body.",
-    ),
-    ModelKind(
-        "length", "length estimator", "mmm-length", "outputs/length", "train_length", "make train-length", "length", None, None,
-        "The length estimator (caption -> number of codes), used when no length is given.",
-    ),
-    ModelKind(
-        "evaluator", "evaluator", "mmm-evaluator", "outputs/evaluator", "train_evaluator", "make train-evaluator", "evaluator",
-        "mmm-evaluator", "evaluator",
-        "The package's own text-motion evaluator (contrastive), the yardstick promotion compares with.",
-    ),
-)}
+KINDS: dict[str, ModelKind] = {
+    k.name: k
+    for k in (
+        ModelKind(
+            "stage1",
+            "stage-1 model",
+            "mmm-stage1",
+            "outputs/stage1",
+            "train_stage1",
+            "make train-stage1",
+            "stage1",
+            "mmm-tokenizer",
+            "tokenizer",
+            "Stage 1: the motion tokenizer (VQ-VAE). Charts: `train/*` losses, `codebook/*` usage and "
+            "resets, `collapse/*` "
+            "(the collapse monitor), `val/mpjpe_root_aligned_mm` and `val/mpjpe_global_mm`. Images: "
+            "`previews/reconstruction` "
+            "(reference above reconstruction, one per validation: use the step slider).",
+        ),
+        ModelKind(
+            "stage1-parts",
+            "part-aware stage-1 model",
+            "mmm-stage1-parts",
+            "outputs/stage1-parts",
+            "train_stage1_parts",
+            "make train-stage1-parts",
+            "stage1",
+            None,
+            None,
+            "Stage 1 of the part-aware model (upper-body editing): two codebooks, charts per codebook "
+            "(`codebook/lower/*`, `codebook/upper/*`).",
+        ),
+        ModelKind(
+            "stage2",
+            "text-to-motion model",
+            "mmm-stage2",
+            "outputs/stage2",
+            "train_stage2",
+            "make train-stage2",
+            "stage2",
+            "mmm-text2motion",
+            "text2motion",
+            "Stage 2: the masked transformer. Charts: `train/*` loss and token accuracies, `val/*`. Images: "
+            "`previews/generation` "
+            "(reference above generated, one per validation). Tags link the stage-1 run and registered "
+            "version it was trained on.",
+        ),
+        ModelKind(
+            "stage2-parts",
+            "part-aware model",
+            "mmm-stage2-parts",
+            "outputs/stage2-parts",
+            "train_stage2_parts",
+            "make train-stage2-parts",
+            "stage2",
+            "mmm-upperbody",
+            "upperbody",
+            "Stage 2 of the part-aware model: upper-body codes from the text given the lower body.",
+        ),
+        ModelKind(
+            "length",
+            "length estimator",
+            "mmm-length",
+            "outputs/length",
+            "train_length",
+            "make train-length",
+            "length",
+            None,
+            None,
+            "The length estimator (caption -> number of codes), used when no length is given.",
+        ),
+        ModelKind(
+            "evaluator",
+            "evaluator",
+            "mmm-evaluator",
+            "outputs/evaluator",
+            "train_evaluator",
+            "make train-evaluator",
+            "evaluator",
+            "mmm-evaluator",
+            "evaluator",
+            "The package's own text-motion evaluator (contrastive), the yardstick promotion compares with.",
+        ),
+    )
+}
 
 STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS, LENGTH, EVALUATOR = (KINDS[k] for k in KINDS)
 

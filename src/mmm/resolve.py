@@ -84,11 +84,17 @@ def _artifact_record(client, run_id: str, artifact_path: str) -> tuple[int | Non
         parent = artifact_path.rsplit("/", 1)[0] if "/" in artifact_path else None
         listed = {f.path: f for f in client.list_artifacts(run_id, parent)}
     except MlflowException as e:
-        raise ModelNotFound(f"runs:/{run_id}: no such run in the tracking store ({e.message.splitlines()[0]}); `mmm runs list` shows what exists") from None
+        raise ModelNotFound(
+            f"runs:/{run_id}: no such run in the tracking store ({e.message.splitlines()[0]}); `mmm runs "
+            "list` shows what exists"
+        ) from None
     info = listed.get(artifact_path)
     if info is None or info.is_dir:
         have = ", ".join(sorted(p for p, f in listed.items() if not f.is_dir)) or "none"
-        raise ModelNotFound(f"runs:/{run_id}/{artifact_path}: the run has no such file (files there: {have}); name a run that finished training")
+        raise ModelNotFound(
+            f"runs:/{run_id}/{artifact_path}: the run has no such file (files there: {have}); name a run "
+            "that finished training"
+        )
     return info.file_size, run.data.tags.get(sha256_tag(artifact_path))
 
 
@@ -103,7 +109,9 @@ def _cached(cache_dir: Path, digest: str, name: str, size: int | None) -> Path |
     return None  # truncated (or otherwise not the file): fetched again and replaced
 
 
-def download_artifact(tracking_uri: str, run_id: str, artifact_path: str, cache_dir: str | Path, sha256: str | None = None) -> str:
+def download_artifact(
+    tracking_uri: str, run_id: str, artifact_path: str, cache_dir: str | Path, sha256: str | None = None
+) -> str:
     """A local copy of the run's artifact file, from the content-keyed cache (module docstring).
     `sha256`: the digest the caller knows the file must have (a registered version's); else the
     run's recorded one is used, where there is one. A copy whose size or digest is not the
@@ -120,9 +128,15 @@ def download_artifact(tracking_uri: str, run_id: str, artifact_path: str, cache_
             if hit is not None:
                 return str(hit)
         cache_dir.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".download-", dir=cache_dir))  # same file system as the cache: the rename is atomic
+        tmp = Path(
+            tempfile.mkdtemp(prefix=".download-", dir=cache_dir)
+        )  # same file system as the cache: the rename is atomic
         try:
-            local = Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=artifact_path, dst_path=str(tmp), tracking_uri=tracking_uri))
+            local = Path(
+                mlflow.artifacts.download_artifacts(
+                    run_id=run_id, artifact_path=artifact_path, dst_path=str(tmp), tracking_uri=tracking_uri
+                )
+            )
             got_size = local.stat().st_size
             digest = sha256_file(local)
             if size is not None and got_size != size:
@@ -133,36 +147,48 @@ def download_artifact(tracking_uri: str, run_id: str, artifact_path: str, cache_
                 continue
             final = cache_dir / CONTENT_FOLDER / digest / name
             final.parent.mkdir(parents=True, exist_ok=True)
-            if _cached(cache_dir, digest, name, got_size) is None:  # else another process installed it meanwhile
+            if (
+                _cached(cache_dir, digest, name, got_size) is None
+            ):  # else another process installed it meanwhile
                 os.replace(local, final)
                 fsync_directory(final.parent)
             return str(final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     raise ArtifactMismatch(
-        f"runs:/{run_id}/{artifact_path}: {problem}; the artifact changed while it was read or does not match its record "
-        f"(run tag {sha256_tag(artifact_path)!r} or the registered version's {VERSION_SHA256_TAG!r}); try again, and re-upload it if this persists"
+        f"runs:/{run_id}/{artifact_path}: {problem}; the artifact changed while it was read or does not "
+        "match its record "
+        f"(run tag {sha256_tag(artifact_path)!r} or the registered version's {VERSION_SHA256_TAG!r}); try "
+        "again, and re-upload it if this persists"
     )
 
 
-def newest_run_checkpoint(tracking_uri: str, experiment: str, cache_dir: str | Path) -> tuple[str, str] | None:
+def newest_run_checkpoint(
+    tracking_uri: str, experiment: str, cache_dir: str | Path
+) -> tuple[str, str] | None:
     """(run id, local best.ckpt) of the newest finished run of `experiment` that has one."""
     client = MlflowClient(tracking_uri)
     found = client.get_experiment_by_name(experiment)
     if found is None:
         return None
-    for run in client.search_runs([found.experiment_id], "attributes.status = 'FINISHED'", order_by=["attributes.start_time DESC"], max_results=20):
+    for run in client.search_runs(
+        [found.experiment_id],
+        "attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+        max_results=20,
+    ):
         names = {f.path for f in client.list_artifacts(run.info.run_id, "checkpoints")}
         if "checkpoints/best.ckpt" in names:
-            return run.info.run_id, download_artifact(tracking_uri, run.info.run_id, "checkpoints/best.ckpt", cache_dir)
+            return run.info.run_id, download_artifact(
+                tracking_uri, run.info.run_id, "checkpoints/best.ckpt", cache_dir
+            )
     return None
 
 
 def registered_version(reference: str, tracking_uri: str):
     """The ModelVersion of models:/NAME@ALIAS or models:/NAME/VERSION (ModelNotFound otherwise)."""
-    from mlflow.exceptions import MlflowException
     client = MlflowClient(tracking_uri)
-    body = reference[len("models:/"):]
+    body = reference[len("models:/") :]
     try:
         if "@" in body:
             name, alias = body.split("@", 1)
@@ -171,22 +197,34 @@ def registered_version(reference: str, tracking_uri: str):
         return client.get_model_version(name, number)
     except (MlflowException, ValueError) as e:
         detail = e.message.splitlines()[0] if isinstance(e, MlflowException) else str(e)
-        raise ModelNotFound(f"{reference}: no such registered model version at {tracking_uri} ({detail}); `mmm models list` shows what exists") from None
+        raise ModelNotFound(
+            f"{reference}: no such registered model version at {tracking_uri} ({detail}); `mmm models list` "
+            "shows what exists"
+        ) from None
 
 
-def _fetch_run_file(reference: str, tracking_uri: str, run_id: str, artifact_path: str, cache_dir: str | Path, what: str,
-                    sha256: str | None = None) -> str:
+def _fetch_run_file(
+    reference: str,
+    tracking_uri: str,
+    run_id: str,
+    artifact_path: str,
+    cache_dir: str | Path,
+    what: str,
+    sha256: str | None = None,
+) -> str:
     """download_artifact, with MLflow's errors (no such run, no such artifact, a store that cannot
     be reached) as a ModelNotFound naming the reference."""
     try:
         return download_artifact(tracking_uri, run_id, artifact_path, cache_dir, sha256=sha256)
     except ModelNotFound:
-        raise  # download_artifact's own message names the run and the fix (ArtifactMismatch: not the recorded file)
+        # download_artifact's own message names the run and the fix (ArtifactMismatch: not the recorded file)
+        raise
     except (MlflowException, OSError) as e:
         detail = (e.message if isinstance(e, MlflowException) else str(e)).strip().splitlines()
         raise ModelNotFound(
             f"{reference}: no {what} at {tracking_uri}: run {run_id} has no artifact {artifact_path} "
-            f"({detail[0][:200] if detail else type(e).__name__}); check the run id (`mmm models list`, the MLflow UI) "
+            f"({detail[0][:200] if detail else type(e).__name__}); check the run id (`mmm models list`, the "
+            "MLflow UI) "
             f"and --tracking-uri, or give the checkpoint file's path"
         ) from None
 
@@ -210,32 +248,62 @@ def resolve_checkpoint(
         if local:
             return str(local[-1]), str(local[-1]), None
         raise ModelNotFound(
-            f"no {what} to use: no finished run with a checkpoint in MLflow experiment {experiment!r} at {tracking_uri} "
-            f"and no {output_dir}/*/checkpoints/best.ckpt; run `{train_hint}` first or name one with {option}=PATH|RUN_ID|models:/NAME@ALIAS"
+            f"no {what} to use: no finished run with a checkpoint in MLflow experiment {experiment!r} at "
+            f"{tracking_uri} "
+            f"and no {output_dir}/*/checkpoints/best.ckpt; run `{train_hint}` first or name one with "
+            f"{option}=PATH|RUN_ID|models:/NAME@ALIAS"
         )
     if reference.startswith("models:/"):
         version = registered_version(reference, tracking_uri)
         source, run_id = version.source, version.run_id
         path = source.split(f"runs:/{run_id}/", 1)[-1] if run_id and source.startswith("runs:/") else None
         if path is None:
-            raise ModelNotFound(f"{reference}: version {version.version} has source {source!r}, not a run artifact of a {what} checkpoint")
+            raise ModelNotFound(
+                f"{reference}: version {version.version} has source {source!r}, not a run artifact of a "
+                f"{what} checkpoint"
+            )
         if not path.endswith(".ckpt"):
             path = path.rstrip("/") + "/best.ckpt"
-        return reference, _fetch_run_file(reference, tracking_uri, run_id, path, cache_dir, what, version.tags.get(VERSION_SHA256_TAG)), run_id
-    run_id = reference[len("runs:/"):].strip("/") if reference.startswith("runs:/") else reference
+        return (
+            reference,
+            _fetch_run_file(
+                reference, tracking_uri, run_id, path, cache_dir, what, version.tags.get(VERSION_SHA256_TAG)
+            ),
+            run_id,
+        )
+    run_id = reference[len("runs:/") :].strip("/") if reference.startswith("runs:/") else reference
     if _RUN_ID.match(run_id):
-        return f"runs:/{run_id}", _fetch_run_file(reference, tracking_uri, run_id, "checkpoints/best.ckpt", cache_dir, what), run_id
+        return (
+            f"runs:/{run_id}",
+            _fetch_run_file(reference, tracking_uri, run_id, "checkpoints/best.ckpt", cache_dir, what),
+            run_id,
+        )
     if not Path(reference).exists():
         raise ModelNotFound(f"{reference}: no such checkpoint file, MLflow run id or models:/ URI")
     return reference, reference, None
 
 
-def resolve_model(reference: str | None, tracking_uri: str, kind: ModelKind, option: str, output_dir: str | None = None,
-                  cache_dir: str = "outputs/cache/models", experiment: str | None = None) -> tuple[str, str, str | None]:
+def resolve_model(
+    reference: str | None,
+    tracking_uri: str,
+    kind: ModelKind,
+    option: str,
+    output_dir: str | None = None,
+    cache_dir: str = "outputs/cache/models",
+    experiment: str | None = None,
+) -> tuple[str, str, str | None]:
     """resolve_checkpoint for a model kind of the catalogue (its experiment, run folders and
     training hint); `output_dir`/`experiment` override the kind's where a config names others."""
-    return resolve_checkpoint(reference, tracking_uri, experiment or kind.experiment, output_dir or kind.output_dir, kind.what,
-                              kind.train, option, cache_dir)
+    return resolve_checkpoint(
+        reference,
+        tracking_uri,
+        experiment or kind.experiment,
+        output_dir or kind.output_dir,
+        kind.what,
+        kind.train,
+        option,
+        cache_dir,
+    )
 
 
 # -- registered bundles (text-to-motion, upper-body) ----------------------------------------------
@@ -261,11 +329,16 @@ def resolve_bundle(reference: str, tracking_uri: str) -> tuple[str, str, dict, o
     key = hashlib.sha256(f"{tracking_uri}|{version.source}".encode()).hexdigest()[:12]
     stage2, stage1 = bundle_checkpoints(reference, tracking_uri, dst=Path(BUNDLE_CACHE) / key)
     # The version's tags (written when it was logged) name the weights it must hold.
-    expected = {"transformer": version.tags.get("mmm.transformer.identity"), "stage1": version.tags.get("mmm.stage1.identity")}
+    expected = {
+        "transformer": version.tags.get("mmm.transformer.identity"),
+        "stage1": version.tags.get("mmm.stage1.identity"),
+    }
     return stage2, stage1, expected, version
 
 
-def localize_text_files(transformer_checkpoint: str | Path, files: dict[str, str], dst_dir: str | Path) -> str:
+def localize_text_files(
+    transformer_checkpoint: str | Path, files: dict[str, str], dst_dir: str | Path
+) -> str:
     """A copy of the stage-2 checkpoint whose text-encoder options (weights, vocab) name `files`
     instead of the training machine's paths; the weights are unchanged (the encoder's identity,
     checked on load, covers the files' content)."""
@@ -285,7 +358,7 @@ def _artifact_location(model_uri: str, tracking_uri: str) -> str:
     if not model_uri.startswith("models:/"):
         return model_uri
     client = MlflowClient(tracking_uri, registry_uri=tracking_uri)
-    body = model_uri[len("models:/"):]
+    body = model_uri[len("models:/") :]
     if body.startswith("m-") and "/" not in body and "@" not in body:
         return client.get_logged_model(body).artifact_location
     version = registered_version(model_uri, tracking_uri)
@@ -311,7 +384,11 @@ def _download(artifact_uri: str, tracking_uri: str, dst: str | Path | None) -> P
         if not (dst / COMPLETE).is_file():  # else another process filled it while this one waited
             tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
             try:
-                local = Path(mlflow.artifacts.download_artifacts(artifact_uri=artifact_uri, dst_path=str(tmp), tracking_uri=tracking_uri))
+                local = Path(
+                    mlflow.artifacts.download_artifacts(
+                        artifact_uri=artifact_uri, dst_path=str(tmp), tracking_uri=tracking_uri
+                    )
+                )
                 atomic_write_text(tmp / COMPLETE, str(local.relative_to(tmp)))
                 if dst.exists():  # not a fill's copy (see above): moved away whole, then deleted
                     stale = Path(tempfile.mkdtemp(prefix=f".{dst.name}.stale-", dir=dst.parent))
@@ -340,10 +417,13 @@ def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None
     conf = Model.load(str(local)).flavors.get("python_function", {})
     saved = conf.get("artifacts") or {}
     if TRANSFORMER not in saved or TOKENIZER not in saved:
-        raise ValueError(f"{model_uri}: not a text-to-motion bundle (its pyfunc artifacts are {sorted(saved) or 'none'}; expected {TRANSFORMER!r} and {TOKENIZER!r})")
+        raise ValueError(
+            f"{model_uri}: not a text-to-motion bundle (its pyfunc artifacts are {sorted(saved) or 'none'}; "
+            f"expected {TRANSFORMER!r} and {TOKENIZER!r})"
+        )
     path = {name: str(local / entry["path"]) for name, entry in saved.items()}
     transformer = path[TRANSFORMER]
-    text_files = {k[len("text_"):]: v for k, v in path.items() if k.startswith("text_")}
+    text_files = {k[len("text_") :]: v for k, v in path.items() if k.startswith("text_")}
     if text_files:
         transformer = localize_text_files(transformer, text_files, local)
     return transformer, path[TOKENIZER]

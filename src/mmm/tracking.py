@@ -12,6 +12,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from mlflow.entities import Dataset, DatasetInput, InputTag
+from mlflow.exceptions import MlflowException
+
 from mmm.kinds import KINDS
 
 DESCRIPTION_TAG = "mlflow.note.content"  # the run's / experiment's / version's markdown description in the UI
@@ -22,9 +25,18 @@ TRAINING_VIEW = "?workflowType=machine_learning"  # without it MLflow 3.17 may o
 
 EXPERIMENT_DESCRIPTIONS = {
     **{kind.experiment: kind.description for kind in KINDS.values()},
-    "mmm-evaluation": "`mmm evaluate` runs: the replicated protocol, reconstruction and prompt adherence; each run's description holds its table.",
-    "mmm-pipeline": "`mmm pipeline` runs: one parent run per pipeline (its description: the steps in order, with links), one nested run per step.",
-    "mmm-ablations": "`mmm ablate` sweeps (the supplementary's Tables 8-13): a parent run per sweep, one nested run per setting.",
+    "mmm-evaluation": (
+        "`mmm evaluate` runs: the replicated protocol, reconstruction and prompt adherence; each run's "
+        "description holds its table."
+    ),
+    "mmm-pipeline": (
+        "`mmm pipeline` runs: one parent run per pipeline (its description: the steps in order, with "
+        "links), one nested run per step."
+    ),
+    "mmm-ablations": (
+        "`mmm ablate` sweeps (the supplementary's Tables 8-13): a parent run per sweep, one nested run "
+        "per setting."
+    ),
     "mmm-import": "The authors' released checkpoints imported with `mmm import released`.",
 }
 
@@ -44,8 +56,8 @@ class TrackingConfig:
 def resolve_tracking_uri(uri: str) -> str:
     """Make a relative sqlite path absolute, so every process and the dashboard agree on it."""
     prefix = "sqlite:///"
-    if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
-        return prefix + str(Path(uri[len(prefix):]).resolve())
+    if uri.startswith(prefix) and not uri[len(prefix) :].startswith("/"):
+        return prefix + str(Path(uri[len(prefix) :]).resolve())
     return uri
 
 
@@ -76,7 +88,11 @@ def experiment_url(base: str, experiment_id: str) -> str:
 def source_tags(command: str) -> dict[str, str]:
     """What the run page's "Source" shows: the command that made the run, and the git commit."""
     commit = git_commit()
-    return {"mlflow.source.name": command, "mlflow.source.type": "LOCAL", **({GIT_COMMIT_TAG: commit} if commit else {})}
+    return {
+        "mlflow.source.name": command,
+        "mlflow.source.type": "LOCAL",
+        **({GIT_COMMIT_TAG: commit} if commit else {}),
+    }
 
 
 def timestamp() -> str:
@@ -90,7 +106,9 @@ def git_commit(root: Path | None = None) -> str | None:
     if not ((root / "pyproject.toml").is_file() and (root / "src" / "mmm" / "__init__.py").is_file()):
         return None
     try:
-        out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        out = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() or None
@@ -99,8 +117,6 @@ def git_commit(root: Path | None = None) -> str | None:
 def prepare_experiment(client, name: str, artifact_location: str | None = None) -> str:
     """The id of experiment `name`, created when missing (another process creating it at the same
     time is not an error), with its description and the classic-view kind set once."""
-    from mlflow.exceptions import MlflowException
-
     found = client.get_experiment_by_name(name)
     if found is None:
         try:
@@ -120,14 +136,22 @@ def prepare_experiment(client, name: str, artifact_location: str | None = None) 
     return experiment_id
 
 
-def log_dataset_input(client, run_id: str, name: str, root: str | Path, fingerprint: str, context: str = "training") -> None:
+def log_dataset_input(
+    client, run_id: str, name: str, root: str | Path, fingerprint: str, context: str = "training"
+) -> None:
     """Record the dataset a run read as its MLflow dataset input (name, digest = content
     fingerprint, source = the folder)."""
-    from mlflow.entities import Dataset, DatasetInput, InputTag
-
-    dataset = Dataset(name=name, digest=fingerprint, source_type="local", source=str(Path(root).resolve()),
-                      schema=None, profile=None)
-    client.log_inputs(run_id, datasets=[DatasetInput(dataset, tags=[InputTag("mlflow.data.context", context)])])
+    dataset = Dataset(
+        name=name,
+        digest=fingerprint,
+        source_type="local",
+        source=str(Path(root).resolve()),
+        schema=None,
+        profile=None,
+    )
+    client.log_inputs(
+        run_id, datasets=[DatasetInput(dataset, tags=[InputTag("mlflow.data.context", context)])]
+    )
 
 
 def dashboard_links(client, base_url: str) -> list[str]:
@@ -137,13 +161,18 @@ def dashboard_links(client, base_url: str) -> list[str]:
     for experiment in client.search_experiments(order_by=["name ASC"]):
         if not experiment.name.startswith("mmm"):
             continue
-        recent = client.search_runs([experiment.experiment_id], order_by=["attributes.start_time DESC"], max_results=50)
+        recent = client.search_runs(
+            [experiment.experiment_id], order_by=["attributes.start_time DESC"], max_results=50
+        )
         # A pipeline's steps start after it: the newest top-level run is the one to open.
         newest = [r for r in recent if "mlflow.parentRunId" not in r.data.tags] or recent
         line = f"{experiment.name:18s} {experiment_url(base_url, experiment.experiment_id)}"
         if newest:
             run = newest[0].info
-            line += f"\n{'':18s} newest run {run.run_name}: {base_url.rstrip('/')}/#/experiments/{experiment.experiment_id}/runs/{run.run_id}{TRAINING_VIEW}"
+            line += (
+                f"\n{'':18s} newest run {run.run_name}: "
+                f"{base_url.rstrip('/')}/#/experiments/{experiment.experiment_id}/runs/{run.run_id}{TRAINING_VIEW}"
+            )
         lines.append(line)
     lines.append(f"{'registered models':18s} {base_url.rstrip('/')}/#/models")
     return lines

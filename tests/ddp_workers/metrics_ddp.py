@@ -31,7 +31,8 @@ def make_data() -> dict[str, torch.Tensor]:
     return {
         "text": text,
         "motion": text + 0.8 * torch.randn(n, DIM, generator=g, dtype=torch.float64),
-        "real": torch.randn(n, DIM, generator=g, dtype=torch.float64) @ torch.randn(DIM, DIM, generator=g, dtype=torch.float64),
+        "real": torch.randn(n, DIM, generator=g, dtype=torch.float64)
+        @ torch.randn(DIM, DIM, generator=g, dtype=torch.float64),
         "generated": torch.randn(n, DIM, generator=g, dtype=torch.float64) * 1.5 + 0.3,
         "mm": torch.randn(MM_TEXTS, MM_GENERATIONS, DIM, generator=g, dtype=torch.float64),
     }
@@ -46,7 +47,12 @@ def worker(rank: int, port: int, out_dir: str) -> None:
             torch.save(data, os.path.join(out_dir, "data.pt"))
         batches = range(RANK0_BATCHES) if rank == 0 else range(RANK0_BATCHES, BATCHES)
         texts = slice(0, MM_RANK0) if rank == 0 else slice(MM_RANK0, MM_TEXTS)
-        rprec, frechet, div, mm = RPrecision(3), FrechetDistance(DIM), Diversity(300, seed=5), MultiModality(10, seed=7)
+        rprec, frechet, div, mm = (
+            RPrecision(3),
+            FrechetDistance(DIM),
+            Diversity(300, seed=5),
+            MultiModality(10, seed=7),
+        )
         for b in batches:
             rows = slice(b * BATCH, (b + 1) * BATCH)
             rprec.update(data["text"][rows], data["motion"][rows])
@@ -56,7 +62,12 @@ def worker(rank: int, port: int, out_dir: str) -> None:
         mm_rank = data["mm"][texts]
         mm.update(mm_rank[:3])
         mm.update(mm_rank[3:])
-        values = {**rprec.compute(), "fid": frechet.compute(), "diversity": div.compute(), "multimodality": mm.compute()}
+        values = {
+            **rprec.compute(),
+            "fid": frechet.compute(),
+            "diversity": div.compute(),
+            "multimodality": mm.compute(),
+        }
         values["local_count"] = rprec.count.clone()  # synced state is restored after compute
         torch.save({k: v.clone() for k, v in values.items()}, os.path.join(out_dir, f"rank{rank}.pt"))
         dist.barrier()

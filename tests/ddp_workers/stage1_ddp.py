@@ -1,7 +1,8 @@
 """Stage-1 training on 2 CPU processes over gloo; each rank saves its quantizer state at the end.
 
 Run by tests/test_stage1.py as `python stage1_ddp.py DATA_ROOT OUT_DIR [parts]`: Lightning's DDP
-launcher re-runs this script for rank 1; `parts` trains the part-aware tokenizer (two codebooks). The collapse monitor is made to fire on rank 0 only, so both
+launcher re-runs this script for rank 1; `parts` trains the part-aware tokenizer (two codebooks). The collapse
+monitor is made to fire on rank 0 only, so both
 ranks stopping at the same step shows that the stop decision is reduced across ranks.
 """
 
@@ -13,9 +14,11 @@ import torch
 
 from mmm.callbacks.codebook import CodebookReset, CollapseMonitor
 from mmm.data.datamodule import DataConfig, TokenizerDataModule
-from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.common import TrainerConfig, build_strategy
+from mmm.training.common import build_strategy
+from mmm.training.configs import TrainerConfig
+from mmm.training.optim import OptimConfig
 
 
 class SaveRankState(L.Callback):
@@ -29,10 +32,16 @@ class SaveRankState(L.Callback):
     def on_train_end(self, trainer, pl_module):
         quantizers = pl_module.quantizers.values()
         reset = next(c for c in trainer.callbacks if isinstance(c, CodebookReset))
-        state = {name: torch.cat([getattr(q, name).flatten().float() for q in quantizers]) for name in ("codebook", "ema_sum", "ema_count", "window_usage")}
+        state = {
+            name: torch.cat([getattr(q, name).flatten().float() for q in quantizers])
+            for name in ("codebook", "ema_sum", "ema_count", "window_usage")
+        }
         torch.save(
             {
-                **state, "codebooks": len(quantizers), "global_step": trainer.global_step, "total_reset": reset.total_reset,
+                **state,
+                "codebooks": len(quantizers),
+                "global_step": trainer.global_step,
+                "total_reset": reset.total_reset,
                 "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
                 "first_batch_sum": self.first_batch_sum,
             },
@@ -46,12 +55,33 @@ def main(data_root, out_dir, parts=False):
     dm = TokenizerDataModule(DataConfig(root=data_root, batch_size=4, synthesize=None), seed=0)
     dm.prepare_data()
     dm.setup("fit")
-    module = TokenizerModule(263, TokenizerConfig(width=32, num_codes=64, part_aware=parts), OptimConfig(warmup_steps=5), TokenizerLossConfig(), dm.mean, dm.std)
-    monitor = CollapseMonitor(action="stop", warmup_steps=24, window_steps=4, min_active_fraction=2.0 if rank == 0 else -1.0, perplexity_drop=0.0, patience=1)
+    module = TokenizerModule(
+        263,
+        TokenizerConfig(width=32, num_codes=64, part_aware=parts),
+        OptimConfig(warmup_steps=5),
+        TokenizerLossConfig(),
+        dm.mean,
+        dm.std,
+    )
+    monitor = CollapseMonitor(
+        action="stop",
+        warmup_steps=24,
+        window_steps=4,
+        min_active_fraction=2.0 if rank == 0 else -1.0,
+        perplexity_drop=0.0,
+        patience=1,
+    )
     trainer = L.Trainer(
-        accelerator="cpu", devices=2, strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
-        max_steps=40, limit_val_batches=0, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-        use_distributed_sampler=False, callbacks=[CodebookReset(3), monitor, SaveRankState(out_dir)],
+        accelerator="cpu",
+        devices=2,
+        strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
+        max_steps=40,
+        limit_val_batches=0,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        use_distributed_sampler=False,
+        callbacks=[CodebookReset(3), monitor, SaveRankState(out_dir)],
     )
     trainer.fit(module, datamodule=dm)
 

@@ -14,8 +14,9 @@ import torch
 from torch.utils.data import Dataset
 
 from mmm.data.resumable import ResumableDataLoader
-from mmm.tokenizer.module import OptimConfig
-from mmm.training.common import TrainerConfig, build_strategy
+from mmm.training.common import build_strategy
+from mmm.training.configs import TrainerConfig
+from mmm.training.optim import OptimConfig
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
 from mmm.transformer.network import TransformerConfig
 
@@ -51,7 +52,14 @@ def collate(data, parts: bool):
                 lower[row, : lengths[row]] = tokens[row, : lengths[row]].flip(0)
             tokens = torch.stack((lower, tokens), dim=-1)
         words = data.text[indices]
-        return {"tokens": tokens, "lengths": lengths, "sentence": words.mean(1), "words": words, "word_mask": torch.ones(n, 5, dtype=torch.bool)}
+        return {
+            "tokens": tokens,
+            "lengths": lengths,
+            "sentence": words.mean(1),
+            "words": words,
+            "word_mask": torch.ones(n, 5, dtype=torch.bool),
+        }
+
     return fn
 
 
@@ -67,8 +75,10 @@ class SaveRankState(L.Callback):
         torch.save(
             {
                 "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
-                "val_loss": float(trainer.callback_metrics["val/loss"]), "val_acc": float(trainer.callback_metrics["val/acc_masked"]),
-                "first_batch": self.first, "step": trainer.global_step,
+                "val_loss": float(trainer.callback_metrics["val/loss"]),
+                "val_acc": float(trainer.callback_metrics["val/acc_masked"]),
+                "first_batch": self.first,
+                "step": trainer.global_step,
             },
             os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt"),
         )
@@ -78,18 +88,35 @@ def main(out_dir, parts=False):
     L.seed_everything(0)
     train, val = RandomTokens(64, 1), RandomTokens(10, 2)  # 10 val items: 5 per rank
     module = MaskedTransformerModule(
-        torch.randn(K, 8), TransformerConfig(embed_dim=32, num_heads=2, num_layers=2, num_cross_layers=1, dropout=0.0, max_tokens=13),
-        OptimConfig(lr=1e-3, warmup_steps=0), CorruptionConfig(cond_drop=0.2), sentence_dim=16, word_dim=16,
+        torch.randn(K, 8),
+        TransformerConfig(
+            embed_dim=32, num_heads=2, num_layers=2, num_cross_layers=1, dropout=0.0, max_tokens=13
+        ),
+        OptimConfig(lr=1e-3, warmup_steps=0),
+        CorruptionConfig(cond_drop=0.2),
+        sentence_dim=16,
+        word_dim=16,
         condition_codebook=torch.randn(K, 4) if parts else None,
     )
     trainer = L.Trainer(
-        accelerator="cpu", devices=2, strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
-        max_steps=15, val_check_interval=15, check_val_every_n_epoch=None, logger=False, enable_checkpointing=False,
-        enable_progress_bar=False, use_distributed_sampler=False, num_sanity_val_steps=0, callbacks=[SaveRankState(out_dir)],
+        accelerator="cpu",
+        devices=2,
+        strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
+        max_steps=15,
+        val_check_interval=15,
+        check_val_every_n_epoch=None,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        callbacks=[SaveRankState(out_dir)],
     )
     trainer.fit(
         module,
-        ResumableDataLoader(train, batch_size=4, shuffle=True, seed=0, collate_fn=collate(train, parts), drop_last=True),
+        ResumableDataLoader(
+            train, batch_size=4, shuffle=True, seed=0, collate_fn=collate(train, parts), drop_last=True
+        ),
         ResumableDataLoader(val, batch_size=5, shuffle=False, seed=0, collate_fn=collate(val, parts)),
     )
 

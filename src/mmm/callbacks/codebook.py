@@ -44,7 +44,12 @@ class CodebookReset(L.Callback):
             self.total_reset += n
         metrics = {"codebook/codes_reset_total": float(self.total_reset)}
         if len(self.total_by_codebook) > 1:
-            metrics.update({metric_name("codebook", name, "codes_reset_total"): float(k) for name, k in self.total_by_codebook.items()})
+            metrics.update(
+                {
+                    metric_name("codebook", name, "codes_reset_total"): float(k)
+                    for name, k in self.total_by_codebook.items()
+                }
+            )
         pl_module.log_dict(metrics, on_step=True, on_epoch=False)
 
     def state_dict(self) -> dict:
@@ -57,6 +62,19 @@ class CodebookReset(L.Callback):
 
 class CodebookCollapseError(RuntimeError):
     pass
+
+
+@dataclass
+class CollapseConfig:
+    """CollapseMonitor's settings (`callbacks.collapse` of conf/callbacks/stage1.yaml)."""
+
+    action: str = "warn"  # warn | stop | fail
+    warmup_steps: int = 200
+    window_steps: int = 50
+    min_active_fraction: float = 0.02
+    perplexity_drop: float = 0.2
+    smoothing: float = 0.9
+    patience: int = 3
 
 
 @dataclass
@@ -106,8 +124,15 @@ class CollapseMonitor(L.Callback):
         if action not in ("warn", "stop", "fail"):
             raise ValueError(f"collapse action must be warn, stop or fail, got {action!r}")
         self.action, self.warmup_steps, self.window_steps = action, warmup_steps, window_steps
-        self.min_active_fraction, self.perplexity_drop, self.smoothing, self.patience = min_active_fraction, perplexity_drop, smoothing, patience
-        self.codebooks: dict[str, CodebookHealth] = {}  # keyed like `pl_module.quantizers`, filled at the first step
+        self.min_active_fraction, self.perplexity_drop, self.smoothing, self.patience = (
+            min_active_fraction,
+            perplexity_drop,
+            smoothing,
+            patience,
+        )
+        self.codebooks: dict[
+            str, CodebookHealth
+        ] = {}  # keyed like `pl_module.quantizers`, filled at the first step
         self.events: list[CollapseEvent] = []
 
     @property
@@ -119,21 +144,33 @@ class CollapseMonitor(L.Callback):
         counts = quantizer.latest_counts
         if counts is None:
             return
-        health.usage = counts.detach().clone() if health.usage is None else health.usage.to(counts.device) + counts
+        health.usage = (
+            counts.detach().clone() if health.usage is None else health.usage.to(counts.device) + counts
+        )
         health.steps_in_window += 1
         if health.steps_in_window >= self.window_steps:
             health.active_fraction = float((health.usage > 0).float().mean())
             health.usage.zero_()
             health.steps_in_window = 0
-        health.perplexity = perplexity if health.perplexity == 0.0 else self.smoothing * health.perplexity + (1 - self.smoothing) * perplexity
+        health.perplexity = (
+            perplexity
+            if health.perplexity == 0.0
+            else self.smoothing * health.perplexity + (1 - self.smoothing) * perplexity
+        )
         if warm:
             health.peak = max(health.peak, health.perplexity)
 
     def collapse_reason(self, health: CodebookHealth) -> str | None:
         if health.active_fraction < self.min_active_fraction:
-            return f"active codes {health.active_fraction:.2%} of the codebook over the last {self.window_steps} steps (< {self.min_active_fraction:.2%})"
+            return (
+                f"active codes {health.active_fraction:.2%} of the codebook over the last "
+                f"{self.window_steps} steps (< {self.min_active_fraction:.2%})"
+            )
         if health.peak > 0 and health.perplexity < self.perplexity_drop * health.peak:
-            return f"perplexity {health.perplexity:.1f} fell below {self.perplexity_drop:g} x its peak {health.peak:.1f}"
+            return (
+                f"perplexity {health.perplexity:.1f} fell below {self.perplexity_drop:g} x its peak "
+                f"{health.peak:.1f}"
+            )
         return None
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
@@ -143,7 +180,9 @@ class CollapseMonitor(L.Callback):
             health = self.codebooks.setdefault(name, CodebookHealth())
             self._update(health, quantizer, pl_module.last_perplexities[name], warm=step >= self.warmup_steps)
             metrics[metric_name("collapse", name, "window_active_fraction")] = health.active_fraction
-            metrics[metric_name("collapse", name, "perplexity_ratio")] = health.perplexity / health.peak if health.peak else 1.0
+            metrics[metric_name("collapse", name, "perplexity_ratio")] = (
+                health.perplexity / health.peak if health.peak else 1.0
+            )
             reasons[name] = self.collapse_reason(health) if step >= self.warmup_steps else None
             health.strikes = health.strikes + 1 if reasons[name] else 0
         pl_module.log_dict(metrics, on_step=True, on_epoch=False)
@@ -158,7 +197,11 @@ class CollapseMonitor(L.Callback):
         for name in collapsed or list(reasons):
             health = self.codebooks[name]
             reason = reasons[name] or "collapse detected on another rank"
-            new_events.append(CollapseEvent(step, reason, health.active_fraction, health.perplexity, health.peak, self.action, name))
+            new_events.append(
+                CollapseEvent(
+                    step, reason, health.active_fraction, health.perplexity, health.peak, self.action, name
+                )
+            )
         self.events += new_events
         pl_module.log("collapse/detected", 1.0, on_step=True, on_epoch=False)
         if trainer.is_global_zero:
@@ -171,7 +214,10 @@ class CollapseMonitor(L.Callback):
             trainer.should_stop = True
 
     def state_dict(self) -> dict:
-        return {"codebooks": {name: asdict(h) for name, h in self.codebooks.items()}, "events": [asdict(e) for e in self.events]}
+        return {
+            "codebooks": {name: asdict(h) for name, h in self.codebooks.items()},
+            "events": [asdict(e) for e in self.events],
+        }
 
     def load_state_dict(self, state_dict: dict) -> None:
         # Checkpoints written before the monitor followed several codebooks hold one codebook's
@@ -179,8 +225,12 @@ class CollapseMonitor(L.Callback):
         codebooks = state_dict.get("codebooks", {"": state_dict})
         self.codebooks = {
             name: CodebookHealth(
-                usage=h["usage"], steps_in_window=int(h["steps_in_window"]), active_fraction=float(h["active_fraction"]),
-                perplexity=float(h["perplexity"]), peak=float(h["peak"]), strikes=int(h["strikes"]),
+                usage=h["usage"],
+                steps_in_window=int(h["steps_in_window"]),
+                active_fraction=float(h["active_fraction"]),
+                perplexity=float(h["perplexity"]),
+                peak=float(h["peak"]),
+                strikes=int(h["strikes"]),
             )
             for name, h in codebooks.items()
         }
@@ -196,4 +246,6 @@ def _record_events(trainer, events: list[CollapseEvent], latest: list[CollapseEv
     for logger in trainer.loggers:
         if isinstance(logger, MLFlowLogger):
             logger.experiment.set_tag(logger.run_id, "collapse", tag)
-            logger.experiment.log_text(logger.run_id, json.dumps([asdict(e) for e in events], indent=2), "events/collapse.json")
+            logger.experiment.log_text(
+                logger.run_id, json.dumps([asdict(e) for e in events], indent=2), "events/collapse.json"
+            )

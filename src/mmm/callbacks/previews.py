@@ -16,7 +16,12 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 from lightning.pytorch.loggers import MLFlowLogger
+from matplotlib.figure import Figure
 from PIL import Image
+
+from mmm.generation.model import TextToMotion
+from mmm.generation.upper_body import DEFAULT_LOWER_MASK
+from mmm.render import contact_sheet, render_gif
 
 log = logging.getLogger(__name__)
 
@@ -25,12 +30,19 @@ def _mlflow_loggers(trainer) -> list[MLFlowLogger]:
     return [lg for lg in trainer.loggers if isinstance(lg, MLFlowLogger)]
 
 
-def log_preview(trainer, kind: str, references: list, outputs: list, reference_captions: list[str], output_captions: list[str],
-                size: int = 320, frame_size: int = 160, num_frames: int = 6) -> None:
+def log_preview(
+    trainer,
+    kind: str,
+    references: list,
+    outputs: list,
+    reference_captions: list[str],
+    output_captions: list[str],
+    size: int = 320,
+    frame_size: int = 160,
+    num_frames: int = 6,
+) -> None:
     """Log `previews/<kind>` (an image with the step, for the slider) and
     `previews/<kind>_step<step>.gif` (references above outputs) to every MLflow logger (rank 0)."""
-    from mmm.render import contact_sheet, render_gif
-
     step = trainer.global_step
     loggers = _mlflow_loggers(trainer)
     if not loggers or not references:
@@ -43,8 +55,13 @@ def log_preview(trainer, kind: str, references: list, outputs: list, reference_c
         row_caps += [rc, oc]
     sheet = contact_sheet(rows, row_caps, num_frames=num_frames, size=(frame_size, frame_size))
     with tempfile.TemporaryDirectory() as tmp:
-        gif = render_gif(list(references) + list(outputs), Path(tmp) / f"{kind}_step{step:07d}.gif", captions=ref_caps + out_caps,
-                         size=(size, size), columns=len(references))
+        gif = render_gif(
+            list(references) + list(outputs),
+            Path(tmp) / f"{kind}_step{step:07d}.gif",
+            captions=ref_caps + out_caps,
+            size=(size, size),
+            columns=len(references),
+        )
         for lg in loggers:
             lg.experiment.log_image(lg.run_id, sheet, key=f"previews/{kind}", step=step)
             lg.experiment.log_artifact(lg.run_id, str(gif), "previews")
@@ -67,20 +84,23 @@ class ReconstructionPreview(L.Callback):
         names = batch.get("names") or [str(i) for i in range(len(batch["lengths"]))]
         count = min(self.num_clips, len(batch["lengths"]))
         lengths = [int(batch["lengths"][i]) for i in range(count)]
-        log_preview(trainer, "reconstruction", [batch["reference"][i, :n].numpy() for i, n in enumerate(lengths)],
-                    [batch["reconstruction"][i, :n].numpy() for i, n in enumerate(lengths)],
-                    [f"clip {names[i]}: reference" for i in range(count)], [f"clip {names[i]}: reconstruction" for i in range(count)], self.size)
+        log_preview(
+            trainer,
+            "reconstruction",
+            [batch["reference"][i, :n].numpy() for i, n in enumerate(lengths)],
+            [batch["reconstruction"][i, :n].numpy() for i, n in enumerate(lengths)],
+            [f"clip {names[i]}: reference" for i in range(count)],
+            [f"clip {names[i]}: reconstruction" for i in range(count)],
+            self.size,
+        )
 
 
 def usage_histogram_png(counts: np.ndarray, out_path: Path, title: str) -> Path:
-    """Bar chart of code usage sorted from most to least used, with the active count."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """Bar chart of code usage sorted from most to least used, with the active count (drawn
+    without pyplot: no GUI backend, no global figure state)."""
     order = np.sort(counts)[::-1]
-    fig, ax = plt.subplots(figsize=(7, 3), dpi=100)
+    fig = Figure(figsize=(7, 3), dpi=100)
+    ax = fig.subplots()
     ax.bar(np.arange(len(order)), order, width=1.0, color="#3b6ea8")
     ax.set_yscale("symlog", linthresh=1.0)
     ax.set_xlabel("codes, most used first")
@@ -89,7 +109,6 @@ def usage_histogram_png(counts: np.ndarray, out_path: Path, title: str) -> Path:
     ax.set_title(f"{title}: {active}/{len(counts)} codes with EMA count > 0.001")
     fig.tight_layout()
     fig.savefig(out_path)
-    plt.close(fig)
     return out_path
 
 
@@ -114,7 +133,9 @@ class CodebookUsagePlot(L.Callback):
                 for lg in loggers:
                     with Image.open(path) as image:
                         lg.experiment.log_image(lg.run_id, image.convert("RGB"), key=key, step=step)
-                    lg.experiment.log_artifact(lg.run_id, str(path), f"codebook/{name}" if name else "codebook")
+                    lg.experiment.log_artifact(
+                        lg.run_id, str(path), f"codebook/{name}" if name else "codebook"
+                    )
 
 
 class GenerationPreview(L.Callback):
@@ -135,11 +156,10 @@ class GenerationPreview(L.Callback):
         loggers = _mlflow_loggers(trainer)
         if not loggers:
             return
-        from mmm.generation.model import TextToMotion
-        from mmm.generation.upper_body import DEFAULT_LOWER_MASK
-
         training = pl_module.transformer.training
-        model = TextToMotion(self.tokenizer, pl_module.transformer, self.text_encoder, {}, device=pl_module.device)
+        model = TextToMotion(
+            self.tokenizer, pl_module.transformer, self.text_encoder, {}, device=pl_module.device
+        )
         try:
             n = min(self.num_captions, len(batch["captions"]))
             codes = [batch["tokens"][i, : int(batch["lengths"][i])].numpy() for i in range(n)]
@@ -147,12 +167,21 @@ class GenerationPreview(L.Callback):
             reference_features = model.decode(codes)
             references = [model.to_joints(f) for f in reference_features]
             if model.part_aware:  # the reference's lower body, a new upper body from its caption
-                generated = [model.edit_upper_body(f, c, lower_mask=DEFAULT_LOWER_MASK, seed=self.seed).joints[0]
-                             for f, c in zip(reference_features, batch["captions"][:n])]
+                generated = [
+                    model.edit_upper_body(f, c, lower_mask=DEFAULT_LOWER_MASK, seed=self.seed).joints[0]
+                    for f, c in zip(reference_features, batch["captions"][:n])
+                ]
             else:
                 generated = model.generate(list(batch["captions"][:n]), frames, seed=self.seed).joints
         finally:
             pl_module.transformer.train(training)
         kind = "new upper body" if model.part_aware else "generated"
-        log_preview(trainer, "generation", references, list(generated), [f"reference: {c}" for c in batch["captions"][:n]],
-                    [f"{kind}: {c}" for c in batch["captions"][:n]], self.size)
+        log_preview(
+            trainer,
+            "generation",
+            references,
+            list(generated),
+            [f"reference: {c}" for c in batch["captions"][:n]],
+            [f"{kind}: {c}" for c in batch["captions"][:n]],
+            self.size,
+        )

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+
 class DataError(ValueError):
     """Bad data on disk; the message names the file, the problem and the fix."""
 
@@ -37,9 +38,13 @@ def _check_file(path: Path, what: str, fix: str) -> None:
 
 
 def _reason(e: Exception) -> str:
-    """Why np.load failed, in a line (numpy's advice for pickled data, to load it unsafely, is not repeated)."""
+    """Why np.load failed, in a line (numpy's advice for pickled data, to load it unsafely, is not
+    repeated)."""
     if "allow_pickle" in str(e):
-        return "it holds pickled objects or is no .npy file at all; pickles are never loaded here (they could run code)"
+        return (
+            "it holds pickled objects or is no .npy file at all; pickles are never loaded here (they could "
+            "run code)"
+        )
     lines = str(e).strip().splitlines()
     return lines[0][:200] if lines else type(e).__name__
 
@@ -51,7 +56,9 @@ def _check_numeric(arr: np.ndarray, path: Path, what: str, fix: str, name: str =
     return arr
 
 
-def load_array(path: str | Path, what: str, fix: str = "write it again with numpy.save", mmap_mode: str | None = None) -> np.ndarray:
+def load_array(
+    path: str | Path, what: str, fix: str = "write it again with numpy.save", mmap_mode: str | None = None
+) -> np.ndarray:
     """The numeric array in a .npy file (np.load with allow_pickle=False), or a DataError naming it."""
     path = Path(path)
     _check_file(path, what, fix)
@@ -65,7 +72,9 @@ def load_array(path: str | Path, what: str, fix: str = "write it again with nump
     return _check_numeric(arr, path, what, fix)
 
 
-def load_arrays(path: str | Path, what: str, fix: str = "write it again with numpy.savez") -> dict[str, np.ndarray]:
+def load_arrays(
+    path: str | Path, what: str, fix: str = "write it again with numpy.savez"
+) -> dict[str, np.ndarray]:
     """Every array of an .npz archive, read in full and checked numeric, or a DataError naming it
     (a truncated archive fails on opening or on its first damaged entry)."""
     path = Path(path)

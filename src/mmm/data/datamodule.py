@@ -10,10 +10,20 @@ import lightning as L
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from torch.utils.data import DataLoader
 
-from mmm.data.resumable import ResumableDataLoader
-
-from mmm.data.datasets import MotionClipDataset, MotionWindowDataset, TextMotionDataset, collate_motions
+from mmm.data.datasets import (
+    MotionClipDataset,
+    MotionWindowDataset,
+    TextMotionDataset,
+    TokenBatchCollator,
+    TokenTextDataset,
+    collate_motions,
+)
 from mmm.data.humanml3d import DataError, LoadReport, load_clips, load_items, load_stats
+from mmm.data.normalization import tokenizer_statistics
+from mmm.data.resumable import ResumableDataLoader
+from mmm.data.synthetic.generate import generate_dataset
+from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
+from mmm.fingerprint import dataset_fingerprint
 from mmm.motion.skeleton import SKELETONS, Skeleton
 
 log = logging.getLogger(__name__)
@@ -78,10 +88,16 @@ class _DatasetFolder(L.LightningDataModule):
         if self.root.exists():
             return
         if self.cfg.synthesize is None:
-            raise DataError(self.root, "dataset folder does not exist", "point data.root at a dataset in the HumanML3D layout")
-        from mmm.data.synthetic.generate import generate_dataset
+            raise DataError(
+                self.root,
+                "dataset folder does not exist",
+                "point data.root at a dataset in the HumanML3D layout",
+            )
 
-        rank_zero_info(f"{self.root} is missing: generating the synthetic dataset ({self.cfg.synthesize.num_clips} clips, seed {self.cfg.synthesize.seed})")
+        rank_zero_info(
+            f"{self.root} is missing: generating the synthetic dataset ({self.cfg.synthesize.num_clips} "
+            f"clips, seed {self.cfg.synthesize.seed})"
+        )
         generate_dataset(self.root, num_clips=self.cfg.synthesize.num_clips, seed=self.cfg.synthesize.seed)
 
     def _stats(self) -> None:
@@ -112,8 +128,6 @@ class TokenizerDataModule(_DatasetFolder):
 
     def _stats(self) -> None:
         if self.mean is None and self.normalization is not None:
-            from mmm.data.normalization import tokenizer_statistics
-
             self.mean, self.std = tokenizer_statistics(self.normalization, self.root, self.cfg.feature_dim)
         super()._stats()
 
@@ -122,15 +136,25 @@ class TokenizerDataModule(_DatasetFolder):
         self.datasets = {}
         for split in ("train", "val"):
             clips, report = load_clips(
-                self.root, split, feature_dim=self.cfg.feature_dim, min_length=self.cfg.window, on_invalid=self.cfg.on_invalid
+                self.root,
+                split,
+                feature_dim=self.cfg.feature_dim,
+                min_length=self.cfg.window,
+                on_invalid=self.cfg.on_invalid,
             )
             self.reports[split] = report
             _log_report(f"{self.cfg.name} {split} clips", report)
             if split == "train":
-                self.datasets[split] = MotionWindowDataset(list(clips.values()), self.mean, self.std, self.cfg.window)
+                self.datasets[split] = MotionWindowDataset(
+                    list(clips.values()), self.mean, self.std, self.cfg.window
+                )
             else:
                 self.datasets[split] = MotionClipDataset(
-                    clips, self.mean, self.std, max_length=self.cfg.max_length, unit_length=self.cfg.unit_length
+                    clips,
+                    self.mean,
+                    self.std,
+                    max_length=self.cfg.max_length,
+                    unit_length=self.cfg.unit_length,
                 )
 
     def train_dataloader(self) -> DataLoader:
@@ -161,7 +185,11 @@ class TextMotionDataModule(_DatasetFolder):
             self.reports[split] = report
             _log_report(f"{self.cfg.name} {split} items", report)
             self.datasets[split] = TextMotionDataset(
-                items, self.mean, self.std, max_length=self.cfg.max_length, unit_length=self.cfg.unit_length,
+                items,
+                self.mean,
+                self.std,
+                max_length=self.cfg.max_length,
+                unit_length=self.cfg.unit_length,
                 random_crop=split == "train",
             )
 
@@ -183,7 +211,17 @@ class TokenTextDataModule(_DatasetFolder):
     embeddings of every caption; setup only reads the caches.
     """
 
-    def __init__(self, cfg: DataConfig, seed: int, tokenizer, tokenizer_identity: str, text_encoder, caption_cache, token_cache_dir: str, max_tokens: int = 50):
+    def __init__(
+        self,
+        cfg: DataConfig,
+        seed: int,
+        tokenizer,
+        tokenizer_identity: str,
+        text_encoder,
+        caption_cache,
+        token_cache_dir: str,
+        max_tokens: int = 50,
+    ):
         super().__init__(cfg, seed)
         self.tokenizer, self.tokenizer_identity = tokenizer, tokenizer_identity
         self.text_encoder, self.caption_cache = text_encoder, caption_cache
@@ -193,33 +231,37 @@ class TokenTextDataModule(_DatasetFolder):
 
     def _items(self, split: str):
         items, report = load_items(
-            self.root, split, feature_dim=self.cfg.feature_dim, fps=self.cfg.fps, min_length=self.cfg.min_length,
-            length_limit=self.cfg.length_limit, on_invalid=self.cfg.on_invalid,
+            self.root,
+            split,
+            feature_dim=self.cfg.feature_dim,
+            fps=self.cfg.fps,
+            min_length=self.cfg.min_length,
+            length_limit=self.cfg.length_limit,
+            on_invalid=self.cfg.on_invalid,
         )
         self.reports[split] = report
         return items, report
 
     def _token_folder(self):
-        from mmm.data.tokens import token_cache_folder
-        from mmm.fingerprint import dataset_fingerprint
-
         self.data_fingerprint = self.data_fingerprint or dataset_fingerprint(self.root)
         return token_cache_folder(self.token_cache_dir, self.tokenizer_identity, self.data_fingerprint)
 
     def prepare_data(self) -> None:
-        from mmm.data.tokens import tokenize_dataset
-
         if getattr(self, "_prepared", False):  # Lightning calls it again inside fit
             return
         super().prepare_data()
         if self.tokenizer.tokenizer.feature_dim != self.cfg.feature_dim:
             raise DataError(
                 self.root,
-                f"the stage-1 model reads {self.tokenizer.tokenizer.feature_dim}-d features but data {self.cfg.name!r} has {self.cfg.feature_dim}",
+                f"the stage-1 model reads {self.tokenizer.tokenizer.feature_dim}-d features but data "
+                f"{self.cfg.name!r} has {self.cfg.feature_dim}",
                 "use a stage-1 model trained on this dataset (stage1=...)",
             )
         self.tokens = tokenize_dataset(
-            self.tokenizer, self.root, self._token_folder(), meta={"tokenizer": self.tokenizer_identity, "data": self.data_fingerprint},
+            self.tokenizer,
+            self.root,
+            self._token_folder(),
+            meta={"tokenizer": self.tokenizer_identity, "data": self.data_fingerprint},
         )
         captions = set()
         for split in ("train", "val", "test"):
@@ -227,7 +269,10 @@ class TokenTextDataModule(_DatasetFolder):
                 items, _ = self._items(split)
                 captions.update(c.text for item in items for c in item.captions)
         counts = self.caption_cache.build(self.text_encoder, sorted(captions))
-        message = f"caption embeddings ({self.text_encoder.identity}): {counts['cached'] + counts['added']} captions, {counts['added']} newly encoded"
+        message = (
+            f"caption embeddings ({self.text_encoder.identity}): {counts['cached'] + counts['added']} "
+            f"captions, {counts['added']} newly encoded"
+        )
         if counts.get("truncated"):
             message += f"; {counts['truncated']} captions longer than the encoder's limit were truncated"
             rank_zero_warn(message)
@@ -236,21 +281,25 @@ class TokenTextDataModule(_DatasetFolder):
         self._prepared = True
 
     def setup(self, stage: str | None = None) -> None:
-        from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
-        from mmm.data.tokens import TokenCache
-
         self.tokens = self.tokens or TokenCache(self._token_folder())
         # END/PAD ids are K of the codebook; a part-aware tokenizer's two codebooks share one size.
         sizes = {q.num_codes for q in self.tokenizer.quantizers.values()}
         if len(sizes) != 1:
-            raise ValueError(f"the stage-1 model's codebooks have different sizes {sorted(sizes)}; stage 2 needs one")
+            raise ValueError(
+                f"the stage-1 model's codebooks have different sizes {sorted(sizes)}; stage 2 needs one"
+            )
         self.collate = TokenBatchCollator(self.caption_cache, sizes.pop(), self.max_tokens)
         self.datasets = {}
         for split in ("train", "val"):
             items, report = self._items(split)
             _log_report(f"{self.cfg.name} {split} items", report)
             self.datasets[split] = TokenTextDataset(
-                items, self.tokens, unit_length=self.cfg.unit_length, max_codes=self.max_tokens - 1, seed=self.seed, augment=split == "train",
+                items,
+                self.tokens,
+                unit_length=self.cfg.unit_length,
+                max_codes=self.max_tokens - 1,
+                seed=self.seed,
+                augment=split == "train",
             )
 
     def train_dataloader(self) -> DataLoader:

@@ -61,7 +61,12 @@ class TextMotionDataset(Dataset):
     ):
         self.items = items
         self.mean, self.std = mean, std
-        self.max_length, self.unit_length, self.random_crop, self.seed = max_length, unit_length, random_crop, seed
+        self.max_length, self.unit_length, self.random_crop, self.seed = (
+            max_length,
+            unit_length,
+            random_crop,
+            seed,
+        )
 
     def __len__(self) -> int:
         return len(self.items)
@@ -88,7 +93,15 @@ class MotionClipDataset(Dataset):
     """Whole clips for validation: {"motion" (T, D) normalized, "length", "name"}, T cut to a
     multiple of `unit_length` and at most `max_length` frames from the start."""
 
-    def __init__(self, clips: dict[str, np.ndarray], mean: np.ndarray, std: np.ndarray, *, max_length: int = 196, unit_length: int = 4):
+    def __init__(
+        self,
+        clips: dict[str, np.ndarray],
+        mean: np.ndarray,
+        std: np.ndarray,
+        *,
+        max_length: int = 196,
+        unit_length: int = 4,
+    ):
         self.names = sorted(clips)
         self.clips, self.mean, self.std = clips, mean, std
         self.max_length, self.unit_length = max_length, unit_length
@@ -100,7 +113,11 @@ class MotionClipDataset(Dataset):
         name = self.names[index % len(self.names)]
         clip = self.clips[name]
         length = min(clip.shape[0], self.max_length) // self.unit_length * self.unit_length
-        return {"motion": torch.from_numpy(normalize(clip[:length], self.mean, self.std)), "length": length, "name": name}
+        return {
+            "motion": torch.from_numpy(normalize(clip[:length], self.mean, self.std)),
+            "length": length,
+            "name": name,
+        }
 
 
 def collate_motions(batch: list[dict]) -> dict:
@@ -131,15 +148,33 @@ class TokenTextDataset(Dataset):
     epoch, are the same in any worker, and survive a resume.
     """
 
-    def __init__(self, items: list[MotionItem], tokens, *, unit_length: int = 4, max_codes: int = 49, seed: int = 0, augment: bool = True):
-        self.items, self.tokens, self.unit_length, self.max_codes, self.seed, self.augment = items, tokens, unit_length, max_codes, seed, augment
+    def __init__(
+        self,
+        items: list[MotionItem],
+        tokens,
+        *,
+        unit_length: int = 4,
+        max_codes: int = 49,
+        seed: int = 0,
+        augment: bool = True,
+    ):
+        self.items, self.tokens, self.unit_length, self.max_codes, self.seed, self.augment = (
+            items,
+            tokens,
+            unit_length,
+            max_codes,
+            seed,
+            augment,
+        )
 
     def __len__(self) -> int:
         return len(self.items)
 
     def codes(self, item: MotionItem) -> np.ndarray:
         first = item.start // self.unit_length
-        return self.tokens[item.motion_id][first : (item.start + item.length) // self.unit_length][: self.max_codes]
+        return self.tokens[item.motion_id][first : (item.start + item.length) // self.unit_length][
+            : self.max_codes
+        ]
 
     def __getitem__(self, index: int) -> dict:
         item = self.items[index % len(self.items)]
@@ -151,7 +186,11 @@ class TokenTextDataset(Dataset):
                 codes = codes[:-1] if rng.random() < 0.5 else codes[1:]
         else:
             caption = item.captions[0].text
-        return {"tokens": torch.from_numpy(np.ascontiguousarray(codes)), "caption": caption, "name": item.name}
+        return {
+            "tokens": torch.from_numpy(np.ascontiguousarray(codes)),
+            "caption": caption,
+            "name": item.name,
+        }
 
 
 class TokenBatchCollator:
@@ -166,8 +205,12 @@ class TokenBatchCollator:
     def __call__(self, batch: list[dict]) -> dict:
         end, pad = self.num_codes, self.num_codes + 1
         lengths = torch.tensor([len(b["tokens"]) for b in batch], dtype=torch.long)
-        parts = tuple(torch.as_tensor(batch[0]["tokens"]).shape[1:])  # (2,) for a part-aware tokenizer's [lower, upper]
-        tokens = torch.full((len(batch), min(int(lengths.max()) + 1, self.max_tokens), *parts), pad, dtype=torch.long)
+        parts = tuple(
+            torch.as_tensor(batch[0]["tokens"]).shape[1:]
+        )  # (2,) for a part-aware tokenizer's [lower, upper]
+        tokens = torch.full(
+            (len(batch), min(int(lengths.max()) + 1, self.max_tokens), *parts), pad, dtype=torch.long
+        )
         for i, b in enumerate(batch):
             n = len(b["tokens"])
             tokens[i, :n] = b["tokens"]
@@ -175,6 +218,11 @@ class TokenBatchCollator:
         captions = [b["caption"] for b in batch]
         text = self.caption_cache.lookup(captions)
         return {
-            "tokens": tokens, "lengths": lengths, "sentence": text.sentence, "words": text.words, "word_mask": text.word_mask,
-            "captions": captions, "names": [b["name"] for b in batch],
+            "tokens": tokens,
+            "lengths": lengths,
+            "sentence": text.sentence,
+            "words": text.words,
+            "word_mask": text.word_mask,
+            "captions": captions,
+            "names": [b["name"] for b in batch],
         }

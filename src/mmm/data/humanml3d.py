@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mmm.motion.features import reference_std
-
+from mmm.atomic import atomic_write
 from mmm.data.arrays import DataError, load_array
+from mmm.motion.features import reference_std
 
 log = logging.getLogger(__name__)
 
@@ -104,15 +104,27 @@ def parse_caption_line(line: str, path: str | Path = "<text>", lineno: int = 0) 
         start = float(start_s) if start_s.strip() else 0.0
         end = float(end_s) if end_s.strip() else 0.0
     except ValueError:
-        raise DataError(where, f"start/end {start_s!r}/{end_s!r} are not numbers", "write seconds, or 0.0#0.0 for the whole clip") from None
+        raise DataError(
+            where,
+            f"start/end {start_s!r}/{end_s!r} are not numbers",
+            "write seconds, or 0.0#0.0 for the whole clip",
+        ) from None
     # NaN means "the whole clip" (the reference loader's rule, HumanML3D writes nan#nan); an
     # infinite bound has no frame to cut at.
     start = 0.0 if math.isnan(start) else start
     end = 0.0 if math.isnan(end) else end
     if math.isinf(start) or math.isinf(end):
-        raise DataError(where, f"caption span {start_s.strip()}..{end_s.strip()} s is not finite", "write the span in seconds, or 0.0#0.0 for the whole clip")
+        raise DataError(
+            where,
+            f"caption span {start_s.strip()}..{end_s.strip()} s is not finite",
+            "write the span in seconds, or 0.0#0.0 for the whole clip",
+        )
     if start < 0 or end < 0 or (end != 0.0 and end <= start):
-        raise DataError(where, f"caption span {start}..{end} s is empty or negative", "use start < end, or 0.0#0.0 for the whole clip")
+        raise DataError(
+            where,
+            f"caption span {start}..{end} s is empty or negative",
+            "use start < end, or 0.0#0.0 for the whole clip",
+        )
     return Caption(text.strip(), tuple(tokens.split()), start, end)
 
 
@@ -132,7 +144,9 @@ def read_captions(path: str | Path) -> list[Caption]:
 def read_split(root: str | Path, split: str) -> list[str]:
     path = Path(root) / f"{split}.txt"
     if not path.exists():
-        raise DataError(path, "split file is missing", f"expected {', '.join(s + '.txt' for s in SPLITS)} in {root}")
+        raise DataError(
+            path, "split file is missing", f"expected {', '.join(s + '.txt' for s in SPLITS)} in {root}"
+        )
     ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
     if not ids:
         raise DataError(path, "split file lists no ids", "write one id per line")
@@ -145,11 +159,19 @@ def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
     try:
         arr = np.load(path, allow_pickle=False)
     except FileNotFoundError:
-        raise DataError(path, "motion file is missing", "remove the id from the split or restore new_joint_vecs/<id>.npy") from None
+        raise DataError(
+            path, "motion file is missing", "remove the id from the split or restore new_joint_vecs/<id>.npy"
+        ) from None
     except (OSError, ValueError, EOFError) as e:
-        raise DataError(path, f"unreadable .npy file ({e})", "regenerate it, or remove it and its id from the splits") from None
+        raise DataError(
+            path, f"unreadable .npy file ({e})", "regenerate it, or remove it and its id from the splits"
+        ) from None
     if arr.dtype.kind not in "biuf":  # strings or bytes: np.isfinite below could not even look at them
-        raise DataError(path, f"holds {arr.dtype} values, not numbers", "regenerate it, or remove it and its id from the splits")
+        raise DataError(
+            path,
+            f"holds {arr.dtype} values, not numbers",
+            "regenerate it, or remove it and its id from the splits",
+        )
     if arr.ndim != 2 or arr.shape[1] != feature_dim:
         raise DataError(
             path,
@@ -158,7 +180,9 @@ def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
         )
     if not np.isfinite(arr).all():
         bad = int((~np.isfinite(arr)).any(axis=1).sum())
-        raise DataError(path, f"NaN/Inf values ({bad} of {arr.shape[0]} frames)", "regenerate the file or remove the id")
+        raise DataError(
+            path, f"NaN/Inf values ({bad} of {arr.shape[0]} frames)", "regenerate the file or remove the id"
+        )
     return arr.astype(np.float32, copy=False)
 
 
@@ -168,19 +192,33 @@ def load_stats(root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarr
     for name in ("Mean.npy", "Std.npy"):
         path = root / name
         if not path.exists():
-            raise DataError(path, "normalization statistics are missing", f"create them with `mmm data stats {root} --write`")
-        arr = load_array(path, "normalization statistics", f"recompute with `mmm data stats {root} --write`").astype(np.float32)
+            raise DataError(
+                path,
+                "normalization statistics are missing",
+                f"create them with `mmm data stats {root} --write`",
+            )
+        arr = load_array(
+            path, "normalization statistics", f"recompute with `mmm data stats {root} --write`"
+        ).astype(np.float32)
         if arr.shape != (feature_dim,):
-            raise DataError(path, f"shape {arr.shape}, expected ({feature_dim},)", f"recompute with `mmm data stats {root} --write`")
+            raise DataError(
+                path,
+                f"shape {arr.shape}, expected ({feature_dim},)",
+                f"recompute with `mmm data stats {root} --write`",
+            )
         if not np.isfinite(arr).all():
             raise DataError(path, "NaN/Inf values", f"recompute with `mmm data stats {root} --write`")
         out.append(arr)
     if (out[1] <= 0).any():
-        raise DataError(root / "Std.npy", "zero or negative entries", f"recompute with `mmm data stats {root} --write`")
+        raise DataError(
+            root / "Std.npy", "zero or negative entries", f"recompute with `mmm data stats {root} --write`"
+        )
     return out[0], out[1]
 
 
-def compute_stats(root: str | Path, num_joints: int, ids: list[str] | None = None) -> tuple[np.ndarray, np.ndarray, LoadReport]:
+def compute_stats(
+    root: str | Path, num_joints: int, ids: list[str] | None = None
+) -> tuple[np.ndarray, np.ndarray, LoadReport]:
     """Mean and Std (D,) over every feature file (or `ids`), the reference way.
 
     Files with NaN/Inf are left out (as the reference does) and counted in the report.
@@ -210,8 +248,6 @@ def compute_stats(root: str | Path, num_joints: int, ids: list[str] | None = Non
 
 def save_array_atomic(path: str | Path, array: np.ndarray) -> None:
     """np.save to a temporary name in the same folder, then rename: never a half-written file."""
-    from mmm.atomic import atomic_write
-
     with atomic_write(path) as f:
         np.save(f, array)
 
@@ -244,7 +280,11 @@ def load_items(
             captions = read_captions(root / "texts" / f"{motion_id}.txt")
         except DataError as e:
             if on_invalid == "error":
-                raise DataError(e.path, e.problem, f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)") from None
+                raise DataError(
+                    e.path,
+                    e.problem,
+                    f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)",
+                ) from None
             report.skip(e.problem.split(" (")[0], e.path)
             continue
         T = features.shape[0]
@@ -258,7 +298,10 @@ def load_items(
             a, b = int(c.start * fps), int(c.end * fps)
             span = features[a:b]
             if not (min_length <= len(span) < length_limit):
-                report.skip(f"caption sub-span length outside [{min_length}, {length_limit}) frames", f"{motion_id} {c.start}-{c.end}s")
+                report.skip(
+                    f"caption sub-span length outside [{min_length}, {length_limit}) frames",
+                    f"{motion_id} {c.start}-{c.end}s",
+                )
                 continue
             items.append(MotionItem(f"{motion_id}#{a}-{a + len(span)}", motion_id, span, [c], start=a))
         if whole:
@@ -300,7 +343,11 @@ def load_clips(
             features = load_motion(root / "new_joint_vecs" / f"{motion_id}.npy", feature_dim)
         except DataError as e:
             if on_invalid == "error":
-                raise DataError(e.path, e.problem, f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)") from None
+                raise DataError(
+                    e.path,
+                    e.problem,
+                    f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)",
+                ) from None
             report.skip(e.problem.split(" (")[0], e.path)
             continue
         if features.shape[0] < min_length:
@@ -309,5 +356,9 @@ def load_clips(
         clips[motion_id] = features
     report.kept_clips = report.kept_items = len(clips)
     if not clips:
-        raise DataError(root / f"{split}.txt", f"no clip of split {split!r} is at least {min_length} frames long", report.summary())
+        raise DataError(
+            root / f"{split}.txt",
+            f"no clip of split {split!r} is at least {min_length} frames long",
+            report.summary(),
+        )
     return clips, report

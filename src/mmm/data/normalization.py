@@ -31,11 +31,15 @@ class NormalizationConfig:
 
     def __post_init__(self):
         if self.statistics not in STATISTICS:
-            raise ValueError(f"normalization.statistics must be one of {', '.join(STATISTICS)}, got {self.statistics!r}")
+            raise ValueError(
+                f"normalization.statistics must be one of {', '.join(STATISTICS)}, got {self.statistics!r}"
+            )
         if not self.feat_bias > 0:
             raise ValueError(f"normalization.feat_bias must be positive, got {self.feat_bias}")
         if self.statistics == "files" and not self.dir:
-            raise ValueError("normalization.statistics=files needs normalization.dir=FOLDER (with mean.npy and std.npy)")
+            raise ValueError(
+                "normalization.statistics=files needs normalization.dir=FOLDER (with mean.npy and std.npy)"
+            )
 
 
 def evaluator_style_std(std: np.ndarray, num_joints: int, feat_bias: float = 25.0) -> np.ndarray:
@@ -54,20 +58,36 @@ def read_stats_folder(folder: str | Path, feature_dim: int) -> tuple[np.ndarray,
     for names in (("mean.npy", "Mean.npy"), ("std.npy", "Std.npy")):
         path = next((folder / n for n in names if (folder / n).is_file()), None)
         if path is None:
-            raise DataError(folder, f"neither {names[0]} nor {names[1]} is there", "give the folder holding the normalization statistics")
+            raise DataError(
+                folder,
+                f"neither {names[0]} nor {names[1]} is there",
+                "give the folder holding the normalization statistics",
+            )
         try:
             arr = np.load(path, allow_pickle=False)
         except Exception as e:
-            raise DataError(path, f"not a readable .npy array ({type(e).__name__})", "write it again with numpy.save") from None
-        if arr.shape != (feature_dim,) or not np.issubdtype(arr.dtype, np.floating) or not np.isfinite(arr).all():
-            raise DataError(path, f"expected {feature_dim} finite floats, got {arr.dtype} {arr.shape}", "use statistics of this dataset's features")
+            raise DataError(
+                path, f"not a readable .npy array ({type(e).__name__})", "write it again with numpy.save"
+            ) from None
+        if (
+            arr.shape != (feature_dim,)
+            or not np.issubdtype(arr.dtype, np.floating)
+            or not np.isfinite(arr).all()
+        ):
+            raise DataError(
+                path,
+                f"expected {feature_dim} finite floats, got {arr.dtype} {arr.shape}",
+                "use statistics of this dataset's features",
+            )
         out.append(arr.astype(np.float32))
     if (out[1] <= 0).any():
         raise DataError(folder, "std has zero or negative entries", "recompute the statistics")
     return out[0], out[1]
 
 
-def tokenizer_statistics(cfg: NormalizationConfig, root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarray]:
+def tokenizer_statistics(
+    cfg: NormalizationConfig, root: str | Path, feature_dim: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(mean, std) (D,) the tokenizer normalizes with, as configured."""
     if cfg.statistics == "files":
         return read_stats_folder(cfg.dir, feature_dim)

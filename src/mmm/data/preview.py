@@ -7,6 +7,7 @@ from pathlib import Path
 
 from mmm.data.arrays import load_array
 from mmm.data.humanml3d import read_captions, read_split
+from mmm.render import render_frames, render_gif
 
 
 def pick_clips(root: Path, split: str, count: int) -> list[str]:
@@ -32,12 +33,20 @@ def pick_clips(root: Path, split: str, count: int) -> list[str]:
 
 def preview_dataset(root: str | Path, out: str | Path, count: int = 6, split: str = "test") -> list[Path]:
     """One GIF per chosen clip (joints with its first caption) and a PNG contact sheet of all."""
-    from mmm.render import render_frames, render_gif
-
     root, out = Path(root), Path(out)
     # Everything is read (and a bad caption file refused) before the output folder is made.
-    chosen = [(motion_id, load_array(root / "new_joints" / f"{motion_id}.npy", "clip's joints", "regenerate the dataset's new_joints/"), read_captions(root / "texts" / f"{motion_id}.txt")[0].text)
-              for motion_id in pick_clips(root, split, count)]
+    chosen = [
+        (
+            motion_id,
+            load_array(
+                root / "new_joints" / f"{motion_id}.npy",
+                "clip's joints",
+                "regenerate the dataset's new_joints/",
+            ),
+            read_captions(root / "texts" / f"{motion_id}.txt")[0].text,
+        )
+        for motion_id in pick_clips(root, split, count)
+    ]
     out.mkdir(parents=True, exist_ok=True)
     motions, captions, written = [], [], []
     for motion_id, joints, caption in chosen:

@@ -61,12 +61,21 @@ class ShardedRandomSampler(Sampler[int]):
 class ResumableDataLoader(DataLoader):
     """A DataLoader over a ShardedRandomSampler whose position survives a checkpoint."""
 
-    def __init__(self, dataset, batch_size: int, *, shuffle: bool, seed: int = 0, drop_last: bool = False, **kwargs):
+    def __init__(
+        self, dataset, batch_size: int, *, shuffle: bool, seed: int = 0, drop_last: bool = False, **kwargs
+    ):
         sampler = ShardedRandomSampler(len(dataset), seed=seed, shuffle=shuffle)
         # Its own generator: starting an iterator draws a seed for the workers, and drawing it
         # from the global generator would shift every later random number after a resume.
         generator = torch.Generator().manual_seed(seed)
-        super().__init__(dataset, batch_size=batch_size, sampler=sampler, drop_last=drop_last, generator=generator, **kwargs)
+        super().__init__(
+            dataset,
+            batch_size=batch_size,
+            sampler=sampler,
+            drop_last=drop_last,
+            generator=generator,
+            **kwargs,
+        )
         self._yielded = 0
         self._epoch_of_state = 0
 

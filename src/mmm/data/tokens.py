@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 from collections import defaultdict
 from pathlib import Path
 
@@ -18,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from mmm.data.arrays import load_arrays
 from mmm.data.humanml3d import DataError, load_motion, read_split
 
 log = logging.getLogger(__name__)
@@ -31,16 +33,18 @@ class TokenCache:
         try:
             self.meta = json.loads((self.folder / "meta.json").read_text())
         except (OSError, ValueError) as e:
-            raise DataError(self.folder / "meta.json", f"unreadable token cache description ({e})", self._rebuild_hint()) from None
+            raise DataError(
+                self.folder / "meta.json", f"unreadable token cache description ({e})", self._rebuild_hint()
+            ) from None
         self._tokens: dict[str, np.ndarray] | None = None
 
     def _rebuild_hint(self) -> str:
-        return f"delete the folder {self.folder}: the next `mmm tokenize` (or stage-2 training) writes it again"
+        return (
+            f"delete the folder {self.folder}: the next `mmm tokenize` (or stage-2 training) writes it again"
+        )
 
     def _load(self) -> dict[str, np.ndarray]:
         if self._tokens is None:
-            from mmm.data.arrays import load_arrays
-
             arrays = load_arrays(self.folder / "tokens.npz", "token cache", self._rebuild_hint())
             self._tokens = {k: v.astype(np.int64) for k, v in arrays.items()}
         return self._tokens
@@ -48,7 +52,10 @@ class TokenCache:
     def __getitem__(self, motion_id: str) -> np.ndarray:
         tokens = self._load()
         if motion_id not in tokens:
-            raise KeyError(f"{motion_id}: no tokens in {self.folder} (the cache covers the ids of {', '.join(self.meta['splits'])})")
+            raise KeyError(
+                f"{motion_id}: no tokens in {self.folder} (the cache covers the ids of "
+                f"{', '.join(self.meta['splits'])})"
+            )
         return tokens[motion_id]
 
     def __contains__(self, motion_id: str) -> bool:
@@ -96,12 +103,19 @@ def tokenize_dataset(
             continue
         by_length[usable].append((motion_id, features[:usable]))
     if not by_length:
-        raise DataError(root, f"no motion of {', '.join(splits)} is at least {down} frames long", "check the dataset")
+        raise DataError(
+            root, f"no motion of {', '.join(splits)} is at least {down} frames long", "check the dataset"
+        )
     tokenizer = tokenizer.to(device).eval()
     num_codes = max(q.num_codes for q in tokenizer.tokenizer.quantizers.values())
     mean, std = tokenizer.mean.cpu().numpy(), tokenizer.std.cpu().numpy()
     tokens: dict[str, np.ndarray] = {}
-    bar = tqdm(total=sum(len(v) for v in by_length.values()), desc="tokenizing motions", unit="motion", disable=not progress)
+    bar = tqdm(
+        total=sum(len(v) for v in by_length.values()),
+        desc="tokenizing motions",
+        unit="motion",
+        disable=not progress,
+    )
     # Same-length batches: padding would leak into the last codes through the convolutions.
     for length, group in sorted(by_length.items()):
         for start in range(0, len(group), batch_size):
@@ -117,16 +131,29 @@ def tokenize_dataset(
     tmp.mkdir(parents=True, exist_ok=True)
     np.savez(tmp / "tokens.npz", **tokens)
     info = dict(meta or {})
-    info.update({"splits": list(splits), "motions": len(tokens), "left_out_too_short": too_short, "num_codes": num_codes, "downsample": down})
+    info.update(
+        {
+            "splits": list(splits),
+            "motions": len(tokens),
+            "left_out_too_short": too_short,
+            "num_codes": num_codes,
+            "downsample": down,
+        }
+    )
     (tmp / "meta.json").write_text(json.dumps(info, indent=2))
     try:
         os.replace(tmp, folder)  # fails when the folder exists (a directory is not replaced by another)
     except OSError:
         if not ((folder / "meta.json").exists() and (folder / "tokens.npz").exists()):
             raise
-        import shutil
 
         shutil.rmtree(tmp)  # another process finished first: keep its identical result
     if too_short:
-        log.warning("tokenizing %s: left out %d motions shorter than %d frames (e.g. %s)", root, len(too_short), down, ", ".join(too_short[:3]))
+        log.warning(
+            "tokenizing %s: left out %d motions shorter than %d frames (e.g. %s)",
+            root,
+            len(too_short),
+            down,
+            ", ".join(too_short[:3]),
+        )
     return TokenCache(folder)

@@ -23,14 +23,22 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import mlflow
+from matplotlib.figure import Figure
+from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
+from mmm.data.humanml3d import load_items, load_stats
+from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.generation.model import TextToMotion
 from mmm.generation.sampler import SamplingConfig
+from mmm.tracking import TrackingConfig, artifact_location, prepare_experiment, resolve_tracking_uri
+from mmm.training.stage1 import load_stage1_config, train_stage1
+from mmm.training.stage2 import load_stage2_config, train_stage2
 from mmm.transformer.schedules import DECODING_SCHEDULES
-from mmm.tracking import TrackingConfig, artifact_location, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 
@@ -80,9 +88,16 @@ def settings(kind: str, grids: Grids) -> list[tuple[str, dict]]:
     if kind == "reset":
         return [(f"reset every {n}", {"stage1": [f"callbacks.reset_every_n_steps={n}"]}) for n in grids.reset]
     if kind == "cross-layers":
-        return [(f"{n} cross-attention layers", {"stage2": [f"model.transformer.num_cross_layers={n}"]}) for n in grids.cross_layers]
+        return [
+            (f"{n} cross-attention layers", {"stage2": [f"model.transformer.num_cross_layers={n}"]})
+            for n in grids.cross_layers
+        ]
     if kind == "schedule":
-        return [(f"{s}, {t} iterations", {"sampling": {"schedule": s, "max_iterations": t}}) for s in grids.schedules for t in grids.iterations]
+        return [
+            (f"{s}, {t} iterations", {"sampling": {"schedule": s, "max_iterations": t}})
+            for s in grids.schedules
+            for t in grids.iterations
+        ]
     if kind == "temperature":
         return [(f"temperature {t:g}", {"sampling": {"temperature": t}}) for t in grids.temperature]
     if kind == "topk":
@@ -94,40 +109,60 @@ def settings(kind: str, grids: Grids) -> list[tuple[str, dict]]:
 
 def _train_models(change: dict, cfg: AblationConfig, parent_run_id: str):
     """Train what a training sweep's setting changes; returns the stage-2 checkpoint."""
-    from mmm.training.stage1 import load_stage1_config, train_stage1
-    from mmm.training.stage2 import load_stage2_config, train_stage2
-
-    tracking = [f"logger.tracking_uri={cfg.logger.tracking_uri}", f"logger.artifact_root={cfg.logger.artifact_root}", "trainer.enable_progress_bar=false"]
+    tracking = [
+        f"logger.tracking_uri={cfg.logger.tracking_uri}",
+        f"logger.artifact_root={cfg.logger.artifact_root}",
+        "trainer.enable_progress_bar=false",
+    ]
     stage1 = cfg.stage1
     if "stage1" in change:
-        result = train_stage1(load_stage1_config([*tracking, *cfg.stage1_overrides, *change["stage1"], f"logger.run_name=ablation-{parent_run_id[:8]}"]))
+        result = train_stage1(
+            load_stage1_config(
+                [
+                    *tracking,
+                    *cfg.stage1_overrides,
+                    *change["stage1"],
+                    f"logger.run_name=ablation-{parent_run_id[:8]}",
+                ]
+            )
+        )
         stage1 = result.best_checkpoint
     stage1_option = [f"stage1={stage1}"] if stage1 else []
-    result = train_stage2(load_stage2_config([*tracking, *cfg.stage2_overrides, *stage1_option, *change.get("stage2", []), f"logger.run_name=ablation-{parent_run_id[:8]}"]))
+    result = train_stage2(
+        load_stage2_config(
+            [
+                *tracking,
+                *cfg.stage2_overrides,
+                *stage1_option,
+                *change.get("stage2", []),
+                f"logger.run_name=ablation-{parent_run_id[:8]}",
+            ]
+        )
+    )
     return result.best_checkpoint
 
 
 def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     """Run a sweep; returns {"rows": {label: results}, "table": markdown, "files": [...]}."""
-    import mlflow
-
-    from mmm.data.humanml3d import load_items, load_stats
-    from mmm.evaluation.evaluators import load_evaluator
-    from mmm.generation.model import TextToMotion
-
     cfg: AblationConfig = to_object(cfg_node)
     table_no, title = KINDS[kind] if kind in KINDS else (None, None)
     rows_spec = settings(kind, cfg.grids)
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     mlflow.set_tracking_uri(tracking_uri)
-    from mlflow.tracking import MlflowClient
-
-    from mmm.tracking import prepare_experiment
 
     # Created when missing; another process creating it at the same time is not an error.
-    experiment_id = prepare_experiment(MlflowClient(tracking_uri), "mmm-ablations", artifact_location(tracking_uri, cfg.logger.artifact_root))
-    items, _ = load_items(cfg.data.root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
-                          length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
+    experiment_id = prepare_experiment(
+        MlflowClient(tracking_uri), "mmm-ablations", artifact_location(tracking_uri, cfg.logger.artifact_root)
+    )
+    items, _ = load_items(
+        cfg.data.root,
+        cfg.split,
+        feature_dim=cfg.data.feature_dim,
+        fps=cfg.data.fps,
+        min_length=cfg.data.min_length,
+        length_limit=cfg.data.length_limit,
+        on_invalid=cfg.data.on_invalid,
+    )
     mean, std = load_stats(cfg.data.root, cfg.data.feature_dim)
     evaluator = load_evaluator(cfg.evaluator, tracking_uri, device=cfg.device)
     out_dir = Path(cfg.output_dir) / kind
@@ -135,12 +170,20 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     rows: dict[str, dict] = {}
     with mlflow.start_run(experiment_id=experiment_id, run_name=f"ablation-{kind}") as parent:
         mlflow.set_tags({"mmm.ablation": kind, "paper.table": str(table_no), "evaluator": evaluator.identity})
-        mlflow.log_params({"kind": kind, "settings": json.dumps([label for label, _ in rows_spec])[:500], "replications": cfg.protocol.replications})
+        mlflow.log_params(
+            {
+                "kind": kind,
+                "settings": json.dumps([label for label, _ in rows_spec])[:500],
+                "replications": cfg.protocol.replications,
+            }
+        )
         shared_model = None
         for label, change in rows_spec:
             with mlflow.start_run(experiment_id=experiment_id, run_name=label, nested=True):
                 if "sampling" in change:
-                    shared_model = shared_model or TextToMotion.load(cfg.text2motion, tracking_uri, device=cfg.device)
+                    shared_model = shared_model or TextToMotion.load(
+                        cfg.text2motion, tracking_uri, device=cfg.device
+                    )
                     model = shared_model
                     sampling = SamplingConfig(**{**asdict(cfg.protocol.sampling), **change["sampling"]})
                 else:
@@ -150,9 +193,17 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
                 protocol = ProtocolConfig(**{**asdict(cfg.protocol), "sampling": sampling})
                 result = evaluate_text_to_motion(model, evaluator, items, mean, std, protocol)
                 rows[label] = result["generated"]
-                mlflow.log_params({"setting": label, **{f"change.{k}": str(v)[:200] for k, v in change.items()}, "model": model.identity.get("reference")})
+                mlflow.log_params(
+                    {
+                        "setting": label,
+                        **{f"change.{k}": str(v)[:200] for k, v in change.items()},
+                        "model": model.identity.get("reference"),
+                    }
+                )
                 mlflow.log_metrics({m: v[0] for m, v in result["generated"].items() if not math.isnan(v[0])})
-                mlflow.log_metrics({f"{m}_ci": v[1] for m, v in result["generated"].items() if not math.isnan(v[0])})
+                mlflow.log_metrics(
+                    {f"{m}_ci": v[1] for m, v in result["generated"].items() if not math.isnan(v[0])}
+                )
         table = results_table(rows, f"Table {table_no} ({title}), {cfg.protocol.replications} replications")
         files = write_outputs(rows, table, out_dir, title)
         for path in files:
@@ -168,19 +219,22 @@ def write_outputs(rows: dict[str, dict], table: str, out_dir: Path, title: str) 
         writer = csv.writer(f)
         writer.writerow(["setting", *[f"{m}{suffix}" for m in METRICS for suffix in ("", "_ci")]])
         for label, row in rows.items():
-            writer.writerow([label, *[f"{row[m][i]:.5f}" if m in row else "" for m in METRICS for i in (0, 1)]])
+            writer.writerow(
+                [label, *[f"{row[m][i]:.5f}" if m in row else "" for m in METRICS for i in (0, 1)]]
+            )
     return [md, path, plot_rows(rows, out_dir / "plot.png", title)]
 
 
 def plot_rows(rows: dict[str, dict], path: Path, title: str) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     labels = list(rows)
-    shown = [("top1", "R-Precision top-1"), ("fid", "FID"), ("matching_score", "MM-Dist"), ("multimodality", "MultiModality")]
-    fig, axes = plt.subplots(1, len(shown), figsize=(3.2 * len(shown), 3.2), dpi=110)
+    shown = [
+        ("top1", "R-Precision top-1"),
+        ("fid", "FID"),
+        ("matching_score", "MM-Dist"),
+        ("multimodality", "MultiModality"),
+    ]
+    fig = Figure(figsize=(3.2 * len(shown), 3.2), dpi=110)
+    axes = fig.subplots(1, len(shown))
     for ax, (metric, name) in zip(axes, shown):
         means = [rows[lb][metric][0] for lb in labels]
         errs = [rows[lb][metric][1] for lb in labels]
@@ -190,5 +244,4 @@ def plot_rows(rows: dict[str, dict], path: Path, title: str) -> Path:
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
     return path

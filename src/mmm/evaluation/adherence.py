@@ -29,12 +29,23 @@ def item_parts(item: MotionItem, label: dict) -> list[dict]:
     return parts
 
 
-def prompt_adherence(model, root: str | Path, items: list[MotionItem], sampling=None, seed: int = 0, batch_size: int = 32, max_items: int | None = None) -> dict:
+def prompt_adherence(
+    model,
+    root: str | Path,
+    items: list[MotionItem],
+    sampling=None,
+    seed: int = 0,
+    batch_size: int = 32,
+    max_items: int | None = None,
+) -> dict:
     """{"rate": share satisfied, "count": items checked, "skipped": items without a label or
     covered part, "per_action": {action: (satisfied, total)}} for a TextToMotion `model`."""
     root = Path(root)
     if not (root / "labels").is_dir():
-        raise FileNotFoundError(f"{root / 'labels'}: no labels; prompt adherence needs a dataset with labels/<id>.json (the synthetic one)")
+        raise FileNotFoundError(
+            f"{root / 'labels'}: no labels; prompt adherence needs a dataset with labels/<id>.json (the "
+            "synthetic one)"
+        )
     checks, skipped = [], 0
     for item in items[: max_items or len(items)]:
         path = root / "labels" / f"{item.motion_id}.json"
@@ -48,7 +59,9 @@ def prompt_adherence(model, root: str | Path, items: list[MotionItem], sampling=
     satisfied = 0
     for b in range(0, len(checks), batch_size):
         chunk = checks[b : b + batch_size]
-        out = model.generate([c[0] for c in chunk], [c[1] for c in chunk], sampling, seed=seed + b, check_lengths=False)
+        out = model.generate(
+            [c[0] for c in chunk], [c[1] for c in chunk], sampling, seed=seed + b, check_lengths=False
+        )
         for joints, (_, frames, parts) in zip(out.joints, chunk):
             clipped = [{**p, "end": min(p["end"], frames)} for p in parts]
             ok = check_motion(np.asarray(joints), clipped).passed
@@ -57,6 +70,8 @@ def prompt_adherence(model, root: str | Path, items: list[MotionItem], sampling=
             per_action[key][0] += ok
             per_action[key][1] += 1
     return {
-        "rate": satisfied / len(checks) if checks else float("nan"), "count": len(checks), "skipped": skipped,
+        "rate": satisfied / len(checks) if checks else float("nan"),
+        "count": len(checks),
+        "skipped": skipped,
         "per_action": {k: tuple(v) for k, v in sorted(per_action.items())},
     }

@@ -17,28 +17,30 @@ nearly identical (cosine >= `false_negative_threshold`) can be left out of each 
 
 `ContrastiveEvaluator` holds the dataset's Mean/Std in buffers: a checkpoint is self-contained.
 Embeddings are L2-normalized by default (`normalize`), so Euclidean distances (R-precision,
-MM-Dist) rank like the cosine similarities it was trained on. `ContrastiveEvaluatorModule` trains
-it (AdamW; validation: loss and text->motion / motion->text top-1/top-5 within batches) with
-plain-dict hyper-parameters, so checkpoints load with torch.load(weights_only=True);
-`load_contrastive_evaluator(path)` gives (evaluator in eval mode, info). `EvaluatorEmbedder` takes
-raw features and caption strings.
+MM-Dist) rank like the cosine similarities it was trained on.
+
+This file is the network and its inference side (no Lightning): the networks and their config,
+retrieval scoring, `load_contrastive_evaluator(path)`, which gives (evaluator in eval mode, info),
+and `EvaluatorEmbedder`, which takes raw features and caption strings. The loss and
+`ContrastiveEvaluatorModule`, which trains it, are in mmm.evaluation.contrastive_module.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-import lightning as L
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from torchmetrics import MeanMetric
 
-from mmm.tokenizer.module import OptimConfig, _as, warmup_step_schedule
+from mmm.checkpoints import CheckpointError, load_checkpoint, load_state, text_encoder_options
+from mmm.config import as_config
+from mmm.evaluation.metrics import matching_score, r_precision_hits
+from mmm.text import build_text_encoder
 
 DOWNSAMPLE = 4  # the motion encoder's temporal downsampling (two stride-2 convs)
 MIN_FRAMES = 4  # the shortest motion it accepts
@@ -56,20 +58,17 @@ class ContrastiveModelConfig:
 
     def __post_init__(self):
         if min(self.embed_dim, self.hidden_dim, self.text_hidden_dim) < 1:
-            raise ValueError(f"contrastive evaluator: embed_dim, hidden_dim and text_hidden_dim must be positive, got {self}")
+            raise ValueError(
+                "contrastive evaluator: embed_dim, hidden_dim and text_hidden_dim must be positive, got "
+                f"{self}"
+            )
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"contrastive evaluator: dropout must be in [0, 1), got {self.dropout}")
         if self.init_temperature <= 0 or 1.0 / self.init_temperature > self.max_logit_scale:
             raise ValueError(
-                f"contrastive evaluator: init_temperature must be positive and at least 1 / max_logit_scale, got {self.init_temperature}"
+                "contrastive evaluator: init_temperature must be positive and at least 1 / max_logit_scale, "
+                f"got {self.init_temperature}"
             )
-
-
-@dataclass
-class ContrastiveLossConfig:
-    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
-    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
-    false_negative_threshold: float | None = 0.95
 
 
 def valid_mask(lengths: torch.Tensor, T: int) -> torch.Tensor:
@@ -125,7 +124,11 @@ class TextHead(nn.Module):
     def __init__(self, sentence_dim: int, hidden_dim: int, embed_dim: int, dropout: float):
         super().__init__()
         self.mlp = nn.Sequential(
-            nn.Linear(sentence_dim, hidden_dim), nn.LayerNorm(hidden_dim), nn.GELU(), nn.Dropout(dropout), nn.Linear(hidden_dim, embed_dim),
+            nn.Linear(sentence_dim, hidden_dim),
+            nn.LayerNorm(hidden_dim),
+            nn.GELU(),
+            nn.Dropout(dropout),
+            nn.Linear(hidden_dim, embed_dim),
         )
 
     def forward(self, sentence: torch.Tensor) -> torch.Tensor:
@@ -144,7 +147,7 @@ class ContrastiveEvaluator(nn.Module):
         std: np.ndarray | torch.Tensor | None = None,
     ):
         super().__init__()
-        cfg = _as(ContrastiveModelConfig, cfg) if cfg is not None else ContrastiveModelConfig()
+        cfg = as_config(ContrastiveModelConfig, cfg) if cfg is not None else ContrastiveModelConfig()
         self.cfg, self.feature_dim, self.sentence_dim = cfg, int(feature_dim), int(sentence_dim)
         self.motion_encoder = MotionEncoder(self.feature_dim, cfg.hidden_dim, cfg.embed_dim, cfg.dropout)
         self.text_head = TextHead(self.sentence_dim, cfg.text_hidden_dim, cfg.embed_dim, cfg.dropout)
@@ -152,7 +155,9 @@ class ContrastiveEvaluator(nn.Module):
         mean = torch.zeros(self.feature_dim) if mean is None else torch.as_tensor(mean, dtype=torch.float32)
         std = torch.ones(self.feature_dim) if std is None else torch.as_tensor(std, dtype=torch.float32)
         if mean.shape != (self.feature_dim,) or std.shape != (self.feature_dim,):
-            raise ValueError(f"mean/std must be ({self.feature_dim},), got {tuple(mean.shape)} / {tuple(std.shape)}")
+            raise ValueError(
+                f"mean/std must be ({self.feature_dim},), got {tuple(mean.shape)} / {tuple(std.shape)}"
+            )
         self.register_buffer("mean", mean.clone())
         self.register_buffer("std", std.clone())
 
@@ -174,19 +179,29 @@ class ContrastiveEvaluator(nn.Module):
     def motion_features(self, features_normalized: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """(B, T, D), (B,) -> (B, E) before any L2 normalization."""
         if features_normalized.dim() != 3 or features_normalized.shape[-1] != self.feature_dim:
-            raise ValueError(f"expected motion features (B, T, {self.feature_dim}), got {tuple(features_normalized.shape)}")
+            raise ValueError(
+                f"expected motion features (B, T, {self.feature_dim}), got {tuple(features_normalized.shape)}"
+            )
         lengths = torch.as_tensor(lengths, dtype=torch.long)
         if lengths.shape != (features_normalized.shape[0],):
-            raise ValueError(f"expected lengths ({features_normalized.shape[0]},), got {tuple(lengths.shape)}")
-        if len(lengths) and (int(lengths.min()) < MIN_FRAMES or int(lengths.max()) > features_normalized.shape[1]):
             raise ValueError(
-                f"motion lengths must lie in [{MIN_FRAMES}, T={features_normalized.shape[1]}], got {int(lengths.min())}..{int(lengths.max())}"
+                f"expected lengths ({features_normalized.shape[0]},), got {tuple(lengths.shape)}"
+            )
+        if len(lengths) and (
+            int(lengths.min()) < MIN_FRAMES or int(lengths.max()) > features_normalized.shape[1]
+        ):
+            raise ValueError(
+                f"motion lengths must lie in [{MIN_FRAMES}, T={features_normalized.shape[1]}], got "
+                f"{int(lengths.min())}..{int(lengths.max())}"
             )
         return self.motion_encoder(features_normalized.to(self.mean.dtype), lengths)
 
     def text_features(self, sentence_embeddings: torch.Tensor) -> torch.Tensor:
         if sentence_embeddings.dim() != 2 or sentence_embeddings.shape[-1] != self.sentence_dim:
-            raise ValueError(f"expected sentence embeddings (B, {self.sentence_dim}), got {tuple(sentence_embeddings.shape)}")
+            raise ValueError(
+                f"expected sentence embeddings (B, {self.sentence_dim}), got "
+                f"{tuple(sentence_embeddings.shape)}"
+            )
         return self.text_head(sentence_embeddings.to(self.mean.dtype))
 
     def embed_motions(self, features_normalized: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
@@ -197,40 +212,11 @@ class ContrastiveEvaluator(nn.Module):
         """The frozen text encoder's sentence embeddings (B, Ds) -> (B, E)."""
         return self._finish(self.text_features(sentence_embeddings))
 
-    def forward(self, motion: torch.Tensor, lengths: torch.Tensor, sentence: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, motion: torch.Tensor, lengths: torch.Tensor, sentence: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(motion embeddings (B, E), text embeddings (B, E)), as embed_* return them."""
         return self.embed_motions(motion, lengths), self.embed_sentences(sentence)
-
-
-# ---------------------------------------------------------------------------------------- loss
-
-
-def false_negative_mask(sentences: torch.Tensor, threshold: float | None) -> torch.Tensor | None:
-    """(B, Ds) frozen sentence embeddings -> (B, B) bool, True where pair (i, j), i != j, is too
-    alike (cosine >= threshold) to serve as a negative; None when no threshold is set."""
-    if threshold is None:
-        return None
-    unit = F.normalize(sentences.float(), dim=-1)
-    alike = unit @ unit.T >= threshold
-    return alike & ~torch.eye(len(unit), dtype=torch.bool, device=unit.device)
-
-
-def info_nce_loss(
-    text: torch.Tensor, motion: torch.Tensor, logit_scale: torch.Tensor | float, exclude: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """Symmetric InfoNCE: text i's positive is motion i and vice versa, the other rows negatives.
-
-    text, motion: (B, E), L2-normalized here; logits = scale * cosine (B, B). The loss is the mean
-    of the text->motion cross-entropy (rows) and the motion->text one (columns). `exclude` (B, B)
-    bool removes off-diagonal pairs from the negatives (the diagonal is always kept).
-    """
-    t, m = F.normalize(text.float(), dim=-1), F.normalize(motion.float(), dim=-1)
-    logits = torch.as_tensor(logit_scale, dtype=t.dtype, device=t.device) * (t @ m.T)
-    if exclude is not None:
-        exclude = exclude & ~torch.eye(len(t), dtype=torch.bool, device=t.device)
-        logits = logits.masked_fill(exclude, float("-inf"))
-    target = torch.arange(len(t), device=t.device)
-    return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target))
 
 
 # ---------------------------------------------------------------------------------------- retrieval
@@ -244,12 +230,12 @@ def matching_ranks(text: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tens
     return (dist < own.unsqueeze(1)).sum(1), (dist < own.unsqueeze(0)).sum(0)
 
 
-def retrieval_metrics(texts: Sequence[torch.Tensor], motions: Sequence[torch.Tensor], top_k: int = 3) -> dict[str, float]:
+def retrieval_metrics(
+    texts: Sequence[torch.Tensor], motions: Sequence[torch.Tensor], top_k: int = 3
+) -> dict[str, float]:
     """R-precision over batches of pairs (usually 32 each), as the evaluation protocol computes it
     (mmm.evaluation.metrics): per k <= top_k the fraction of texts whose own motion is among the k
     of its batch nearest to it (Euclidean), and the mean distance text i - motion i (MM-Dist)."""
-    from mmm.evaluation.metrics import matching_score, r_precision_hits
-
     if not len(texts):
         raise ValueError("retrieval_metrics: no batch of pairs")
     hits = sum(r_precision_hits(t, m, top_k) for t, m in zip(texts, motions))
@@ -259,90 +245,9 @@ def retrieval_metrics(texts: Sequence[torch.Tensor], motions: Sequence[torch.Ten
     return out
 
 
-# ---------------------------------------------------------------------------------------- training
-
-
-class ContrastiveEvaluatorModule(L.LightningModule):
-    """Trains a ContrastiveEvaluator on {"motion" (B, T, D) normalized, "lengths" (B,), "sentence" (B, Ds)}.
-
-    text_encoder: the frozen encoder whose sentence embeddings it reads ({"name", "identity", ...});
-    data: what it was trained on ({"name", "root", "fingerprint"}). Both go into the checkpoint.
-    Validation batches should hold `retrieval_batch` pairs (32): top-k are within the batch.
-    """
-
-    def __init__(
-        self,
-        feature_dim: int,
-        sentence_dim: int,
-        model: ContrastiveModelConfig | dict | None = None,
-        optim: OptimConfig | dict | None = None,
-        loss: ContrastiveLossConfig | dict | None = None,
-        mean: np.ndarray | torch.Tensor | None = None,
-        std: np.ndarray | torch.Tensor | None = None,
-        text_encoder: dict | None = None,
-        data: dict | None = None,
-    ):
-        super().__init__()
-        model = _as(ContrastiveModelConfig, model) if model is not None else ContrastiveModelConfig()
-        optim = _as(OptimConfig, optim) if optim is not None else OptimConfig(lr=1e-3, weight_decay=1e-2, warmup_steps=0)
-        loss = _as(ContrastiveLossConfig, loss) if loss is not None else ContrastiveLossConfig()
-        # Tensors first, and never into the hyper-parameters (plain dicts: weights_only loads).
-        mean = None if mean is None else torch.as_tensor(mean, dtype=torch.float32)
-        std = None if std is None else torch.as_tensor(std, dtype=torch.float32)
-        self.save_hyperparameters(
-            {
-                "feature_dim": int(feature_dim), "sentence_dim": int(sentence_dim), "model": asdict(model), "optim": asdict(optim),
-                "loss": asdict(loss), "text_encoder": dict(text_encoder or {}), "data": dict(data or {}),
-            }, logger=False
-        )
-        self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
-        self.evaluator = ContrastiveEvaluator(feature_dim, sentence_dim, model, mean, std)
-        self.val_metrics = nn.ModuleDict({name: MeanMetric() for name in ("loss", "t2m_top1", "t2m_top5", "m2t_top1", "m2t_top5")})
-
-    def _loss(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        ev = self.evaluator
-        motion = ev.motion_features(batch["motion"], batch["lengths"])
-        text = ev.text_features(batch["sentence"])
-        exclude = false_negative_mask(batch["sentence"], self.loss_cfg.false_negative_threshold)
-        return info_nce_loss(text, motion, ev.scale(), exclude), text, motion
-
-    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        loss, text, motion = self._loss(batch)
-        t2m, _ = matching_ranks(F.normalize(text.detach(), dim=-1), F.normalize(motion.detach(), dim=-1))
-        self.log_dict(
-            {"train/loss": loss, "train/temperature": 1.0 / self.evaluator.scale().detach(), "train/t2m_top1": (t2m == 0).float().mean()},
-            on_step=True, on_epoch=False, batch_size=len(t2m),
-        )
-        self.log("loss", loss, prog_bar=True, logger=False, batch_size=len(t2m))
-        return loss
-
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
-        loss, text, motion = self._loss(batch)
-        t2m, m2t = matching_ranks(F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
-        self.val_metrics["loss"].update(loss, weight=len(t2m))
-        for k in (1, 5):
-            self.val_metrics[f"t2m_top{k}"].update((t2m < k).float())
-            self.val_metrics[f"m2t_top{k}"].update((m2t < k).float())
-
-    def on_validation_epoch_end(self) -> None:
-        values = {f"val/{name}": metric.compute() for name, metric in self.val_metrics.items()}
-        self.log_dict(values)
-        self.log("val_t2m_top1", values["val/t2m_top1"], prog_bar=True, logger=False)
-        for metric in self.val_metrics.values():
-            metric.reset()
-
-    def configure_optimizers(self):
-        cfg = self.optim_cfg
-        decay = [p for p in self.evaluator.parameters() if p.requires_grad and p.dim() >= 2]
-        no_decay = [p for p in self.evaluator.parameters() if p.requires_grad and p.dim() < 2]  # biases, norms, the logit scale
-        optimizer = torch.optim.AdamW(
-            [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=tuple(cfg.betas),
-        )
-        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"}}
-
-
-def load_contrastive_evaluator(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[ContrastiveEvaluator, dict]:
+def load_contrastive_evaluator(
+    path: str | Path, map_location: str | torch.device = "cpu"
+) -> tuple[ContrastiveEvaluator, dict]:
     """(ContrastiveEvaluator in eval mode, info) from a ContrastiveEvaluatorModule checkpoint,
     loaded with weights_only=True.
 
@@ -350,8 +255,6 @@ def load_contrastive_evaluator(path: str | Path, map_location: str | torch.devic
     "mean" (D,), "std" (D,), "feature_dim", "sentence_dim", "model": {...}, "global_step", "path"}.
     Anything but an intact evaluator checkpoint is a CheckpointError naming the file.
     """
-    from mmm.checkpoints import CheckpointError, load_checkpoint, load_state
-
     ckpt = load_checkpoint(path, "evaluator", map_location=map_location)
     hp = ckpt["hyper_parameters"]
     state = ckpt["state_dict"]
@@ -359,8 +262,13 @@ def load_contrastive_evaluator(path: str | Path, map_location: str | torch.devic
     try:
         evaluator = ContrastiveEvaluator(hp["feature_dim"], hp["sentence_dim"], hp["model"])
     except (TypeError, ValueError, KeyError) as e:
-        raise CheckpointError(f"{path}: its hyper-parameters do not describe a contrastive evaluator ({e}); use the checkpoint as training wrote it") from None
-    load_state(evaluator, {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}, path, "evaluator")
+        raise CheckpointError(
+            f"{path}: its hyper-parameters do not describe a contrastive evaluator ({e}); use the checkpoint "
+            "as training wrote it"
+        ) from None
+    load_state(
+        evaluator, {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}, path, "evaluator"
+    )
     evaluator.eval()
     data = dict(hp.get("data") or {})
     info = {
@@ -389,7 +297,14 @@ class EvaluatorEmbedder:
     encoder the evaluator was trained with: a different identity is refused.
     """
 
-    def __init__(self, evaluator: ContrastiveEvaluator, info: dict | None = None, text_encoder=None, caption_cache=None, device: str | torch.device | None = None):
+    def __init__(
+        self,
+        evaluator: ContrastiveEvaluator,
+        info: dict | None = None,
+        text_encoder=None,
+        caption_cache=None,
+        device: str | torch.device | None = None,
+    ):
         self.info = dict(info or {})
         self.device = torch.device(device) if device is not None else evaluator.mean.device
         self.evaluator = evaluator.to(self.device).eval()
@@ -403,14 +318,17 @@ class EvaluatorEmbedder:
         self.caption_cache = caption_cache
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, text_encoder=None, caption_cache=None, device: str | torch.device = "cpu") -> "EvaluatorEmbedder":
+    def from_checkpoint(
+        cls, path: str | Path, text_encoder=None, caption_cache=None, device: str | torch.device = "cpu"
+    ) -> "EvaluatorEmbedder":
         evaluator, info = load_contrastive_evaluator(path)
         return cls(evaluator, info, text_encoder=text_encoder, caption_cache=caption_cache, device=device)
 
     def _check_identity(self, identity: str, what: str) -> None:
         if self.expected_identity and identity != self.expected_identity:
             raise ValueError(
-                f"this evaluator was trained on sentence embeddings of {self.expected_identity!r}, but the {what} is {identity!r}; "
+                f"this evaluator was trained on sentence embeddings of {self.expected_identity!r}, but the "
+                f"{what} is {identity!r}; "
                 "use the text encoder it was trained with"
             )
 
@@ -418,15 +336,15 @@ class EvaluatorEmbedder:
     def text_encoder(self):
         """The text encoder: the one given, else built from the recorded name and options."""
         if self._encoder is None:
-            from mmm.text import build_text_encoder
-
-            from mmm.checkpoints import text_encoder_options
-
             recorded = dict(self.info.get("text_encoder") or {})
             if not recorded.get("name"):
-                raise ValueError("the evaluator records no text encoder name; pass text_encoder= to EvaluatorEmbedder")
+                raise ValueError(
+                    "the evaluator records no text encoder name; pass text_encoder= to EvaluatorEmbedder"
+                )
             # Recorded file options (CLIP weights) are followed only inside outputs/: else pass text_encoder=.
-            name, options = text_encoder_options(recorded, None, self.info.get("path", "the evaluator checkpoint"))
+            name, options = text_encoder_options(
+                recorded, None, self.info.get("path", "the evaluator checkpoint")
+            )
             encoder = build_text_encoder(name, **options)
             self._check_identity(encoder.identity, "text encoder")
             self._encoder = encoder
@@ -448,7 +366,9 @@ class EvaluatorEmbedder:
         return self.evaluator.embed_sentences(sentence)
 
     @torch.no_grad()
-    def embed_motions(self, features: torch.Tensor | np.ndarray, lengths: torch.Tensor | Sequence[int]) -> torch.Tensor:
+    def embed_motions(
+        self, features: torch.Tensor | np.ndarray, lengths: torch.Tensor | Sequence[int]
+    ) -> torch.Tensor:
         """Raw features (B, T, D) (padding past each length is ignored) with lengths (B,) -> (B, E)."""
         features = torch.as_tensor(features, dtype=torch.float32).to(self.device)
         lengths = torch.as_tensor(lengths, dtype=torch.long)

@@ -16,10 +16,13 @@ from pathlib import Path
 
 import torch
 
+from mmm.evaluation.contrastive import EvaluatorEmbedder
+from mmm.evaluation.t2m import T2MEvaluator, load_mean_std
 from mmm.fingerprint import tensors_fingerprint
-from mmm.resolve import resolve_checkpoint
+from mmm.kinds import EVALUATOR
+from mmm.resolve import resolve_model
 
-EVALUATOR_EXPERIMENT = "mmm-evaluator"
+EVALUATOR_EXPERIMENT = EVALUATOR.experiment
 
 
 class T2MEmbedder:
@@ -39,7 +42,10 @@ class T2MEmbedder:
     def embed_texts(self, captions) -> torch.Tensor:
         missing = [c.text for c in captions if not getattr(c, "tokens", None)]
         if missing:
-            raise ValueError(f"the standard evaluator needs word/POS tokens, and caption {missing[0]!r} has none (its caption line lacks them)")
+            raise ValueError(
+                f"the standard evaluator needs word/POS tokens, and caption {missing[0]!r} has none (its "
+                "caption line lacks them)"
+            )
         return self.evaluator.embed_texts([list(c.tokens) for c in captions])
 
     @torch.no_grad()
@@ -48,22 +54,27 @@ class T2MEmbedder:
         return self.evaluator.embed_motions(x, torch.as_tensor(lengths))
 
 
-def load_evaluator(reference: str | None, tracking_uri: str, device: str = "cpu", glove_dir: str | None = None, norm_dir: str | None = None):
+def load_evaluator(
+    reference: str | None,
+    tracking_uri: str,
+    device: str = "cpu",
+    glove_dir: str | None = None,
+    norm_dir: str | None = None,
+):
     """An evaluator for the protocol (see the module docstring)."""
     if reference is not None and reference.startswith("t2m:"):
-        from mmm.evaluation.t2m import T2MEvaluator, load_mean_std
-
-        directory = Path(reference[len("t2m:"):])
+        directory = Path(reference[len("t2m:") :])
         if glove_dir is None or norm_dir is None:
             raise ValueError(
-                "the standard evaluator needs evaluator.glove_dir (the folder with our_vab_data.npy, our_vab_words.pkl, our_vab_idx.pkl) "
-                "and evaluator.norm_dir (its mean.npy/std.npy, e.g. checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta)"
+                "the standard evaluator needs evaluator.glove_dir (the folder with our_vab_data.npy, "
+                "our_vab_words.pkl, our_vab_idx.pkl) "
+                "and evaluator.norm_dir (its mean.npy/std.npy, e.g. "
+                "checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta)"
             )
         mean, std = load_mean_std(norm_dir)
         return T2MEmbedder(T2MEvaluator.load(directory, glove_dir), mean, std, device)
-    from mmm.evaluation.contrastive import EvaluatorEmbedder
 
-    _, checkpoint, _ = resolve_checkpoint(reference, tracking_uri, EVALUATOR_EXPERIMENT, "outputs/evaluator", "evaluator", "make train-evaluator", "evaluator")
+    _, checkpoint, _ = resolve_model(reference, tracking_uri, EVALUATOR, "evaluator")
     embedder = EvaluatorEmbedder.from_checkpoint(checkpoint, device=device)
     embedder.identity = "contrastive-" + tensors_fingerprint(embedder.evaluator.state_dict())
     embedder.name = "contrastive"

@@ -18,8 +18,18 @@ from torchmetrics import Metric
 from torchmetrics.utilities.data import dim_zero_cat
 
 __all__ = [
-    "distance_matrix", "r_precision_hits", "matching_score", "gaussian_statistics", "frechet_distance", "fid",
-    "diversity", "multimodality", "RPrecision", "FrechetDistance", "Diversity", "MultiModality",
+    "distance_matrix",
+    "r_precision_hits",
+    "matching_score",
+    "gaussian_statistics",
+    "frechet_distance",
+    "fid",
+    "diversity",
+    "multimodality",
+    "RPrecision",
+    "FrechetDistance",
+    "Diversity",
+    "MultiModality",
 ]
 
 _IMAGINARY_TOLERANCE = 1e-3
@@ -36,7 +46,10 @@ def _as_float64(x) -> Tensor:
 
 def _check_pairs(text: Tensor, motion: Tensor) -> None:
     if text.ndim != 2 or text.shape != motion.shape:
-        raise ValueError(f"expected matched (B, D) text and motion embeddings, got {tuple(text.shape)} and {tuple(motion.shape)}")
+        raise ValueError(
+            f"expected matched (B, D) text and motion embeddings, got {tuple(text.shape)} and "
+            f"{tuple(motion.shape)}"
+        )
     if text.shape[0] == 0:
         raise ValueError("expected at least one text-motion pair")
 
@@ -89,7 +102,7 @@ def gaussian_statistics(emb: Tensor) -> tuple[Tensor, Tensor]:
 
 def _load_scipy_sqrtm():
     try:
-        from scipy.linalg import sqrtm
+        from scipy.linalg import sqrtm  # optional dependency (comes with mlflow)
     except ImportError:
         return None
     return sqrtm
@@ -137,7 +150,10 @@ def frechet_distance(mu1, sigma1, mu2, sigma2, eps: float = 1e-6) -> float:
     sigma1, sigma2 = torch.atleast_2d(_as_float64(sigma1).cpu()), torch.atleast_2d(_as_float64(sigma2).cpu())
     d = mu1.shape[0]
     if mu2.shape != (d,) or sigma1.shape != (d, d) or sigma2.shape != (d, d):
-        raise ValueError(f"shapes do not agree: mu1 {tuple(mu1.shape)}, sigma1 {tuple(sigma1.shape)}, mu2 {tuple(mu2.shape)}, sigma2 {tuple(sigma2.shape)}")
+        raise ValueError(
+            f"shapes do not agree: mu1 {tuple(mu1.shape)}, sigma1 {tuple(sigma1.shape)}, mu2 "
+            f"{tuple(mu2.shape)}, sigma2 {tuple(sigma2.shape)}"
+        )
     for name, value in (("mu1", mu1), ("sigma1", sigma1), ("mu2", mu2), ("sigma2", sigma2)):
         if not torch.isfinite(value).all():
             raise ValueError(f"{name} has non-finite entries")
@@ -147,11 +163,17 @@ def frechet_distance(mu1, sigma1, mu2, sigma2, eps: float = 1e-6) -> float:
         offset = eps * torch.eye(d, dtype=torch.float64)
         terms = _sqrt_product_terms(sigma1 + offset, sigma2 + offset)
         if not torch.isfinite(terms).all():
-            raise ValueError(f"the matrix square root of sigma1·sigma2 is not finite, even with {eps:g}·I added to the covariances")
+            raise ValueError(
+                f"the matrix square root of sigma1·sigma2 is not finite, even with {eps:g}·I added to the "
+                "covariances"
+            )
     if terms.is_complex():
         imaginary = float(terms.imag.abs().max())
         if imaginary > _IMAGINARY_TOLERANCE:
-            raise ValueError(f"the matrix square root of sigma1·sigma2 has an imaginary component {imaginary:.4g} (tolerance {_IMAGINARY_TOLERANCE:g})")
+            raise ValueError(
+                f"the matrix square root of sigma1·sigma2 has an imaginary component {imaginary:.4g} "
+                f"(tolerance {_IMAGINARY_TOLERANCE:g})"
+            )
         terms = terms.real
     # A distance: rounding makes identical distributions come out around -1e-7, reported as 0.
     return max(0.0, float(diff @ diff + torch.trace(sigma1) + torch.trace(sigma2) - 2 * terms.sum()))
@@ -184,7 +206,9 @@ def diversity(emb: Tensor, times: int = 300, generator: torch.Generator | None =
     if times < 1:
         raise ValueError(f"times must be at least 1, got {times}")
     if emb.shape[0] < times:
-        raise ValueError(f"diversity draws times={times} embeddings without replacement but got only N={emb.shape[0]}")
+        raise ValueError(
+            f"diversity draws times={times} embeddings without replacement but got only N={emb.shape[0]}"
+        )
     first, second = _draw_pairs(emb.shape[0], times, generator)
     first, second = first.to(emb.device), second.to(emb.device)
     return float(torch.linalg.vector_norm(emb[first] - emb[second], dim=1).mean())
@@ -203,7 +227,10 @@ def multimodality(emb: Tensor, times: int = 10, generator: torch.Generator | Non
     if times < 1:
         raise ValueError(f"times must be at least 1, got {times}")
     if emb.shape[1] < times:
-        raise ValueError(f"multimodality draws times={times} generations per text without replacement but got only R={emb.shape[1]}")
+        raise ValueError(
+            f"multimodality draws times={times} generations per text without replacement but got only "
+            f"R={emb.shape[1]}"
+        )
     first, second = _draw_pairs(emb.shape[1], times, generator)
     first, second = first.to(emb.device), second.to(emb.device)
     return float(torch.linalg.vector_norm(emb[:, first] - emb[:, second], dim=2).mean())
@@ -267,7 +294,9 @@ class FrechetDistance(Metric):
         self.dim = dim
         for side in ("real", "generated"):
             self.add_state(f"{side}_sum", default=torch.zeros(dim, dtype=torch.float64), dist_reduce_fx="sum")
-            self.add_state(f"{side}_outer", default=torch.zeros(dim, dim, dtype=torch.float64), dist_reduce_fx="sum")
+            self.add_state(
+                f"{side}_outer", default=torch.zeros(dim, dim, dtype=torch.float64), dist_reduce_fx="sum"
+            )
             self.add_state(f"{side}_count", default=torch.tensor(0, dtype=torch.int64), dist_reduce_fx="sum")
 
     def _accumulate(self, side: str, emb: Tensor) -> None:
@@ -290,7 +319,10 @@ class FrechetDistance(Metric):
         n = int(getattr(self, f"{side}_count"))
         if n < 2:
             raise ValueError(f"FID needs at least 2 {side} embeddings, got {n}")
-        total, outer = getattr(self, f"{side}_sum").to(torch.float64), getattr(self, f"{side}_outer").to(torch.float64)
+        total, outer = (
+            getattr(self, f"{side}_sum").to(torch.float64),
+            getattr(self, f"{side}_outer").to(torch.float64),
+        )
         mean = total / n
         cov = (outer - n * torch.outer(mean, mean)) / (n - 1)
         return mean, (cov + cov.T) / 2
@@ -326,7 +358,9 @@ class Diversity(Metric):
         if isinstance(self.embeddings, list) and not self.embeddings:
             raise ValueError("Diversity.compute() before any update")
         generator = torch.Generator().manual_seed(self.seed)
-        return torch.tensor(diversity(dim_zero_cat(self.embeddings), self.times, generator), dtype=torch.float64)
+        return torch.tensor(
+            diversity(dim_zero_cat(self.embeddings), self.times, generator), dtype=torch.float64
+        )
 
 
 class MultiModality(Metric):
@@ -354,4 +388,6 @@ class MultiModality(Metric):
         if isinstance(self.embeddings, list) and not self.embeddings:
             raise ValueError("MultiModality.compute() before any update")
         generator = torch.Generator().manual_seed(self.seed)
-        return torch.tensor(multimodality(dim_zero_cat(self.embeddings), self.times, generator), dtype=torch.float64)
+        return torch.tensor(
+            multimodality(dim_zero_cat(self.embeddings), self.times, generator), dtype=torch.float64
+        )

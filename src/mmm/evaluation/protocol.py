@@ -67,7 +67,15 @@ def _caption_of(item: MotionItem, text: str):
 
 
 @torch.no_grad()
-def evaluate_text_to_motion(model, evaluator, items: list[MotionItem], mean: np.ndarray, std: np.ndarray, cfg: ProtocolConfig, progress: bool = True) -> dict:
+def evaluate_text_to_motion(
+    model,
+    evaluator,
+    items: list[MotionItem],
+    mean: np.ndarray,
+    std: np.ndarray,
+    cfg: ProtocolConfig,
+    progress: bool = True,
+) -> dict:
     """Replicated protocol for a TextToMotion `model`; returns {"generated": {metric: (mean, ci)},
     "real": {...}, "replications": [...per replication dicts...]}."""
     if len(items) < cfg.batch_size:
@@ -75,14 +83,22 @@ def evaluate_text_to_motion(model, evaluator, items: list[MotionItem], mean: np.
     rows = []
     for rep in tqdm(range(cfg.replications), desc="evaluation replications", disable=not progress):
         seed = cfg.seed * 1000 + rep
-        dataset = TextMotionDataset(items, mean, std, max_length=model.max_frames, unit_length=model.unit, random_crop=True, seed=seed)
+        dataset = TextMotionDataset(
+            items, mean, std, max_length=model.max_frames, unit_length=model.unit, random_crop=True, seed=seed
+        )
         texts, real, gen = [], [], []
         for pairs in _batches(dataset, cfg.batch_size, seed, cfg.max_batches):
             batch = [b for _, b in pairs]
             captions = [_caption_of(item, b["caption"]) for item, b in pairs]
             lengths = torch.tensor([b["length"] for b in batch])
             features = torch.stack([torch.as_tensor(b["motion"].numpy() * std + mean) for b in _pad(batch)])
-            out = model.generate([c.text for c in captions], lengths.tolist(), cfg.sampling, seed=seed * 7919 + len(texts), check_lengths=False)
+            out = model.generate(
+                [c.text for c in captions],
+                lengths.tolist(),
+                cfg.sampling,
+                seed=seed * 7919 + len(texts),
+                check_lengths=False,
+            )
             generated = torch.from_numpy(_stack(out.features, features.shape[1]))
             texts.append(evaluator.embed_texts(captions).cpu())
             real.append(evaluator.embed_motions(features.float(), lengths).cpu())
@@ -123,7 +139,9 @@ def _score(texts, real, gen, cfg: ProtocolConfig, seed: int) -> dict:
         hits = sum(r_precision_hits(tb, mb, 3) for tb, mb in zip(texts, real if which == "real" else gen))
         n = sum(len(tb) for tb in texts)
         row[which] = {
-            "top1": float(hits[0]) / n, "top2": float(hits[1]) / n, "top3": float(hits[2]) / n,
+            "top1": float(hits[0]) / n,
+            "top2": float(hits[1]) / n,
+            "top3": float(hits[2]) / n,
             "matching_score": float(matching_score(t, motions)),
             "fid": float(fid(r, motions)),
             "diversity": float(diversity(motions, min(cfg.diversity_times, len(motions)), generator)),
@@ -141,12 +159,21 @@ def _multimodality(model, evaluator, items, cfg: ProtocolConfig, progress: bool)
         embeddings = []
         for k, item in enumerate(chosen):
             frames = min(item.length, model.max_frames) // model.unit * model.unit
-            out = model.generate([item.captions[0].text] * cfg.mm_generations, [frames] * cfg.mm_generations, cfg.sampling,
-                                 seed=cfg.seed * 100_003 + rep * 1009 + k, check_lengths=False)
+            out = model.generate(
+                [item.captions[0].text] * cfg.mm_generations,
+                [frames] * cfg.mm_generations,
+                cfg.sampling,
+                seed=cfg.seed * 100_003 + rep * 1009 + k,
+                check_lengths=False,
+            )
             lengths = torch.full((cfg.mm_generations,), frames)
-            embeddings.append(evaluator.embed_motions(torch.from_numpy(np.stack(out.features)).float(), lengths).cpu())
+            embeddings.append(
+                evaluator.embed_motions(torch.from_numpy(np.stack(out.features)).float(), lengths).cpu()
+            )
         generator = torch.Generator().manual_seed(cfg.seed * 31 + rep)
-        values.append(float(multimodality(torch.stack(embeddings), min(cfg.mm_times, cfg.mm_generations), generator)))
+        values.append(
+            float(multimodality(torch.stack(embeddings), min(cfg.mm_times, cfg.mm_generations), generator))
+        )
     return interval(values)
 
 
@@ -161,6 +188,8 @@ def results_table(results: dict[str, dict], title: str = "") -> str:
             if value is None or math.isnan(value[0]):
                 cells.append("-")
             else:
-                cells.append(f"{value[0]:.3f} ± {value[1]:.3f}".replace("-0.000 ", "0.000 "))  # FID of real vs real: rounding noise
+                cells.append(
+                    f"{value[0]:.3f} ± {value[1]:.3f}".replace("-0.000 ", "0.000 ")
+                )  # FID of real vs real: rounding noise
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -22,12 +22,34 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from mlflow.entities import Metric
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
+from mmm.data.humanml3d import load_clips, load_items, load_stats
+from mmm.evaluation.adherence import prompt_adherence
+from mmm.evaluation.evaluators import load_evaluator
+from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
-from mmm.tracking import TrackingConfig, artifact_location, resolve_tracking_uri
+from mmm.fingerprint import dataset_fingerprint
+from mmm.generation.model import TextToMotion
+from mmm.motion.features import recover_from_ric
+from mmm.tokenizer.load import load_tokenizer
+from mmm.tracking import (
+    DESCRIPTION_TAG,
+    TrackingConfig,
+    artifact_location,
+    log_dataset_input,
+    prepare_experiment,
+    resolve_tracking_uri,
+    run_link,
+    source_tags,
+    timestamp,
+    version_link,
+)
 
 log = logging.getLogger(__name__)
 
@@ -63,9 +85,6 @@ def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], b
     """Stage-1 reconstruction of whole clips (cut to a multiple of 4, at most 196 frames): FID of
     the reconstructions against the clips (when an evaluator is given), and MPJPE in mm
     (root-aligned and global)."""
-    from mmm.evaluation.metrics import fid
-    from mmm.motion.features import recover_from_ric
-
     unit = tokenizer.tokenizer.cfg.downsample
     mean, std = tokenizer.mean, tokenizer.std
     by_length: dict[int, list[np.ndarray]] = {}
@@ -88,7 +107,11 @@ def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], b
             errors += float(local.sum()) * scale
             errors_global += float((j_real - j_rec).norm(dim=-1).mean(-1).sum()) * scale
             frames += local.numel()
-    result = {"mpjpe_root_aligned_mm": errors / frames, "mpjpe_global_mm": errors_global / frames, "clips": sum(len(g) for g in by_length.values())}
+    result = {
+        "mpjpe_root_aligned_mm": errors / frames,
+        "mpjpe_global_mm": errors_global / frames,
+        "clips": sum(len(g) for g in by_length.values()),
+    }
     if evaluator is not None:
         result["fid"] = fid(torch.cat(real_emb), torch.cat(rec_emb))
     return result
@@ -100,7 +123,9 @@ def evaluate(cfg_node: DictConfig) -> dict:
     cfg: EvaluateConfig = to_object(cfg_node)
     unknown = set(cfg.what) - {"text2motion", "reconstruction", "adherence"}
     if unknown:
-        raise ValueError(f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence")
+        raise ValueError(
+            f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence"
+        )
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     run = _EvaluationRun(cfg, tracking_uri) if cfg.logger.enabled else None
     try:
@@ -115,21 +140,30 @@ def evaluate(cfg_node: DictConfig) -> dict:
 
 
 def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | None") -> dict:
-    from mmm.data.humanml3d import load_clips, load_items, load_stats
-    from mmm.evaluation.adherence import prompt_adherence
-    from mmm.evaluation.evaluators import load_evaluator
-    from mmm.fingerprint import dataset_fingerprint
-    from mmm.generation.model import TextToMotion
-    from mmm.tokenizer.load import load_tokenizer
-
     model = TextToMotion.load(cfg.text2motion, tracking_uri, device=cfg.device)
-    evaluator = load_evaluator(cfg.evaluator.reference, tracking_uri, cfg.device, cfg.evaluator.glove_dir, cfg.evaluator.norm_dir) \
-        if {"text2motion", "reconstruction"} & set(cfg.what) else None
+    evaluator = (
+        load_evaluator(
+            cfg.evaluator.reference, tracking_uri, cfg.device, cfg.evaluator.glove_dir, cfg.evaluator.norm_dir
+        )
+        if {"text2motion", "reconstruction"} & set(cfg.what)
+        else None
+    )
     root = Path(cfg.data.root)
-    items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
-                          length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
-    results: dict = {"text2motion_model": model.identity, "evaluator": getattr(evaluator, "identity", None), "split": cfg.split,
-                     "data_fingerprint": dataset_fingerprint(root)}
+    items, _ = load_items(
+        root,
+        cfg.split,
+        feature_dim=cfg.data.feature_dim,
+        fps=cfg.data.fps,
+        min_length=cfg.data.min_length,
+        length_limit=cfg.data.length_limit,
+        on_invalid=cfg.data.on_invalid,
+    )
+    results: dict = {
+        "text2motion_model": model.identity,
+        "evaluator": getattr(evaluator, "identity", None),
+        "split": cfg.split,
+        "data_fingerprint": dataset_fingerprint(root),
+    }
     if run is not None:
         run.started(results, root)
     metrics: dict[str, float] = {}
@@ -143,23 +177,48 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             for metric, (value, ci) in proto[which].items():
                 if not math.isnan(value):
                     metrics[f"{which}/{metric}"], intervals[f"{which}/{metric}"] = value, ci
-        tables.append(results_table({"Real motion": proto["real"], "Generated": proto["generated"]},
-                                    f"Text-to-motion on {cfg.data.name} {cfg.split}, {cfg.protocol.replications} replications, evaluator {evaluator.identity}"))
+        tables.append(
+            results_table(
+                {"Real motion": proto["real"], "Generated": proto["generated"]},
+                f"Text-to-motion on {cfg.data.name} {cfg.split}, {cfg.protocol.replications} replications, "
+                f"evaluator {evaluator.identity}",
+            )
+        )
     if "reconstruction" in cfg.what:
-        tokenizer = model.tokenizer if cfg.tokenizer is None else load_tokenizer(cfg.tokenizer, tracking_uri)[0].to(cfg.device)
-        clips, _ = load_clips(root, cfg.split, feature_dim=cfg.data.feature_dim, min_length=cfg.data.min_length, on_invalid=cfg.data.on_invalid)
+        tokenizer = (
+            model.tokenizer
+            if cfg.tokenizer is None
+            else load_tokenizer(cfg.tokenizer, tracking_uri)[0].to(cfg.device)
+        )
+        clips, _ = load_clips(
+            root,
+            cfg.split,
+            feature_dim=cfg.data.feature_dim,
+            min_length=cfg.data.min_length,
+            on_invalid=cfg.data.on_invalid,
+        )
         recon = reconstruction_metrics(tokenizer, evaluator, clips)
         results["reconstruction"] = recon
         metrics.update({f"recon/{k}": float(v) for k, v in recon.items() if k != "clips"})
         fid_text = f"FID {recon['fid']:.4f}, " if "fid" in recon else ""
-        tables.append(f"**Reconstruction ({recon['clips']} {cfg.split} clips)**: {fid_text}MPJPE {recon['mpjpe_root_aligned_mm']:.1f} mm (root-aligned), "
-                      f"{recon['mpjpe_global_mm']:.1f} mm (global)")
+        tables.append(
+            f"**Reconstruction ({recon['clips']} {cfg.split} clips)**: {fid_text}MPJPE "
+            f"{recon['mpjpe_root_aligned_mm']:.1f} mm (root-aligned), "
+            f"{recon['mpjpe_global_mm']:.1f} mm (global)"
+        )
     if "adherence" in cfg.what and (root / "labels").is_dir():
-        adherence = prompt_adherence(model, root, items, cfg.protocol.sampling, cfg.protocol.seed, max_items=cfg.adherence_max_items)
+        adherence = prompt_adherence(
+            model, root, items, cfg.protocol.sampling, cfg.protocol.seed, max_items=cfg.adherence_max_items
+        )
         results["adherence"] = adherence
         metrics["adherence/rate"] = adherence["rate"]
-        lines = [f"**Prompt adherence**: {adherence['rate']:.3f} of {adherence['count']} {cfg.split} captions ({adherence['skipped']} without a checkable label)", "",
-                 "| actions | satisfied | of |", "|---|---|---|"]
+        lines = [
+            f"**Prompt adherence**: {adherence['rate']:.3f} of {adherence['count']} {cfg.split} captions "
+            f"({adherence['skipped']} without a checkable label)",
+            "",
+            "| actions | satisfied | of |",
+            "|---|---|---|",
+        ]
         lines += [f"| {k} | {a} | {b} |" for k, (a, b) in adherence["per_action"].items()]
         tables.append("\n".join(lines))
     table = "\n\n".join(tables)
@@ -178,34 +237,44 @@ class _EvaluationRun:
     process-wide active run) and ended with it."""
 
     def __init__(self, cfg: EvaluateConfig, tracking_uri: str):
-        from mlflow.tracking import MlflowClient
-
-        from mmm.tracking import prepare_experiment, source_tags, timestamp
-
         self.cfg, self.client = cfg, MlflowClient(tracking_uri)
-        experiment_id = prepare_experiment(self.client, cfg.logger.experiment, artifact_location(tracking_uri, cfg.logger.artifact_root))
-        run = self.client.create_run(experiment_id, run_name=cfg.logger.run_name or f"evaluate-{cfg.data.name}-{timestamp()}",
-                                     tags={"mmm.stage": "evaluation", "split": cfg.split, **source_tags("mmm evaluate")})
+        experiment_id = prepare_experiment(
+            self.client, cfg.logger.experiment, artifact_location(tracking_uri, cfg.logger.artifact_root)
+        )
+        run = self.client.create_run(
+            experiment_id,
+            run_name=cfg.logger.run_name or f"evaluate-{cfg.data.name}-{timestamp()}",
+            tags={"mmm.stage": "evaluation", "split": cfg.split, **source_tags("mmm evaluate")},
+        )
         self.run_id = run.info.run_id
-        params = {"replications": cfg.protocol.replications, "what": ",".join(cfg.what), "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500]}
+        params = {
+            "replications": cfg.protocol.replications,
+            "what": ",".join(cfg.what),
+            "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500],
+        }
         for key, value in params.items():
             self.client.log_param(self.run_id, key, value)
 
     def started(self, results: dict, root: Path) -> None:
         """The model, evaluator and data are known: tag them and record the dataset input."""
-        from mmm.tracking import log_dataset_input
-
         identity = results["text2motion_model"]
-        for key, value in {"text2motion.reference": identity.get("reference") or "", "text2motion.run_id": identity.get("run_id") or "",
-                           "evaluator": results["evaluator"] or "", "data.fingerprint": results["data_fingerprint"]}.items():
+        for key, value in {
+            "text2motion.reference": identity.get("reference") or "",
+            "text2motion.run_id": identity.get("run_id") or "",
+            "evaluator": results["evaluator"] or "",
+            "data.fingerprint": results["data_fingerprint"],
+        }.items():
             self.client.set_tag(self.run_id, key, str(value))
-        log_dataset_input(self.client, self.run_id, self.cfg.data.name, root, results["data_fingerprint"], context="evaluation")
+        log_dataset_input(
+            self.client,
+            self.run_id,
+            self.cfg.data.name,
+            root,
+            results["data_fingerprint"],
+            context="evaluation",
+        )
 
     def finish(self, results: dict, out_dir: Path) -> None:
-        from mlflow.entities import Metric
-
-        from mmm.tracking import DESCRIPTION_TAG
-
         now = int(time.time() * 1000)
         metrics = [Metric(k, float(v), now, 0) for k, v in results["metrics"].items()]
         for i in range(0, len(metrics), 500):
@@ -217,38 +286,43 @@ class _EvaluationRun:
         results["run_id"] = self.run_id
 
     def fail(self, error: BaseException) -> None:
-        from mmm.tracking import DESCRIPTION_TAG
-
         try:
             message = " ".join(str(error).split())[:500] or type(error).__name__
-            self.client.set_tag(self.run_id, DESCRIPTION_TAG, f"### Evaluation failed\n\n`{type(error).__name__}`: {message}")
+            self.client.set_tag(
+                self.run_id, DESCRIPTION_TAG, f"### Evaluation failed\n\n`{type(error).__name__}`: {message}"
+            )
             self.client.set_terminated(self.run_id, "FAILED")
         except Exception:  # the store itself may be what failed: the original error matters
             log.exception("could not mark evaluation run %s as failed", self.run_id)
 
     def description(self, results: dict) -> str:
-        """Markdown: what was evaluated (with links to the model's run and registered version) and the table."""
+        """Markdown: what was evaluated (with links to the model's run and registered version) and the
+        table."""
         identity = results["text2motion_model"]
         model = self._model_links(identity)
         evaluator = f", evaluator `{results['evaluator']}`" if results.get("evaluator") else ""
-        return "\n".join([
-            f"### Evaluation of {model}", "",
-            f"On {self.cfg.data.name} {self.cfg.split} (data `{results['data_fingerprint']}`){evaluator}; "
-            "± is the 95% confidence interval over the replications (1.96·std/sqrt(n)).", "",
-            results["table"],
-        ])
+        return "\n".join(
+            [
+                f"### Evaluation of {model}",
+                "",
+                f"On {self.cfg.data.name} {self.cfg.split} (data "
+                f"`{results['data_fingerprint']}`){evaluator}; "
+                "± is the 95% confidence interval over the replications (1.96·std/sqrt(n)).",
+                "",
+                results["table"],
+            ]
+        )
 
     def _model_links(self, identity: dict) -> str:
-        from mlflow.exceptions import MlflowException
-
-        from mmm.tracking import run_link, version_link
-
         parts = []
         run_id = identity.get("run_id")
         if run_id:
             try:
                 run = self.client.get_run(run_id)
-                parts.append(f"the model of run {run_link(run.info.experiment_id, run_id, run.info.run_name or run_id)}")
+                parts.append(
+                    "the model of run "
+                    f"{run_link(run.info.experiment_id, run_id, run.info.run_name or run_id)}"
+                )
             except MlflowException:
                 parts.append(f"the model of run `{run_id}`")
         else:
@@ -256,7 +330,7 @@ class _EvaluationRun:
         versions = []
         reference = identity.get("reference") or ""
         if reference.startswith("models:/") and identity.get("version") is not None:
-            body = reference[len("models:/"):]
+            body = reference[len("models:/") :]
             name = body.split("@", 1)[0] if "@" in body else body.rsplit("/", 1)[0]
             versions.append((name, str(identity["version"])))
         elif run_id:

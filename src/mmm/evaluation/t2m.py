@@ -89,7 +89,13 @@ from mmm.data.humanml3d import DataError
 # --------------------------------------------------------------------------------------------
 
 FEATURE_DIMS = {"humanml3d": 263, "kit": 251}
-_DATASET_ALIASES = {"humanml3d": "humanml3d", "t2m": "humanml3d", "kit": "kit", "kit-ml": "kit", "kitml": "kit"}
+_DATASET_ALIASES = {
+    "humanml3d": "humanml3d",
+    "t2m": "humanml3d",
+    "kit": "kit",
+    "kit-ml": "kit",
+    "kitml": "kit",
+}
 CONTACT_DIMS = 4
 UNIT_LENGTH = 4
 WORD_DIM = 300
@@ -110,26 +116,95 @@ POS_INDEX = {name: i for i, name in enumerate(POS_CLASSES)}
 
 VIP_WORDS: dict[str, tuple[str, ...]] = {
     "Loc_VIP": (
-        "left", "right", "clockwise", "counterclockwise", "anticlockwise", "forward", "back",
-        "backward", "up", "down", "straight", "curve",
+        "left",
+        "right",
+        "clockwise",
+        "counterclockwise",
+        "anticlockwise",
+        "forward",
+        "back",
+        "backward",
+        "up",
+        "down",
+        "straight",
+        "curve",
     ),
     "Body_VIP": (
-        "arm", "chin", "foot", "feet", "face", "hand", "mouth", "leg", "waist", "eye", "knee",
-        "shoulder", "thigh",
+        "arm",
+        "chin",
+        "foot",
+        "feet",
+        "face",
+        "hand",
+        "mouth",
+        "leg",
+        "waist",
+        "eye",
+        "knee",
+        "shoulder",
+        "thigh",
     ),
     "Obj_VIP": (
-        "stair", "dumbbell", "chair", "window", "floor", "car", "ball", "handrail", "baseball",
+        "stair",
+        "dumbbell",
+        "chair",
+        "window",
+        "floor",
+        "car",
+        "ball",
+        "handrail",
+        "baseball",
         "basketball",
     ),
     "Act_VIP": (
-        "walk", "run", "swing", "pick", "bring", "kick", "put", "squat", "throw", "hop", "dance",
-        "jump", "turn", "stumble", "stop", "sit", "lift", "lower", "raise", "wash", "stand",
-        "kneel", "stroll", "rub", "bend", "balance", "flap", "jog", "shuffle", "lean", "rotate",
-        "spin", "spread", "climb",
+        "walk",
+        "run",
+        "swing",
+        "pick",
+        "bring",
+        "kick",
+        "put",
+        "squat",
+        "throw",
+        "hop",
+        "dance",
+        "jump",
+        "turn",
+        "stumble",
+        "stop",
+        "sit",
+        "lift",
+        "lower",
+        "raise",
+        "wash",
+        "stand",
+        "kneel",
+        "stroll",
+        "rub",
+        "bend",
+        "balance",
+        "flap",
+        "jog",
+        "shuffle",
+        "lean",
+        "rotate",
+        "spin",
+        "spread",
+        "climb",
     ),
     "Desc_VIP": (
-        "slowly", "carefully", "fast", "careful", "slow", "quickly", "happy", "angry", "sad",
-        "happily", "angrily", "sadly",
+        "slowly",
+        "carefully",
+        "fast",
+        "careful",
+        "slow",
+        "quickly",
+        "happy",
+        "angry",
+        "sad",
+        "happily",
+        "angrily",
+        "sadly",
     ),
 }
 # first list wins, as in the published vectorizer (the lists do not overlap)
@@ -194,7 +269,9 @@ class EvaluatorCheckpointError(CheckpointError, RuntimeError):
 class _RestrictedUnpickler(pickle.Unpickler):
     """Unpickler that only builds lists, dicts, strings and ints: no code runs while loading."""
 
-    _ALLOWED = frozenset({("builtins", "list"), ("builtins", "dict"), ("builtins", "str"), ("builtins", "int")})
+    _ALLOWED = frozenset(
+        {("builtins", "list"), ("builtins", "dict"), ("builtins", "str"), ("builtins", "int")}
+    )
 
     def find_class(self, module: str, name: str):
         if module == "__builtin__":  # Python 2 pickles
@@ -220,7 +297,17 @@ def _read_vocabulary(path: Path, fix: str):
     a class outside list/dict/str/int) a DataError naming the file."""
     try:
         return restricted_pickle_load(path)
-    except (pickle.UnpicklingError, EOFError, OSError, ValueError, TypeError, KeyError, IndexError, AttributeError, UnicodeDecodeError) as e:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        OSError,
+        ValueError,
+        TypeError,
+        KeyError,
+        IndexError,
+        AttributeError,
+        UnicodeDecodeError,
+    ) as e:
         detail = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
         raise DataError(path, f"not a readable vocabulary pickle ({detail})", fix) from None
 
@@ -284,7 +371,11 @@ class WordVectorizer:
     @classmethod
     def load(cls, glove_dir: str | Path, prefix: str = "our_vab") -> "WordVectorizer":
         glove_dir = Path(glove_dir)
-        paths = [glove_dir / f"{prefix}_data.npy", glove_dir / f"{prefix}_words.pkl", glove_dir / f"{prefix}_idx.pkl"]
+        paths = [
+            glove_dir / f"{prefix}_data.npy",
+            glove_dir / f"{prefix}_words.pkl",
+            glove_dir / f"{prefix}_idx.pkl",
+        ]
         missing = [(f"GloVe file {p.name}", p) for p in paths if not p.is_file()]
         if missing:
             raise EvaluatorFilesMissing(missing)
@@ -337,7 +428,9 @@ class WordVectorizer:
         seq += ["unk/OTHER"] * (TEXT_SEQ_LEN - length)
         return seq, length
 
-    def encode(self, token_lists: Sequence[Sequence[str] | str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def encode(
+        self, token_lists: Sequence[Sequence[str] | str]
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Batch of captions -> word vectors (B, 22, 300), POS one-hots (B, 22, 15), lengths (B,)."""
         B = len(token_lists)
         words = np.zeros((B, TEXT_SEQ_LEN, self.dim), dtype=np.float32)
@@ -374,7 +467,9 @@ def caption_token_list(tokens: Sequence[str] | str) -> list[str]:
 class MovementConvEncoder(nn.Module):
     """(B, T, Din) -> (B, T // 4, 512): two stride-2 convolutions and a per-step linear."""
 
-    def __init__(self, input_size: int, hidden_size: int = MOVEMENT_HIDDEN, output_size: int = MOVEMENT_LATENT):
+    def __init__(
+        self, input_size: int, hidden_size: int = MOVEMENT_HIDDEN, output_size: int = MOVEMENT_LATENT
+    ):
         super().__init__()
         self.main = nn.Sequential(
             nn.Conv1d(input_size, hidden_size, 4, 2, 1),
@@ -429,7 +524,12 @@ class _BiGRUCo(nn.Module):
 
 
 class MotionEncoderBiGRUCo(_BiGRUCo):
-    def __init__(self, input_size: int = MOVEMENT_LATENT, hidden_size: int = MOTION_HIDDEN, output_size: int = EMBED_DIM):
+    def __init__(
+        self,
+        input_size: int = MOVEMENT_LATENT,
+        hidden_size: int = MOTION_HIDDEN,
+        output_size: int = EMBED_DIM,
+    ):
         super().__init__(input_size, hidden_size, output_size)
 
     def forward(self, movements: torch.Tensor, unit_lengths: torch.Tensor) -> torch.Tensor:
@@ -446,7 +546,9 @@ class TextEncoderBiGRUCo(_BiGRUCo):
     ):
         super().__init__(word_size, hidden_size, output_size, pos_size=pos_size)
 
-    def forward(self, word_embs: torch.Tensor, pos_onehot: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, word_embs: torch.Tensor, pos_onehot: torch.Tensor, lengths: torch.Tensor
+    ) -> torch.Tensor:
         return self._encode(word_embs + self.pos_emb(pos_onehot), lengths)
 
 
@@ -614,7 +716,9 @@ def _state_dict_problems(name: str, module: nn.Module, sd: Mapping) -> list[str]
             if not isinstance(got, torch.Tensor):
                 problems.append(f"{name}.{k}: expected a tensor, got {type(got).__name__}")
             elif tuple(got.shape) != tuple(v.shape):
-                problems.append(f"{name}.{k}: shape {tuple(got.shape)} in the checkpoint, {tuple(v.shape)} expected")
+                problems.append(
+                    f"{name}.{k}: shape {tuple(got.shape)} in the checkpoint, {tuple(v.shape)} expected"
+                )
     return problems
 
 
@@ -647,7 +751,9 @@ class EvaluatorNormalization:
     numpy arrays and torch tensors (dtype and device kept), over the last axis."""
 
     def __init__(self, train_mean, train_std, eval_mean, eval_std):
-        arrs = [np.asarray(a, dtype=np.float64).reshape(-1) for a in (train_mean, train_std, eval_mean, eval_std)]
+        arrs = [
+            np.asarray(a, dtype=np.float64).reshape(-1) for a in (train_mean, train_std, eval_mean, eval_std)
+        ]
         if len({a.shape[0] for a in arrs}) != 1:
             raise ValueError(f"statistics differ in size: {[a.shape[0] for a in arrs]}")
         self.train_mean, self.train_std, self.eval_mean, self.eval_std = arrs
@@ -668,7 +774,9 @@ class EvaluatorNormalization:
             raise ValueError(f"expected features with last dim {self.dim}, got {tuple(x.shape)}")
         if isinstance(x, torch.Tensor):
             dt = x.dtype if x.is_floating_point() else torch.float32
-            return torch.as_tensor(self.scale, dtype=dt, device=x.device), torch.as_tensor(self.shift, dtype=dt, device=x.device)
+            return torch.as_tensor(self.scale, dtype=dt, device=x.device), torch.as_tensor(
+                self.shift, dtype=dt, device=x.device
+            )
         dt = x.dtype if np.issubdtype(np.asarray(x).dtype, np.floating) else np.float64
         return self.scale.astype(dt), self.shift.astype(dt)
 

@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mmm.motion.features import recover_from_ric
 from mmm.motion.quaternion import qbetween, qinv, qmul, qrot, quat_about_y, quat_to_matrix
 from mmm.motion.skeleton import SKELETONS, Skeleton, skeleton_for
 
@@ -177,9 +178,7 @@ def _bvh_nodes(skeleton: Skeleton) -> list[_Node]:
         kids = children[j]
         is_root = parent_node < 0
         carries = kids[0] if (len(kids) == 1 and not is_root) else None
-        nodes.append(
-            _Node(names[j], parent_node, j, carries, None if is_root else j, end_site=not kids)
-        )
+        nodes.append(_Node(names[j], parent_node, j, carries, None if is_root else j, end_site=not kids))
         me = len(nodes) - 1
         if carries is not None:
             add_joint(carries, me)
@@ -255,7 +254,9 @@ def _resolve_skeleton(skeleton: Skeleton | str | None, num_joints: int, path: Pa
             raise ValueError(f"cannot write {path}: {err}") from None
     if isinstance(skeleton, str):
         if skeleton.lower() not in SKELETONS:
-            raise ValueError(f"cannot write {path}: unknown skeleton {skeleton!r}; use one of {sorted(SKELETONS)}")
+            raise ValueError(
+                f"cannot write {path}: unknown skeleton {skeleton!r}; use one of {sorted(SKELETONS)}"
+            )
         return SKELETONS[skeleton.lower()]
     return skeleton
 
@@ -264,16 +265,25 @@ def _as_joint_array(joints, path: Path) -> np.ndarray:
     if isinstance(joints, torch.Tensor):
         joints = joints.detach().cpu().numpy()
     arr = np.asarray(joints)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"cannot write {path}: joints must be a numeric array (T, J, 3), got dtype {arr.dtype}")
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
+        raise ValueError(
+            f"cannot write {path}: joints must be a numeric array (T, J, 3), got dtype {arr.dtype}"
+        )
     if arr.ndim != 3 or arr.shape[-1] != 3:
         hint = ""
         if arr.ndim == 2:
-            hint = (" (a single pose? pass joints[None])" if arr.shape[-1] == 3
-                    else " (features? write them with features_to_bvh, or recover_from_ric first)")
+            hint = (
+                " (a single pose? pass joints[None])"
+                if arr.shape[-1] == 3
+                else " (features? write them with features_to_bvh, or recover_from_ric first)"
+            )
         raise ValueError(f"cannot write {path}: joints must have shape (T, J, 3), got {arr.shape}{hint}")
     if arr.shape[0] < 1:
-        raise ValueError(f"cannot write {path}: the motion has no frames, shape {arr.shape}; pass at least 1 frame")
+        raise ValueError(
+            f"cannot write {path}: the motion has no frames, shape {arr.shape}; pass at least 1 frame"
+        )
     arr = arr.astype(np.float64)
     bad = ~np.isfinite(arr)
     if bad.any():
@@ -320,8 +330,16 @@ def _fmt(values: np.ndarray, decimals: int) -> str:
     return " ".join(f"{v:.{decimals}f}" for v in values)
 
 
-def write_bvh(joints, path, skeleton: Skeleton | str | None = None, fps: float | None = None, *,
-              decimals: int = 6, end_site_length: float = END_SITE_LENGTH, arcs: str = "parent") -> BVHInfo:
+def write_bvh(
+    joints,
+    path,
+    skeleton: Skeleton | str | None = None,
+    fps: float | None = None,
+    *,
+    decimals: int = 6,
+    end_site_length: float = END_SITE_LENGTH,
+    arcs: str = "parent",
+) -> BVHInfo:
     """Write joint positions (T, J, 3) as a BVH file; returns a `BVHInfo`.
 
     skeleton: a `Skeleton`, its name ("t2m", "humanml3d", "kit") or None to pick it from J
@@ -338,7 +356,8 @@ def write_bvh(joints, path, skeleton: Skeleton | str | None = None, fps: float |
     if arr.shape[1] != skeleton.num_joints:
         raise ValueError(
             f"cannot write {path}: joints of shape {arr.shape} have {arr.shape[1]} joints but skeleton "
-            f"{skeleton.name!r} has {skeleton.num_joints}; pass the matching skeleton (or None to pick it from J)"
+            f"{skeleton.name!r} has {skeleton.num_joints}; pass the matching skeleton (or None to pick it "
+            "from J)"
         )
     fps = float(skeleton.fps if fps is None else fps)
     if not math.isfinite(fps) or fps <= 0:
@@ -409,8 +428,11 @@ def write_bvh(joints, path, skeleton: Skeleton | str | None = None, fps: float |
         ind = "\t" * depth
         lines.append(f"{ind}{'ROOT' if node.parent < 0 else 'JOINT'} {node.name}")
         lines.append(f"{ind}{{")
-        offset = zero if node.offset_joint is None else _fmt(
-            (rest[node.offset_joint] * lengths[node.offset_joint]).numpy(), decimals)
+        offset = (
+            zero
+            if node.offset_joint is None
+            else _fmt((rest[node.offset_joint] * lengths[node.offset_joint]).numpy(), decimals)
+        )
         lines.append(f"{ind}\tOFFSET {offset}")
         channels = ROOT_CHANNELS if node.parent < 0 else JOINT_CHANNELS
         lines.append(f"{ind}\tCHANNELS {len(channels)} {' '.join(channels)}")
@@ -460,11 +482,10 @@ def _write_atomic(path: Path, text: str) -> None:
         raise
 
 
-def features_to_bvh(features, path, skeleton: Skeleton | str | None = None, fps: float | None = None,
-                    **kwargs) -> BVHInfo:
+def features_to_bvh(
+    features, path, skeleton: Skeleton | str | None = None, fps: float | None = None, **kwargs
+) -> BVHInfo:
     """Write a motion given as (de-normalized) features (T, 263 or 251) as BVH via `recover_from_ric`."""
-    from mmm.motion.features import recover_from_ric
-
     if isinstance(features, torch.Tensor):
         features = features.detach().cpu().numpy()
     feats = np.asarray(features, dtype=np.float64)
@@ -681,8 +702,10 @@ def read_bvh(path) -> BVHMotion:
             raise ValueError(f"{path}: truncated BVH: missing the '{key}' line after MOTION")
         line = lines[index].strip()
         if not line.startswith(key):
-            raise ValueError(f"{path}: malformed BVH at line {index + 1}: expected '{key} ...', found {line[:60]!r}")
-        return line[len(key):].strip()
+            raise ValueError(
+                f"{path}: malformed BVH at line {index + 1}: expected '{key} ...', found {line[:60]!r}"
+            )
+        return line[len(key) :].strip()
 
     frames_text = header(motion_at + 1, "Frames:")
     time_text = header(motion_at + 2, "Frame Time:")
@@ -710,7 +733,8 @@ def read_bvh(path) -> BVHMotion:
         parts = line.split()
         if len(parts) != num_channels:
             raise ValueError(
-                f"{path}: line {line_no} (frame {len(rows)}) has {len(parts)} values, expected {num_channels} "
+                f"{path}: line {line_no} (frame {len(rows)}) has {len(parts)} values, expected "
+                f"{num_channels} "
                 f"(the channels of {len(names)} joints in the hierarchy); the file is corrupt or truncated"
             )
         try:
@@ -725,10 +749,17 @@ def read_bvh(path) -> BVHMotion:
     motion = np.array(rows, dtype=np.float64).reshape(num_frames, num_channels)
     positions, rotations = _forward_kinematics(parents, offsets, channels, motion)
     index = {n: i for i, n in enumerate(names)}
-    end_positions = np.stack(
-        [positions[:, index[n]] + np.einsum("tij,j->ti", rotations[:, index[n]], off) for n, off in end_sites.items()],
-        axis=1,
-    ) if end_sites else np.zeros((num_frames, 0, 3))
+    end_positions = (
+        np.stack(
+            [
+                positions[:, index[n]] + np.einsum("tij,j->ti", rotations[:, index[n]], off)
+                for n, off in end_sites.items()
+            ],
+            axis=1,
+        )
+        if end_sites
+        else np.zeros((num_frames, 0, 3))
+    )
     fps = 1.0 / frame_time
     if abs(fps - round(fps, 6)) < 1e-6:
         fps = round(fps, 6)

@@ -13,7 +13,6 @@ and decode the concatenation once.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import time
 from collections import defaultdict
@@ -23,14 +22,27 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mmm.checkpoints import (
+    FINGERPRINT_KEY,
+    CheckpointError,
+    load_checkpoint,
+    load_state,
+    outside_outputs,
+    text_encoder_options,
+    trusted_recorded_path,
+)
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.length import load_length_estimator
-from mmm.kinds import LENGTH, STAGE2, STAGE2_PARTS
 from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
+from mmm.generation.upper_body import edit_upper_body
+from mmm.kinds import LENGTH, STAGE2, STAGE2_PARTS
 from mmm.motion.features import recover_from_ric
 from mmm.resolve import _RUN_ID, ModelNotFound, champion_reference, resolve_bundle, resolve_model
-from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint
+from mmm.text import build_text_encoder
+from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint, resolve_tokenizer
+from mmm.tracking import resolve_tracking_uri
 from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
+
 
 @dataclass
 class Generated:
@@ -44,12 +56,23 @@ class Generated:
     forward_passes: int  # passes of the whole batch
     seconds: dict[str, float] = field(default_factory=dict)
     segments: list[tuple[int, int]] | None = None  # long sequences: frame range of each prompt
-    kept_codes: np.ndarray | None = None  # edits: (L,) True where the source's code was kept; upper body: (samples, L) lower codes shown
+    kept_codes: np.ndarray | None = (
+        None  # edits: (L,) True where the source's code was kept; upper body: (samples, L) lower codes shown
+    )
     trace: object | None = None  # DecodeTrace when asked for
 
 
 class TextToMotion:
-    def __init__(self, tokenizer, transformer, text_encoder, identity: dict, length_estimator=None, device: str | torch.device = "cpu", length_source: tuple | None = None):
+    def __init__(
+        self,
+        tokenizer,
+        transformer,
+        text_encoder,
+        identity: dict,
+        length_estimator=None,
+        device: str | torch.device = "cpu",
+        length_source: tuple | None = None,
+    ):
         self.device = torch.device(device)
         self._length_source = length_source  # (reference, tracking uri): loaded on first use
         self.tokenizer = tokenizer.to(self.device).eval()
@@ -70,7 +93,7 @@ class TextToMotion:
         cls,
         reference: str | None = None,
         tracking_uri: str = "sqlite:///mlflow.db",
-        output_dir: str = "outputs/stage2",
+        output_dir: str = STAGE2.output_dir,
         device: str = "cpu",
         length_model: str | None = None,
         parts: bool = False,
@@ -89,26 +112,41 @@ class TextToMotion:
         text_files: the text encoder's files ({"weights": PATH, "vocab": PATH} for CLIP), likewise.
         A registered version's files come with it, and its recorded fingerprints are checked.
         """
-        from mmm.tracking import resolve_tracking_uri
-
         tracking_uri = resolve_tracking_uri(tracking_uri)
         tokenizer_checkpoint = None
         if stage1 is not None:
-            from mmm.tokenizer.load import resolve_tokenizer
-
             _, tokenizer_checkpoint, _ = resolve_tokenizer(stage1, tracking_uri)
         if reference is None:
             reference = champion_reference(tracking_uri, (STAGE2_PARTS if parts else STAGE2).registered)
         if reference is not None and reference.startswith("models:/"):
             stage2, bundled_stage1, expected, version = resolve_bundle(reference, tracking_uri)
-            model = cls.from_files(stage2, tokenizer_checkpoint or bundled_stage1, device, length_source=(length_model, tracking_uri),
-                                   text_files=text_files, expected_identity=expected)
-            model.identity.update({"reference": reference, "run_id": version.run_id, "version": version.version})
+            model = cls.from_files(
+                stage2,
+                tokenizer_checkpoint or bundled_stage1,
+                device,
+                length_source=(length_model, tracking_uri),
+                text_files=text_files,
+                expected_identity=expected,
+            )
+            model.identity.update(
+                {"reference": reference, "run_id": version.run_id, "version": version.version}
+            )
             return model
-        resolved, checkpoint, run_id = resolve_model(reference, tracking_uri, STAGE2_PARTS if parts else STAGE2, "--model",
-                                                     output_dir=None if parts else output_dir)
-        model = cls.from_files(checkpoint, tokenizer_checkpoint, device, tracking_uri=tracking_uri, length_source=(length_model, tracking_uri),
-                               text_files=text_files)
+        resolved, checkpoint, run_id = resolve_model(
+            reference,
+            tracking_uri,
+            STAGE2_PARTS if parts else STAGE2,
+            "--model",
+            output_dir=None if parts else output_dir,
+        )
+        model = cls.from_files(
+            checkpoint,
+            tokenizer_checkpoint,
+            device,
+            tracking_uri=tracking_uri,
+            length_source=(length_model, tracking_uri),
+            text_files=text_files,
+        )
         model.identity.update({"reference": resolved, "run_id": run_id})
         return model
 
@@ -141,24 +179,28 @@ class TextToMotion:
         against the identity the transformer was trained on (and `expected_identity["stage1"]`);
         the text encoder's identity against the recorded one.
         """
-        from mmm.checkpoints import (FINGERPRINT_KEY, CheckpointError, load_checkpoint, load_state, outside_outputs, text_encoder_options,
-                                     trusted_recorded_path)
-        from mmm.text import build_text_encoder
-
         expected_identity = expected_identity or {}
         ckpt = load_checkpoint(checkpoint, "stage2", expected_identity.get("transformer"))
         hp = ckpt["hyper_parameters"]
         stage1 = dict(hp.get("stage1") or {})
         trained_on = stage1.get("identity")
         if not trained_on:
-            raise CheckpointError(f"{checkpoint}: records no stage-1 identity, so its tokens cannot be checked against a tokenizer; use a checkpoint written by `mmm train stage2`")
+            raise CheckpointError(
+                f"{checkpoint}: records no stage-1 identity, so its tokens cannot be checked against a "
+                "tokenizer; use a checkpoint written by `mmm train stage2`"
+            )
         registered = expected_identity.get("stage1")
         if registered and registered != trained_on:
-            raise CheckpointError(f"{checkpoint}: trained on stage-1 weights {trained_on}, but the registry records {registered} for this version; the files were mixed up")
+            raise CheckpointError(
+                f"{checkpoint}: trained on stage-1 weights {trained_on}, but the registry records "
+                f"{registered} for this version; the files were mixed up"
+            )
         recorded = stage1.get("checkpoint")
         run_id = stage1.get("run_id")
         reference = f"runs:/{run_id}" if run_id else str(stage1.get("reference") or "")
-        from_mlflow = tracking_uri is not None and (reference.startswith(("runs:/", "models:/")) or bool(_RUN_ID.match(reference)))
+        from_mlflow = tracking_uri is not None and (
+            reference.startswith(("runs:/", "models:/")) or bool(_RUN_ID.match(reference))
+        )
         if tokenizer_checkpoint:
             tokenizer = load_tokenizer_checkpoint(tokenizer_checkpoint)
             identity, used = tensors_fingerprint(tokenizer.state_dict()), str(tokenizer_checkpoint)
@@ -170,37 +212,63 @@ class TextToMotion:
             identity, used = source.identity, source.checkpoint
         elif outside_outputs(recorded):
             raise CheckpointError(
-                f"{checkpoint}: its stage-1 model is recorded as {recorded}, outside outputs/; a file a checkpoint names is read only "
-                f"from outputs/ or when you name it: pass --stage1 {recorded} (from Python: tokenizer_checkpoint=PATH) if you trust it"
+                f"{checkpoint}: its stage-1 model is recorded as {recorded}, outside outputs/; a file a "
+                "checkpoint names is read only "
+                f"from outputs/ or when you name it: pass --stage1 {recorded} (from Python: "
+                "tokenizer_checkpoint=PATH) if you trust it"
             )
         else:
             raise FileNotFoundError(
-                f"{checkpoint}: its stage-1 model {recorded or stage1.get('reference')} is not on this machine"
+                f"{checkpoint}: its stage-1 model {recorded or stage1.get('reference')} is not on this "
+                "machine"
                 + ("" if tracking_uri is None else f" nor an MLflow run in {tracking_uri}")
-                + "; pass its checkpoint with --stage1 PATH|RUN_ID|models:/NAME@ALIAS (from Python: tokenizer_checkpoint=PATH)"
+                + (
+                    "; pass its checkpoint with --stage1 PATH|RUN_ID|models:/NAME@ALIAS (from Python: "
+                    "tokenizer_checkpoint=PATH)"
+                )
             )
         if identity != trained_on:
             raise CheckpointError(
-                f"{checkpoint}: its stage-1 model {used} has weights {identity}, but the transformer was trained "
-                f"on {trained_on}; the tokens would not mean the same codes. Pass the stage-1 checkpoint it was trained with (--stage1)"
+                f"{checkpoint}: its stage-1 model {used} has weights {identity}, but the transformer was "
+                "trained "
+                f"on {trained_on}; the tokens would not mean the same codes. Pass the stage-1 checkpoint it "
+                "was trained with (--stage1)"
             )
         codebook, condition_codebook = stage2_codebooks(tokenizer)
         try:
-            module = MaskedTransformerModule(codebook, hp["model"], hp["optim"], hp["corruption"], hp["sentence_dim"], hp["word_dim"],
-                                             condition_codebook=condition_codebook)
+            module = MaskedTransformerModule(
+                codebook,
+                hp["model"],
+                hp["optim"],
+                hp["corruption"],
+                hp["sentence_dim"],
+                hp["word_dim"],
+                condition_codebook=condition_codebook,
+            )
         except (TypeError, ValueError, KeyError) as e:
-            raise CheckpointError(f"{checkpoint}: its hyper-parameters do not describe a masked transformer ({e}); use the checkpoint as training wrote it") from None
+            raise CheckpointError(
+                f"{checkpoint}: its hyper-parameters do not describe a masked transformer ({e}); use the "
+                "checkpoint as training wrote it"
+            ) from None
         load_state(module, ckpt["state_dict"], checkpoint, "stage2")
         text = dict(hp.get("text_encoder") or {})
         name, options = text_encoder_options(text, text_files, checkpoint)
         encoder = build_text_encoder(name, **options)
         if encoder.identity != text.get("identity"):
             raise ValueError(
-                f"{checkpoint}: text encoder {encoder.identity} differs from the one it was trained with ({text.get('identity')}); "
+                f"{checkpoint}: text encoder {encoder.identity} differs from the one it was trained with "
+                f"({text.get('identity')}); "
                 "give the files it was trained with (--clip-weights/--clip-vocab)"
             )
-        info = {"reference": str(checkpoint), "run_id": None, "checkpoint": str(checkpoint), "stage1": stage1, "stage1_checkpoint": used,
-                "text_encoder": text["identity"], "transformer": ckpt.get(FINGERPRINT_KEY) or expected_identity.get("transformer")}
+        info = {
+            "reference": str(checkpoint),
+            "run_id": None,
+            "checkpoint": str(checkpoint),
+            "stage1": stage1,
+            "stage1_checkpoint": used,
+            "text_encoder": text["identity"],
+            "transformer": ckpt.get(FINGERPRINT_KEY) or expected_identity.get("transformer"),
+        }
         return cls(tokenizer, module.transformer, encoder, info, None, device, length_source=length_source)
 
     # -- pieces ---------------------------------------------------------------------------------
@@ -211,17 +279,25 @@ class TextToMotion:
 
     def _whole_body_only(self, what: str) -> None:
         if self.part_aware:
-            raise ValueError(f"{what} needs a whole-body model; this part-aware one edits the upper body of a source motion (mmm edit upper-body)")
+            raise ValueError(
+                f"{what} needs a whole-body model; this part-aware one edits the upper body of a source "
+                "motion (mmm edit upper-body)"
+            )
 
     def check_frames(self, frames: int, what: str = "length") -> None:
         if not self.min_frames <= frames <= self.max_frames:
-            raise ValueError(f"{what} {frames} frames is outside {self.min_frames}..{self.max_frames} ({self.min_frames / self.fps:.1f}-{self.max_frames / self.fps:.1f} s at {self.fps:g} fps)")
+            raise ValueError(
+                f"{what} {frames} frames is outside {self.min_frames}..{self.max_frames} "
+                f"({self.min_frames / self.fps:.1f}-{self.max_frames / self.fps:.1f} s at {self.fps:g} fps)"
+            )
 
     def encode_text(self, texts: list[str | None]):
         """TextEmbedding of the texts (None or "" -> a placeholder; decode those with no_text)."""
         for i, t in enumerate(texts):
             if t is not None and not t.strip():
-                raise ValueError(f"text {i} is empty; give a description, or leave it out for an edit without text")
+                raise ValueError(
+                    f"text {i} is empty; give a description, or leave it out for an edit without text"
+                )
         return self.text_encoder.encode([t if t else "motion" for t in texts]).to(self.device)
 
     def _load_length_estimator(self):
@@ -230,11 +306,17 @@ class TextToMotion:
         try:
             _, checkpoint, _ = resolve_model(reference, tracking_uri, LENGTH, "--length-model")
         except ModelNotFound as e:
-            raise ValueError(f"no length given and no length estimator: pass --length FRAMES, or train one with `make train-length` ({e})") from None
+            raise ValueError(
+                "no length given and no length estimator: pass --length FRAMES, or train one with `make "
+                f"train-length` ({e})"
+            ) from None
         estimator = load_length_estimator(checkpoint)
         trained_with = (estimator.text_encoder or {}).get("identity")
         if trained_with != self.text_encoder.identity:
-            raise ValueError(f"{checkpoint}: the length estimator was trained on text encoder {trained_with}, this model uses {self.text_encoder.identity}; pass --length FRAMES or --length-model")
+            raise ValueError(
+                f"{checkpoint}: the length estimator was trained on text encoder {trained_with}, this model "
+                f"uses {self.text_encoder.identity}; pass --length FRAMES or --length-model"
+            )
         self.length_estimator = estimator.to(self.device).eval()
 
     def estimate_frames(self, texts: list[str]) -> list[int]:
@@ -242,13 +324,20 @@ class TextToMotion:
         if self.length_estimator is None and self._length_source is not None:
             self._load_length_estimator()
         if self.length_estimator is None:
-            raise ValueError("no length given and no length estimator loaded: pass --length FRAMES (or train one with `make train-length`)")
+            raise ValueError(
+                "no length given and no length estimator loaded: pass --length FRAMES (or train one with "
+                "`make train-length`)"
+            )
         emb = self.encode_text(texts)
-        codes = self.length_estimator.predict(emb.sentence, mode="median", min_codes=self.min_frames // self.unit)
+        codes = self.length_estimator.predict(
+            emb.sentence, mode="median", min_codes=self.min_frames // self.unit
+        )
         return [int(min(c * self.unit, self.max_frames)) for c in codes.tolist()]
 
     def normalize(self, features: np.ndarray) -> torch.Tensor:
-        return (torch.as_tensor(features, dtype=torch.float32, device=self.device) - self.tokenizer.mean) / self.tokenizer.std
+        return (
+            torch.as_tensor(features, dtype=torch.float32, device=self.device) - self.tokenizer.mean
+        ) / self.tokenizer.std
 
     @torch.no_grad()
     def encode_motion(self, features: np.ndarray) -> np.ndarray:
@@ -265,7 +354,9 @@ class TextToMotion:
             groups[len(c)].append(i)
         out: list[np.ndarray | None] = [None] * len(codes)
         for length, members in groups.items():
-            batch = torch.as_tensor(np.stack([codes[i] for i in members]), dtype=torch.long, device=self.device)
+            batch = torch.as_tensor(
+                np.stack([codes[i] for i in members]), dtype=torch.long, device=self.device
+            )
             x = self.tokenizer.tokenizer.decode(batch) * self.tokenizer.std + self.tokenizer.mean
             for i, f in zip(members, x.cpu().numpy()):
                 out[i] = f
@@ -278,7 +369,9 @@ class TextToMotion:
         if self.device.type == "cuda":
             torch.cuda.synchronize()
 
-    def _finish(self, texts, result: SampleResult, frames: list[int], seconds: dict, started: float) -> Generated:
+    def _finish(
+        self, texts, result: SampleResult, frames: list[int], seconds: dict, started: float
+    ) -> Generated:
         codes = [result.tokens[i, : int(result.lengths[i])].cpu().numpy() for i in range(len(frames))]
         t0 = time.perf_counter()
         features = [f[:n] for f, n in zip(self.decode(codes), frames)]
@@ -286,7 +379,9 @@ class TextToMotion:
         seconds["decode"] = time.perf_counter() - t0
         joints = [self.to_joints(f) for f in features]
         seconds["total"] = time.perf_counter() - started
-        return Generated(list(texts), features, joints, codes, result.iterations.tolist(), result.forward_passes, seconds)
+        return Generated(
+            list(texts), features, joints, codes, result.iterations.tolist(), result.forward_passes, seconds
+        )
 
     # -- generation and editing -----------------------------------------------------------------
     @torch.no_grad()
@@ -333,7 +428,9 @@ class TextToMotion:
         mask = np.zeros(code_count, dtype=bool)
         for a, b in keep_frames:
             if not 0 <= a < b:
-                raise ValueError(f"keep range {a}:{b} is empty or negative; write START:END with START < END (frames)")
+                raise ValueError(
+                    f"keep range {a}:{b} is empty or negative; write START:END with START < END (frames)"
+                )
             mask[a // self.unit : math.ceil(b / self.unit)] = True
         return mask
 
@@ -373,14 +470,19 @@ class TextToMotion:
                 raise ValueError(f"keep range {a}:{b} goes past the source's {source.shape[0]} frames")
         source_keep = self.keep_mask(len(source_codes), keep_frames)
         if source_keep.nonzero()[0].max(initial=-1) + offset >= L:
-            raise ValueError(f"the kept source frames do not fit in {frames} output frames with the source placed at frame {place}")
+            raise ValueError(
+                f"the kept source frames do not fit in {frames} output frames with the source placed at "
+                f"frame {place}"
+            )
         keep_tokens = torch.zeros(num_samples, L, dtype=torch.long)
         keep_mask = torch.zeros(num_samples, L, dtype=torch.bool)
         span = min(len(source_codes), L - offset)
         keep_tokens[:, offset : offset + span] = torch.from_numpy(source_codes[:span].astype(np.int64))
         keep_mask[:, offset : offset + span] = torch.from_numpy(source_keep[:span])
         if bool(keep_mask.all()):
-            raise ValueError("every code is kept: nothing to generate; keep less of the source or make the output longer")
+            raise ValueError(
+                "every code is kept: nothing to generate; keep less of the source or make the output longer"
+            )
         texts = [text] * num_samples
         emb = self.encode_text(texts)
         generator = torch.Generator(device=self.device).manual_seed(seed) if seed is not None else None
@@ -388,19 +490,33 @@ class TextToMotion:
         t0 = time.perf_counter()
         no_text = torch.full((num_samples,), text is None, dtype=torch.bool)
         lengths = torch.full((num_samples,), L, dtype=torch.long, device=self.device)
-        result = sample_tokens(self.transformer, emb, lengths, sampling, keep_tokens=keep_tokens.to(self.device),
-                               keep_mask=keep_mask.to(self.device), no_text=no_text.to(self.device), generator=generator)
+        result = sample_tokens(
+            self.transformer,
+            emb,
+            lengths,
+            sampling,
+            keep_tokens=keep_tokens.to(self.device),
+            keep_mask=keep_mask.to(self.device),
+            no_text=no_text.to(self.device),
+            generator=generator,
+        )
         self._sync()
         seconds["sample"] = time.perf_counter() - t0
         out = self._finish(texts, result, [frames] * num_samples, seconds, started)
         out.kept_codes = keep_mask[0].numpy()
         return out
 
-    def edit_upper_body(self, source: np.ndarray, text: str, lower_mask: float | None = None, lower_keep: list[tuple[int, int]] | None = None,
-                        sampling: SamplingConfig | None = None, seed: int | None = None, num_samples: int = 1) -> Generated:
+    def edit_upper_body(
+        self,
+        source: np.ndarray,
+        text: str,
+        lower_mask: float | None = None,
+        lower_keep: list[tuple[int, int]] | None = None,
+        sampling: SamplingConfig | None = None,
+        seed: int | None = None,
+        num_samples: int = 1,
+    ) -> Generated:
         """A new upper body from `text` on the source's lower body (part-aware models; see upper_body.py)."""
-        from mmm.generation.upper_body import edit_upper_body
-
         return edit_upper_body(self, source, text, lower_mask, lower_keep, sampling, seed, num_samples)
 
     @torch.no_grad()
@@ -437,12 +553,30 @@ class TextToMotion:
                 keep_mask[i, : len(seq)] = True
                 keep_mask[i, len(a) : len(a) + transition_codes] = False
                 lengths[i] = len(seq)
-            # Transitions are one pass without text: this package's rule, whichever decoding made the segments.
-            one_pass = SamplingConfig(**{**sampling.__dict__, "max_iterations": 1, "dynamic_iterations": False, "decoding": "package"})
-            generator = torch.Generator(device=self.device).manual_seed(seed + 1) if seed is not None else None
+            # Transitions are one pass without text: this package's rule, whichever decoding made the
+            # segments.
+            one_pass = SamplingConfig(
+                **{
+                    **sampling.__dict__,
+                    "max_iterations": 1,
+                    "dynamic_iterations": False,
+                    "decoding": "package",
+                }
+            )
+            generator = (
+                torch.Generator(device=self.device).manual_seed(seed + 1) if seed is not None else None
+            )
             emb = self.encode_text([None] * n)
-            result = sample_tokens(self.transformer, emb, lengths.to(self.device), one_pass, keep_tokens=keep_tokens.to(self.device),
-                                   keep_mask=keep_mask.to(self.device), no_text=torch.ones(n, dtype=torch.bool, device=self.device), generator=generator)
+            result = sample_tokens(
+                self.transformer,
+                emb,
+                lengths.to(self.device),
+                one_pass,
+                keep_tokens=keep_tokens.to(self.device),
+                keep_mask=keep_mask.to(self.device),
+                no_text=torch.ones(n, dtype=torch.bool, device=self.device),
+                generator=generator,
+            )
             for i, a in enumerate(left):
                 transitions.append(result.tokens[i, len(a) : len(a) + transition_codes].cpu().numpy())
         self._sync()
@@ -463,4 +597,6 @@ class TextToMotion:
         joints = self.to_joints(features)
         seconds["total"] = time.perf_counter() - started
         passes = segments.forward_passes + (1 if transitions else 0)
-        return Generated([" / ".join(texts)], [features], [joints], [sequence], [passes], passes, seconds, segments=bounds)
+        return Generated(
+            [" / ".join(texts)], [features], [joints], [sequence], [passes], passes, seconds, segments=bounds
+        )

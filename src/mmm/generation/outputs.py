@@ -26,22 +26,27 @@ from pathlib import Path
 import numpy as np
 
 from mmm.atomic import fsync_directory
+from mmm.export.bvh import write_bvh
+from mmm.render import render_gif, render_mp4
 
 log = logging.getLogger(__name__)
 
 
-def _write_sample(folder: Path, features: np.ndarray, joints: np.ndarray, caption: str, meta: dict, skeleton) -> None:
-    from mmm.export.bvh import write_bvh
-    from mmm.render import render_gif, render_mp4
-
+def _write_sample(
+    folder: Path, features: np.ndarray, joints: np.ndarray, caption: str, meta: dict, skeleton
+) -> None:
     folder.mkdir(parents=True)
     np.save(folder / "features.npy", features.astype(np.float32))
     np.save(folder / "joints.npy", joints.astype(np.float32))
     render_gif([joints], folder / "motion.gif", captions=[caption], fps=skeleton.fps)
     mp4 = render_mp4([joints], folder / "motion.mp4", captions=[caption], fps=skeleton.fps)
     info = write_bvh(joints, folder / "motion.bvh", skeleton=skeleton, fps=skeleton.fps)
-    meta = {**meta, "files": sorted(p.name for p in folder.iterdir()) + ["meta.json"], "mp4": mp4 is not None,
-            "bvh_max_deviation_m": round(float(info.max_deviation_m), 6)}
+    meta = {
+        **meta,
+        "files": sorted(p.name for p in folder.iterdir()) + ["meta.json"],
+        "mp4": mp4 is not None,
+        "bvh_max_deviation_m": round(float(info.max_deviation_m), 6),
+    }
     (folder / "meta.json").write_text(json.dumps(meta, indent=2, default=_jsonable))
 
 
@@ -97,7 +102,8 @@ def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite:
     foreign = [e.name for e in entries if not _replaceable(e)]
     if earlier and foreign:
         raise FileExistsError(
-            f"{out} holds {', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''} besides samples; --overwrite replaces the whole "
+            f"{out} holds {', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''} besides samples; "
+            "--overwrite replaces the whole "
             "folder, so it only replaces a folder of samples: move those away or choose another --out"
         )
     target = Path(os.path.abspath(out))  # a name and a parent to rename in, also for `--out .`
@@ -105,7 +111,14 @@ def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite:
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.new-", dir=target.parent))
     try:
         for k, sample in enumerate(samples):
-            _write_sample(staging / str(k), sample["features"], sample["joints"], sample["caption"], sample["meta"], skeleton)
+            _write_sample(
+                staging / str(k),
+                sample["features"],
+                sample["joints"],
+                sample["caption"],
+                sample["meta"],
+                skeleton,
+            )
         if not target.exists():
             os.rename(staging, target)
         elif not foreign:  # only this package's files (or none): replaced whole

@@ -16,9 +16,27 @@ from __future__ import annotations
 
 import re
 
-_SEQUENCERS = r"(?:and then|then|after that|afterwards|afterward|next|finally|followed by|before that|later|and finally|after which)"
+_SEQUENCERS = (
+    r"(?:and then|then|after that|afterwards|afterward|next|finally|followed by|before that|later"
+    r"|and finally|after which)"
+)
 _SPLIT = re.compile(rf"[.!?;]+|,?\s+\b{_SEQUENCERS}\b,?\s*|,\s*(?=\b{_SEQUENCERS}\b)", re.IGNORECASE)
-_SUBJECTS = ("a person", "the person", "someone", "a man", "the man", "a woman", "the woman", "a human", "the human", "somebody", "he", "she", "they", "it")
+_SUBJECTS = (
+    "a person",
+    "the person",
+    "someone",
+    "a man",
+    "the man",
+    "a woman",
+    "the woman",
+    "a human",
+    "the human",
+    "somebody",
+    "he",
+    "she",
+    "they",
+    "it",
+)
 _PRONOUNS = {"he", "she", "they", "it"}
 _PLURAL_VERB = {"are": "is", "do": "does", "have": "has", "go": "goes"}
 
@@ -50,7 +68,7 @@ def split_paragraph(paragraph: str, default_subject: str = "a person") -> list[s
             if not prompts:
                 subject = found
         elif found in _PRONOUNS:
-            rest = text[len(found):].strip()
+            rest = text[len(found) :].strip()
             if rest:
                 verb, _, tail = rest.partition(" ")
                 text = f"{subject} {_third_person(verb)} {tail}".strip()
@@ -63,5 +81,7 @@ def split_paragraph(paragraph: str, default_subject: str = "a person") -> list[s
             text = f"{subject} {' '.join(words)}"
         prompts.append(text)
     if not prompts:
-        raise ValueError(f"no action found in the paragraph {paragraph!r}; write e.g. 'a person walks forward, then jumps'")
+        raise ValueError(
+            f"no action found in the paragraph {paragraph!r}; write e.g. 'a person walks forward, then jumps'"
+        )
     return prompts

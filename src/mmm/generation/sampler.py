@@ -58,7 +58,12 @@ class SamplingValueError(ValueError):
 
 def _check_number(field: str, value, low: float, high: float, allowed: str) -> None:
     """SamplingValueError unless value is a finite real number (not a bool) in [low, high]."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) or not low <= value <= high:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, numbers.Real)
+        or not math.isfinite(value)
+        or not low <= value <= high
+    ):
         raise SamplingValueError(field, value, allowed)
 
 
@@ -82,14 +87,40 @@ def check_count(count, field: str, limit: int = MAX_SAMPLES) -> int:
 
 @dataclass
 class SamplingConfig:
-    max_iterations: int = 10  # T_max
-    schedule: str = "cosine"  # a name of transformer/schedules.py DECODING_SCHEDULES
+    """Each field's metadata describes its command-line option (the CLI builds its sampling flags
+    from these fields): "flag" where the option is not --<field-name> (None: not on the command
+    line), "help" its help text, "choices" its allowed values."""
+
+    # T_max
+    max_iterations: int = field(
+        default=10, metadata={"flag": "--iterations", "help": "T_max (each sample runs ceil(T_max * L / 50))"}
+    )
+    # a name of transformer/schedules.py DECODING_SCHEDULES
+    schedule: str = field(default="cosine", metadata={"choices": tuple(DECODING_SCHEDULES)})
     temperature: float = 1.0  # 0: always the most likely code
-    top_k: float | None = None  # keep this fraction of the codebook's logits (1.0 = all)
+    # keep this fraction of the codebook's logits (1.0 = all)
+    top_k: float | None = field(default=None, metadata={"help": "fraction of the codebook kept, e.g. 0.9"})
     top_p: float | None = None  # nucleus: the smallest set of codes with this total probability
-    guidance_scale: float = 1.0  # 1: conditional only; > 1 needs a model trained with cond_drop
-    dynamic_iterations: bool = True  # False: every sample runs max_iterations
-    decoding: str = "package"  # package (this file's rule) | released (the authors' loop, see the module docstring)
+    # 1: conditional only; > 1 needs a model trained with cond_drop
+    guidance_scale: float = field(
+        default=1.0,
+        metadata={
+            "flag": "--guidance",
+            "help": "classifier-free guidance scale (1: none; default 1, 4 for upper-body edits)",
+        },
+    )
+    # False: every sample runs max_iterations
+    dynamic_iterations: bool = field(default=True, metadata={"flag": None})
+    # package (this file's rule) | released (the authors' loop, see the module docstring)
+    decoding: str = field(
+        default="package",
+        metadata={
+            "choices": DECODINGS,
+            "help": "released: the authors' decoding loop (to compare outputs and speed with imported "
+            "weights "
+            "like for like)",
+        },
+    )
 
     def __post_init__(self):
         self.validate()
@@ -101,22 +132,48 @@ class SamplingConfig:
         if self.decoding not in DECODINGS:
             raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {self.decoding!r}")
         check_schedule(self.schedule, DECODING_SCHEDULES, "schedule")
-        _check_integer("max_iterations", self.max_iterations, 1, MAX_ITERATIONS, f"an integer from 1 to {MAX_ITERATIONS}")
+        _check_integer(
+            "max_iterations", self.max_iterations, 1, MAX_ITERATIONS, f"an integer from 1 to {MAX_ITERATIONS}"
+        )
         if self.temperature != 0:
-            _check_number("temperature", self.temperature, MIN_TEMPERATURE, MAX_TEMPERATURE,
-                          f"0 (always the most likely code) or a number from {MIN_TEMPERATURE:g} to {MAX_TEMPERATURE:g}")
-        _check_number("guidance_scale", self.guidance_scale, 0.0, MAX_GUIDANCE, f"a number from 0 to {MAX_GUIDANCE:g} (1: no guidance)")
+            _check_number(
+                "temperature",
+                self.temperature,
+                MIN_TEMPERATURE,
+                MAX_TEMPERATURE,
+                f"0 (always the most likely code) or a number from {MIN_TEMPERATURE:g} to "
+                f"{MAX_TEMPERATURE:g}",
+            )
+        _check_number(
+            "guidance_scale",
+            self.guidance_scale,
+            0.0,
+            MAX_GUIDANCE,
+            f"a number from 0 to {MAX_GUIDANCE:g} (1: no guidance)",
+        )
         if self.top_k is not None and not (isinstance(self.top_k, numbers.Real) and 0.0 < self.top_k <= 1.0):
-            raise SamplingValueError("top_k", self.top_k, "a fraction of the codebook in (0, 1] (1: all codes)")
+            raise SamplingValueError(
+                "top_k", self.top_k, "a fraction of the codebook in (0, 1] (1: all codes)"
+            )
         if self.top_p is not None and not (isinstance(self.top_p, numbers.Real) and 0.0 < self.top_p <= 1.0):
             raise SamplingValueError("top_p", self.top_p, "a total probability in (0, 1] (1: all codes)")
         if self.decoding == "released":
-            unsupported = [f"{name}={value}" for name, value, default in (
-                ("schedule", self.schedule, "cosine"), ("top_k", self.top_k, None), ("top_p", self.top_p, None),
-                ("guidance_scale", self.guidance_scale, 1.0)) if value != default]
+            unsupported = [
+                f"{name}={value}"
+                for name, value, default in (
+                    ("schedule", self.schedule, "cosine"),
+                    ("top_k", self.top_k, None),
+                    ("top_p", self.top_p, None),
+                    ("guidance_scale", self.guidance_scale, 1.0),
+                )
+                if value != default
+            ]
             if unsupported:
-                raise ValueError(f"the released decoding has a cosine schedule and no top-k, top-p or guidance; drop {', '.join(unsupported)} "
-                                 "or use decoding=package")
+                raise ValueError(
+                    "the released decoding has a cosine schedule and no top-k, top-p or guidance; drop "
+                    f"{', '.join(unsupported)} "
+                    "or use decoding=package"
+                )
 
 
 @dataclass
@@ -138,7 +195,9 @@ class SampleResult:
     trace: DecodeTrace | None = None
 
 
-def iteration_counts(code_lengths: torch.Tensor, free: torch.Tensor, cfg: SamplingConfig, max_tokens: int) -> torch.Tensor:
+def iteration_counts(
+    code_lengths: torch.Tensor, free: torch.Tensor, cfg: SamplingConfig, max_tokens: int
+) -> torch.Tensor:
     """(B,) iterations: ceil(T_max * L / M), at least 1; 0 when nothing is free to decode."""
     if cfg.dynamic_iterations:
         counts = torch.ceil(cfg.max_iterations * code_lengths.float() / max_tokens).long().clamp(min=1)
@@ -186,9 +245,14 @@ def sample_tokens(
     """
     if cfg.decoding == "released":
         if no_text is not None and bool(no_text.any()) or condition is not None or trace:
-            raise ValueError("the released decoding takes text-conditioned whole-body samples only (no edits without text, "
-                             "part-aware conditions or traces): use decoding=package")
-        return sample_tokens_released(model, text, code_lengths, cfg, keep_tokens=keep_tokens, keep_mask=keep_mask, generator=generator)
+            raise ValueError(
+                "the released decoding takes text-conditioned whole-body samples only (no edits without "
+                "text, "
+                "part-aware conditions or traces): use decoding=package"
+            )
+        return sample_tokens_released(
+            model, text, code_lengths, cfg, keep_tokens=keep_tokens, keep_mask=keep_mask, generator=generator
+        )
     device = code_lengths.device
     B = len(code_lengths)
     K, M_model = model.num_codes, model.cfg.max_tokens
@@ -234,11 +298,17 @@ def sample_tokens(
         sub_condition = None if cond is None else cond[idx]
         if guided:
             both = model(
-                torch.cat((sub, sub)), torch.cat((sentence, sentence)), torch.cat((words, words)), torch.cat((word_mask, word_mask)),
-                torch.cat((drop, torch.ones_like(drop))), None if sub_condition is None else torch.cat((sub_condition, sub_condition)),
+                torch.cat((sub, sub)),
+                torch.cat((sentence, sentence)),
+                torch.cat((words, words)),
+                torch.cat((word_mask, word_mask)),
+                torch.cat((drop, torch.ones_like(drop))),
+                None if sub_condition is None else torch.cat((sub_condition, sub_condition)),
             )
             with_text, without_text = both.chunk(2)
-            logits = torch.where(drop[:, None, None], with_text, without_text + cfg.guidance_scale * (with_text - without_text))
+            logits = torch.where(
+                drop[:, None, None], with_text, without_text + cfg.guidance_scale * (with_text - without_text)
+            )
         else:
             logits = model(sub, sentence, words, word_mask, drop, sub_condition)
         logits = filter_logits(logits.float(), cfg.top_k, cfg.top_p)
@@ -254,7 +324,11 @@ def sample_tokens(
         confidence = torch.where(masked, confidence, torch.full_like(confidence, float("inf")))
         # Positions still masked after this iteration: ceil(gamma(t / T_b) * F_b).
         t = (step + 1) / iterations[idx].float()
-        remain = torch.ceil(torch.tensor([gamma(float(x)) for x in t], device=device) * free[idx].float() - 1e-6).long().clamp(min=0)
+        remain = (
+            torch.ceil(torch.tensor([gamma(float(x)) for x in t], device=device) * free[idx].float() - 1e-6)
+            .long()
+            .clamp(min=0)
+        )
         rank = confidence.argsort(dim=1).argsort(dim=1)
         remask = rank < remain[:, None]
         decoded = torch.where(remask, torch.full_like(decoded, mask_id), decoded)
@@ -308,7 +382,9 @@ def sample_tokens_released(
         t = torch.clip(step / steps, max=1)
         if B == 1 and step > 0 and torch.clip(step - 1 / steps, max=1).item() == t.item():
             break  # the release's early exit for a batch of one (its precedence slip included)
-        count = (torch.cos(t * math.pi * 0.5) * (free if keep_mask is not None else lengths)).long().clip(min=1)
+        count = (
+            (torch.cos(t * math.pi * 0.5) * (free if keep_mask is not None else lengths)).long().clip(min=1)
+        )
         scores[kept] = 0
         scores[~real] = 0
         scores = scores / scores.sum(-1)[:, None]
@@ -320,7 +396,9 @@ def sample_tokens_released(
         ids.scatter_(-1, order * chosen + last * ~chosen, mask_id)
         logits = model(ids, text.sentence, text.words, text.word_mask)
         uniform = torch.zeros_like(logits).uniform_(0, 1, generator=generator)
-        noise = -torch.log((-torch.log(uniform.clamp(min=1e-20))).clamp(min=1e-20))  # Gumbel, clamped as the release does
+        noise = -torch.log(
+            (-torch.log(uniform.clamp(min=1e-20))).clamp(min=1e-20)
+        )  # Gumbel, clamped as the release does
         drawn = (logits / max(cfg.temperature, 1e-10) + noise).argmax(-1)
         masked = ids == mask_id
         ids = torch.where(masked, drawn, ids)

@@ -11,27 +11,34 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
 
 def plot_trace(trace, out_png: str | Path, sample: int = 0, title: str | None = None) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
-
     steps = [i for i, active in enumerate(trace.active) if bool(active[sample])]
     if not steps:
         raise ValueError(f"sample {sample} took no decoding iteration (nothing to decode)")
     confidence = np.stack([trace.confidence[i][sample].numpy() for i in steps])  # (iterations, M)
     masked = np.stack([trace.masked[i][sample].numpy() for i in steps])
-    length = int(np.isfinite(confidence).any(0).nonzero()[0].max()) + 1 if np.isfinite(confidence).any() else confidence.shape[1]
+    length = (
+        int(np.isfinite(confidence).any(0).nonzero()[0].max()) + 1
+        if np.isfinite(confidence).any()
+        else confidence.shape[1]
+    )
     confidence, masked = confidence[:, :length], masked[:, :length]
-    fig, (ax, side) = plt.subplots(1, 2, figsize=(min(16, 2 + 0.28 * length), 1.2 + 0.45 * len(steps)), gridspec_kw={"width_ratios": [6, 1]}, dpi=110)
-    image = ax.imshow(np.ma.masked_invalid(confidence), aspect="auto", cmap="viridis", vmin=0.0, vmax=1.0, origin="upper")
+    fig = Figure(figsize=(min(16, 2 + 0.28 * length), 1.2 + 0.45 * len(steps)), dpi=110)
+    ax, side = fig.subplots(1, 2, gridspec_kw={"width_ratios": [6, 1]})
+    image = ax.imshow(
+        np.ma.masked_invalid(confidence), aspect="auto", cmap="viridis", vmin=0.0, vmax=1.0, origin="upper"
+    )
     for it, row in enumerate(masked):
         for pos in np.flatnonzero(row):
-            ax.add_patch(Rectangle((pos - 0.5, it - 0.5), 1, 1, fill=False, hatch="///", edgecolor="white", linewidth=0))
+            ax.add_patch(
+                Rectangle(
+                    (pos - 0.5, it - 0.5), 1, 1, fill=False, hatch="///", edgecolor="white", linewidth=0
+                )
+            )
     ax.set_xlabel("token position")
     ax.set_ylabel("iteration")
     ax.set_yticks(range(len(steps)), [str(i + 1) for i in range(len(steps))])
@@ -45,5 +52,4 @@ def plot_trace(trace, out_png: str | Path, sample: int = 0, title: str | None = 
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png)
-    plt.close(fig)
     return out_png

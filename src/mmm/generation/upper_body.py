@@ -28,7 +28,14 @@ UPPER_BODY_GUIDANCE = 4.0  # default classifier-free guidance scale of upper-bod
 DEFAULT_LOWER_MASK = 0.5  # default share of the source's lower-body codes hidden
 
 
-def lower_condition(lower: np.ndarray, mask_id: int, lower_mask: float | None, keep: np.ndarray | None, generator: torch.Generator, samples: int) -> torch.Tensor:
+def lower_condition(
+    lower: np.ndarray,
+    mask_id: int,
+    lower_mask: float | None,
+    keep: np.ndarray | None,
+    generator: torch.Generator,
+    samples: int,
+) -> torch.Tensor:
     """(samples, L) condition codes: `lower` (L,) with MASK where hidden. keep (L,) bool: codes
     shown (the rest hidden); else round(lower_mask * L) codes hidden, drawn per sample."""
     L = len(lower)
@@ -64,10 +71,16 @@ def edit_upper_body(
     multiple of 4) with `kept_codes` (samples, L): the lower-body codes each sample was shown.
     """
     if not model.part_aware:
-        raise ValueError("upper-body editing needs a part-aware model (stage 1 with model.tokenizer.part_aware=true, stage 2 trained on it); "
-                         "this one tokenizes the whole body at once")
+        raise ValueError(
+            "upper-body editing needs a part-aware model (stage 1 with model.tokenizer.part_aware=true, "
+            "stage 2 trained on it); "
+            "this one tokenizes the whole body at once"
+        )
     if lower_mask is not None and lower_keep is not None:
-        raise ValueError("give either lower_mask (a share of lower-body codes to hide) or lower_keep (frame ranges to show), not both")
+        raise ValueError(
+            "give either lower_mask (a share of lower-body codes to hide) or lower_keep (frame ranges to "
+            "show), not both"
+        )
     if lower_mask is not None and not 0.0 <= lower_mask <= 1.0:
         raise ValueError(f"lower_mask is a share in [0, 1], got {lower_mask}")
     if source.ndim != 2 or source.shape[1] != model.feature_dim:
@@ -86,20 +99,33 @@ def edit_upper_body(
             if b > frames:
                 raise ValueError(f"lower-keep range {a}:{b} goes past the source's {frames} usable frames")
         keep = model.keep_mask(L, lower_keep)
-    generator = torch.Generator().manual_seed(seed if seed is not None else int(np.random.default_rng().integers(2**62)))
-    condition = lower_condition(codes[:, 0], model.transformer.condition.mask_id, lower_mask, keep, generator, num_samples)
+    generator = torch.Generator().manual_seed(
+        seed if seed is not None else int(np.random.default_rng().integers(2**62))
+    )
+    condition = lower_condition(
+        codes[:, 0], model.transformer.condition.mask_id, lower_mask, keep, generator, num_samples
+    )
     texts = [text] * num_samples
     emb = model.encode_text(texts)
     seconds = {"text": time.perf_counter() - started}
     t0 = time.perf_counter()
     lengths = torch.full((num_samples,), L, dtype=torch.long, device=model.device)
     device_generator = torch.Generator(device=model.device).manual_seed(seed) if seed is not None else None
-    result = sample_tokens(model.transformer, emb, lengths, sampling, condition=condition.to(model.device), generator=device_generator)
+    result = sample_tokens(
+        model.transformer,
+        emb,
+        lengths,
+        sampling,
+        condition=condition.to(model.device),
+        generator=device_generator,
+    )
     model._sync()
     seconds["sample"] = time.perf_counter() - t0
     # Decode the source's lower-body codes with the generated upper-body codes.
     upper = result.tokens[:, :L].clone()
-    result.tokens = torch.stack((torch.as_tensor(codes[:, 0].astype(np.int64), device=upper.device).expand_as(upper), upper), dim=-1)
+    result.tokens = torch.stack(
+        (torch.as_tensor(codes[:, 0].astype(np.int64), device=upper.device).expand_as(upper), upper), dim=-1
+    )
     out = model._finish(texts, result, [frames] * num_samples, seconds, started)
     out.kept_codes = (condition != model.transformer.condition.mask_id).numpy()  # (samples, L)
     return out

@@ -68,8 +68,15 @@ class FeatureLayout:
 
     def groups(self) -> list[slice]:
         """The 7 groups inside which the reference replaces Std by the group mean."""
-        return [self.root_yaw, self.root_velocity, self.root_height, self.positions, self.rotations,
-                self.velocities, self.contacts]
+        return [
+            self.root_yaw,
+            self.root_velocity,
+            self.root_height,
+            self.positions,
+            self.rotations,
+            self.velocities,
+            self.contacts,
+        ]
 
 
 def _array_api(fn):
@@ -94,7 +101,9 @@ def _retarget(positions: torch.Tensor, skeleton: Skeleton) -> torch.Tensor:
     tgt_lengths = torch.tensor(skeleton.bone_lengths, dtype=positions.dtype)
     scale = (tgt_lengths[knee] + tgt_lengths[ankle]) / (src_lengths[knee] + src_lengths[ankle])
     quats = inverse_kinematics(positions, skeleton, smooth_forward=False)
-    return forward_kinematics(quats, positions[:, 0] * scale, skeleton, skeleton.offsets(dtype=positions.dtype))
+    return forward_kinematics(
+        quats, positions[:, 0] * scale, skeleton, skeleton.offsets(dtype=positions.dtype)
+    )
 
 
 @_array_api
@@ -121,7 +130,9 @@ def joints_to_features(
         raise ValueError(f"joints must have shape (T, J, 3), got {tuple(joints.shape)}")
     skeleton = skeleton or skeleton_for(joints.shape[1])
     if joints.shape[1] != skeleton.num_joints:
-        raise ValueError(f"skeleton {skeleton.name!r} has {skeleton.num_joints} joints, motion has {joints.shape[1]}")
+        raise ValueError(
+            f"skeleton {skeleton.name!r} has {skeleton.num_joints} joints, motion has {joints.shape[1]}"
+        )
     if joints.shape[0] < 2:
         raise ValueError(f"a motion needs at least 2 frames to have velocities, got {joints.shape[0]}")
     positions = joints.clone()
@@ -196,11 +207,16 @@ def recover_from_ric(features, num_joints: int | None = None):
     num_joints = num_joints or skeleton_for(features.shape[-1]).num_joints
     layout = FeatureLayout(num_joints)
     if features.shape[-1] != layout.dim:
-        raise ValueError(f"features of width {features.shape[-1]} do not fit {num_joints} joints (expected {layout.dim})")
+        raise ValueError(
+            f"features of width {features.shape[-1]} do not fit {num_joints} joints (expected {layout.dim})"
+        )
     rot_quat, root = recover_root_rot_pos(features)
     local = features[..., layout.positions].reshape(features.shape[:-1] + (num_joints - 1, 3))
     local = qrot(qinv(rot_quat)[..., None, :], local)
-    local = local + torch.stack((root[..., 0], torch.zeros_like(root[..., 0]), root[..., 2]), dim=-1)[..., None, :]
+    local = (
+        local
+        + torch.stack((root[..., 0], torch.zeros_like(root[..., 0]), root[..., 2]), dim=-1)[..., None, :]
+    )
     return torch.cat((root[..., None, :], local), dim=-2)
 
 
@@ -219,6 +235,11 @@ def reference_std(data: np.ndarray, num_joints: int) -> tuple[np.ndarray, np.nda
 
 
 __all__ = [
-    "FeatureLayout", "joints_to_features", "recover_from_ric", "recover_root_rot_pos",
-    "features_to_joints", "reference_std", "T2M_SKELETON",
+    "FeatureLayout",
+    "joints_to_features",
+    "recover_from_ric",
+    "recover_root_rot_pos",
+    "features_to_joints",
+    "reference_std",
+    "T2M_SKELETON",
 ]

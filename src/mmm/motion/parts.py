@@ -19,7 +19,15 @@ from mmm.motion.features import FeatureLayout
 from mmm.motion.skeleton import T2M_SKELETON
 
 LOWER_JOINT_NAMES = (
-    "pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_foot", "right_foot",
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "left_knee",
+    "right_knee",
+    "left_ankle",
+    "right_ankle",
+    "left_foot",
+    "right_foot",
 )
 LOWER_JOINTS = tuple(sorted(T2M_SKELETON.joint_names.index(name) for name in LOWER_JOINT_NAMES))
 UPPER_JOINTS = tuple(j for j in range(T2M_SKELETON.num_joints) if j not in LOWER_JOINTS)
@@ -46,11 +54,15 @@ def part_indices(num_joints: int = 22) -> tuple[np.ndarray, np.ndarray]:
     """
     if num_joints != T2M_SKELETON.num_joints:
         raise ValueError(
-            f"the lower/upper body split is defined for the 22-joint HumanML3D skeleton only, got num_joints={num_joints}"
+            "the lower/upper body split is defined for the 22-joint HumanML3D skeleton only, got "
+            f"num_joints={num_joints}"
             + (" (KIT-ML): train a plain tokenizer for KIT-ML" if num_joints == 21 else "")
         )
     layout = FeatureLayout(num_joints)
-    lower = [*range(layout.root_yaw.start, layout.root_height.stop), *range(layout.contacts.start, layout.contacts.stop)]
+    lower = [
+        *range(layout.root_yaw.start, layout.root_height.stop),
+        *range(layout.contacts.start, layout.contacts.stop),
+    ]
     for joint in LOWER_JOINTS:
         lower += _joint_dims(layout, joint)
     upper = [d for joint in UPPER_JOINTS for d in _joint_dims(layout, joint)]
@@ -71,7 +83,9 @@ def _merge_order() -> np.ndarray:
 
 def _check_width(name: str, x, expected: int, hint: str = "") -> None:
     if x.shape[-1] != expected:
-        raise ValueError(f"{name} must have {expected} values in the last dim, got shape {tuple(x.shape)}{hint}")
+        raise ValueError(
+            f"{name} must have {expected} values in the last dim, got shape {tuple(x.shape)}{hint}"
+        )
 
 
 def _take(x, idx: np.ndarray):
@@ -84,7 +98,11 @@ def _take(x, idx: np.ndarray):
 def split_parts(x):
     """(lower (..., 107), upper (..., 156)) of features x (..., 263), numpy or torch."""
     kit = FeatureLayout(21).dim
-    hint = f" ({kit} is KIT-ML's 21-joint layout: the split supports only the 22-joint HumanML3D skeleton)" if x.shape[-1] == kit else ""
+    hint = (
+        f" ({kit} is KIT-ML's 21-joint layout: the split supports only the 22-joint HumanML3D skeleton)"
+        if x.shape[-1] == kit
+        else ""
+    )
     _check_width("features", x, _DIM, hint)
     lower_idx, upper_idx = part_indices()
     return _take(x, lower_idx), _take(x, upper_idx)
@@ -99,7 +117,10 @@ def merge_parts(lower, upper):
     _check_width("lower", lower, len(lower_idx))
     _check_width("upper", upper, len(upper_idx))
     if lower.shape[:-1] != upper.shape[:-1]:
-        raise ValueError(f"lower and upper must have the same leading shape, got {tuple(lower.shape)} and {tuple(upper.shape)}")
+        raise ValueError(
+            f"lower and upper must have the same leading shape, got {tuple(lower.shape)} and "
+            f"{tuple(upper.shape)}"
+        )
     if isinstance(lower, torch.Tensor):
         return _take(torch.cat((lower, torch.as_tensor(upper, device=lower.device)), dim=-1), _merge_order())
     return _take(np.concatenate((lower, upper), axis=-1), _merge_order())

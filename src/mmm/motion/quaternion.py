@@ -56,14 +56,18 @@ def qbetween(v0: torch.Tensor, v1: torch.Tensor) -> torch.Tensor:
     turn about an axis perpendicular to v0, the vertical one for horizontal vectors.
     """
     v = torch.linalg.cross(v0, v1, dim=-1)
-    w = torch.sqrt((v0**2).sum(-1, keepdim=True) * (v1**2).sum(-1, keepdim=True)) + (v0 * v1).sum(-1, keepdim=True)
+    w = torch.sqrt((v0**2).sum(-1, keepdim=True) * (v1**2).sum(-1, keepdim=True)) + (v0 * v1).sum(
+        -1, keepdim=True
+    )
     q = torch.cat((w, v), dim=-1)
     scale = (v0.norm(dim=-1) * v1.norm(dim=-1)).clamp_min(torch.finfo(q.dtype).tiny)
     opposite = q.norm(dim=-1) <= 1e-7 * scale
     if opposite.any():
         axis = torch.linalg.cross(v0, v0.new_tensor([1.0, 0.0, 0.0]).expand_as(v0), dim=-1)
         along_x = axis.norm(dim=-1, keepdim=True) <= 1e-6 * v0.norm(dim=-1, keepdim=True)
-        axis = torch.where(along_x, torch.linalg.cross(v0, v0.new_tensor([0.0, 1.0, 0.0]).expand_as(v0), dim=-1), axis)
+        axis = torch.where(
+            along_x, torch.linalg.cross(v0, v0.new_tensor([0.0, 1.0, 0.0]).expand_as(v0), dim=-1), axis
+        )
         half_turn = torch.cat((torch.zeros_like(w), axis / axis.norm(dim=-1, keepdim=True)), dim=-1)
         q = torch.where(opposite.unsqueeze(-1), half_turn, q)
     return qnormalize(q)
@@ -88,9 +92,15 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     two = 2.0
     m = torch.stack(
         (
-            1 - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
-            two * (x * y + w * z), 1 - two * (x * x + z * z), two * (y * z - w * x),
-            two * (x * z - w * y), two * (y * z + w * x), 1 - two * (x * x + y * y),
+            1 - two * (y * y + z * z),
+            two * (x * y - w * z),
+            two * (x * z + w * y),
+            two * (x * y + w * z),
+            1 - two * (x * x + z * z),
+            two * (y * z - w * x),
+            two * (x * z - w * y),
+            two * (y * z + w * x),
+            1 - two * (x * x + y * y),
         ),
         dim=-1,
     )
@@ -138,7 +148,16 @@ def gaussian_smooth_time(x: torch.Tensor, sigma: float, truncate: float = 4.0) -
 
 
 __all__ = [
-    "qnormalize", "qinv", "qmul", "qrot", "qbetween", "quat_from_axis_angle", "quat_about_y",
-    "quat_to_matrix", "quat_to_cont6d", "cont6d_to_matrix", "yaw_of", "gaussian_smooth_time",
+    "qnormalize",
+    "qinv",
+    "qmul",
+    "qrot",
+    "qbetween",
+    "quat_from_axis_angle",
+    "quat_about_y",
+    "quat_to_matrix",
+    "quat_to_cont6d",
+    "cont6d_to_matrix",
+    "yaw_of",
+    "gaussian_smooth_time",
 ]
-

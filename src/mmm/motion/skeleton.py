@@ -94,7 +94,11 @@ def facing_direction(
     direction.
     """
     r_hip, l_hip, r_sh, l_sh = skeleton.face_joints
-    hips = joints[..., l_hip, :] - joints[..., r_hip, :] if swap_hips else joints[..., r_hip, :] - joints[..., l_hip, :]
+    hips = (
+        joints[..., l_hip, :] - joints[..., r_hip, :]
+        if swap_hips
+        else joints[..., r_hip, :] - joints[..., l_hip, :]
+    )
     across = hips + joints[..., r_sh, :] - joints[..., l_sh, :]
     across = across / across.norm(dim=-1, keepdim=True)
     up = across.new_tensor([0.0, 1.0, 0.0]).expand_as(across)
@@ -102,7 +106,9 @@ def facing_direction(
     return forward / forward.norm(dim=-1, keepdim=True) if normalize else forward
 
 
-def inverse_kinematics(joints: torch.Tensor, skeleton: Skeleton, *, smooth_forward: bool = False) -> torch.Tensor:
+def inverse_kinematics(
+    joints: torch.Tensor, skeleton: Skeleton, *, smooth_forward: bool = False
+) -> torch.Tensor:
     """Local joint rotations (T, J, 4) from positions (T, J, 3), as the reference pipeline computes them.
 
     The root rotation turns the (optionally Gaussian-smoothed, sigma 20 frames) facing direction to
@@ -167,22 +173,85 @@ def forward_kinematics(
 T2M_SKELETON = Skeleton(
     name="t2m",
     joint_names=(
-        "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
-        "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
-        "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-        "left_wrist", "right_wrist",
+        "pelvis",
+        "left_hip",
+        "right_hip",
+        "spine1",
+        "left_knee",
+        "right_knee",
+        "spine2",
+        "left_ankle",
+        "right_ankle",
+        "spine3",
+        "left_foot",
+        "right_foot",
+        "neck",
+        "left_collar",
+        "right_collar",
+        "head",
+        "left_shoulder",
+        "right_shoulder",
+        "left_elbow",
+        "right_elbow",
+        "left_wrist",
+        "right_wrist",
     ),
-    kinematic_chains=((0, 2, 5, 8, 11), (0, 1, 4, 7, 10), (0, 3, 6, 9, 12, 15), (9, 14, 17, 19, 21), (9, 13, 16, 18, 20)),
+    kinematic_chains=(
+        (0, 2, 5, 8, 11),
+        (0, 1, 4, 7, 10),
+        (0, 3, 6, 9, 12, 15),
+        (9, 14, 17, 19, 21),
+        (9, 13, 16, 18, 20),
+    ),
     rest_directions=(
-        (0.0, 0.0, 0.0), _X, _NX, _Y, _NY, _NY, _Y, _NY, _NY, _Y, _Z, _Z, _Y, _X, _NX, _Z,
-        _NY, _NY, _NY, _NY, _NY, _NY,
+        (0.0, 0.0, 0.0),
+        _X,
+        _NX,
+        _Y,
+        _NY,
+        _NY,
+        _Y,
+        _NY,
+        _NY,
+        _Y,
+        _Z,
+        _Z,
+        _Y,
+        _X,
+        _NX,
+        _Z,
+        _NY,
+        _NY,
+        _NY,
+        _NY,
+        _NY,
+        _NY,
     ),
     # Measured on ../shared/reference/humanml3d/new_joints/012314.npy (constant to 1e-7 in
     # every frame: the whole dataset is retargeted to this skeleton).
     bone_lengths=(
-        0.0, 0.103074, 0.109883, 0.131568, 0.393623, 0.390188, 0.143190, 0.432433, 0.425643,
-        0.057365, 0.143382, 0.149419, 0.219360, 0.137487, 0.143383, 0.103039, 0.131614,
-        0.122984, 0.256840, 0.263092, 0.266012, 0.269876,
+        0.0,
+        0.103074,
+        0.109883,
+        0.131568,
+        0.393623,
+        0.390188,
+        0.143190,
+        0.432433,
+        0.425643,
+        0.057365,
+        0.143382,
+        0.149419,
+        0.219360,
+        0.137487,
+        0.143383,
+        0.103039,
+        0.131614,
+        0.122984,
+        0.256840,
+        0.263092,
+        0.266012,
+        0.269876,
     ),
     face_joints=(2, 1, 17, 16),
     left_foot=(7, 10),
@@ -196,14 +265,57 @@ T2M_SKELETON = Skeleton(
 KIT_SKELETON = Skeleton(
     name="kit",
     joint_names=(
-        "root", "back1", "back2", "chest", "head", "right_shoulder", "right_elbow", "right_wrist",
-        "left_shoulder", "left_elbow", "left_wrist", "right_hip", "right_knee", "right_ankle",
-        "right_heel", "right_toe", "left_hip", "left_knee", "left_ankle", "left_heel", "left_toe",
+        "root",
+        "back1",
+        "back2",
+        "chest",
+        "head",
+        "right_shoulder",
+        "right_elbow",
+        "right_wrist",
+        "left_shoulder",
+        "left_elbow",
+        "left_wrist",
+        "right_hip",
+        "right_knee",
+        "right_ankle",
+        "right_heel",
+        "right_toe",
+        "left_hip",
+        "left_knee",
+        "left_ankle",
+        "left_heel",
+        "left_toe",
     ),
-    kinematic_chains=((0, 11, 12, 13, 14, 15), (0, 16, 17, 18, 19, 20), (0, 1, 2, 3, 4), (3, 5, 6, 7), (3, 8, 9, 10)),
+    kinematic_chains=(
+        (0, 11, 12, 13, 14, 15),
+        (0, 16, 17, 18, 19, 20),
+        (0, 1, 2, 3, 4),
+        (3, 5, 6, 7),
+        (3, 8, 9, 10),
+    ),
     rest_directions=(
-        (0.0, 0.0, 0.0), _Y, _Y, _Y, _Y, _X, _NY, _NY, _NX, _NY, _NY, _X, _NY, _NY, _Z, _Z,
-        _NX, _NY, _NY, _Z, _Z,
+        (0.0, 0.0, 0.0),
+        _Y,
+        _Y,
+        _Y,
+        _Y,
+        _X,
+        _NY,
+        _NY,
+        _NX,
+        _NY,
+        _NY,
+        _X,
+        _NY,
+        _NY,
+        _Z,
+        _Z,
+        _NX,
+        _NY,
+        _NY,
+        _Z,
+        _Z,
     ),
     # KIT's target skeleton is taken from a clip of the dataset itself, which is not
     # redistributable: joints_to_features keeps each motion's proportions.

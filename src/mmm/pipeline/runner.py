@@ -30,6 +30,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from mlflow.entities import Metric
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
+
+from mmm.tracking import (
+    DESCRIPTION_TAG,
+    artifact_location,
+    log_dataset_input,
+    prepare_experiment,
+    run_link,
+    source_tags,
+    timestamp,
+    version_link,
+)
+
 log = logging.getLogger(__name__)
 
 
@@ -61,7 +76,9 @@ class StepReport:
 
 
 def step_key(name: str, inputs: dict) -> str:
-    return hashlib.sha256(json.dumps({"step": name, **inputs}, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return hashlib.sha256(
+        json.dumps({"step": name, **inputs}, sort_keys=True, default=str).encode()
+    ).hexdigest()[:16]
 
 
 def _load_state(path: Path) -> dict:
@@ -109,10 +126,6 @@ class _Links:
         self.client, self.runs = client, {}
 
     def run(self, run_id: str | None, text: str | None = None) -> str:
-        from mlflow.exceptions import MlflowException
-
-        from mmm.tracking import run_link
-
         if not run_id:
             return ""
         if run_id not in self.runs:
@@ -127,20 +140,28 @@ class _Links:
 
     @staticmethod
     def version(outputs: dict) -> str:
-        from mmm.tracking import version_link
-
         if outputs.get("version") in (None, ""):
             return ""
-        return version_link(outputs["model"], outputs["version"]) if outputs.get("model") else f"version {outputs['version']}"
+        return (
+            version_link(outputs["model"], outputs["version"])
+            if outputs.get("model")
+            else f"version {outputs['version']}"
+        )
 
 
 def _step_description(report: StepReport, parent_link: str, links: _Links, finished: str | None) -> str:
     """The nested step run's markdown: what the step did and where its result is."""
     head = f"Step {report.order:02d} of pipeline {parent_link}: **{report.name}**"
     if report.status == "failed":
-        lines = [f"{head}, failed after {report.seconds:.1f} s: {_one_line(report.error or '', 1000)} (the traceback is in `error.txt`)."]
+        lines = [
+            f"{head}, failed after {report.seconds:.1f} s: {_one_line(report.error or '', 1000)} (the "
+            "traceback is in `error.txt`)."
+        ]
     elif report.status == "skipped":
-        lines = [f"{head}, skipped: its inputs are unchanged since {finished or 'an earlier run'} (`step.key`), its outputs are reused."]
+        lines = [
+            f"{head}, skipped: its inputs are unchanged since {finished or 'an earlier run'} (`step.key`), "
+            "its outputs are reused."
+        ]
     else:
         lines = [f"{head}, ran in {report.seconds:.1f} s."]
     own = links.run(report.outputs.get("run_id"))
@@ -148,26 +169,51 @@ def _step_description(report: StepReport, parent_link: str, links: _Links, finis
         lines += ["", f"Its run: {own}"]
     version = links.version(report.outputs)
     if version:
-        lines += ["", f"Registered {version} with alias `{report.outputs.get('alias', '?')}`: {_one_line(report.outputs.get('reason', ''), 1000)}"]
+        lines += [
+            "",
+            f"Registered {version} with alias `{report.outputs.get('alias', '?')}`: "
+            f"{_one_line(report.outputs.get('reason', ''), 1000)}",
+        ]
     return "\n".join(lines)
 
 
-def _pipeline_description(name: str, steps: list[Step], reports: list[StepReport], status: str, seconds: float, links: _Links) -> str:
+def _pipeline_description(
+    name: str, steps: list[Step], reports: list[StepReport], status: str, seconds: float, links: _Links
+) -> str:
     """The parent run's markdown: a title line, then one row per step in execution order."""
     counts = {s: sum(r.status == s for r in reports) for s in ("ran", "skipped", "failed")}
     outcome = "finished" if status == "FINISHED" else "failed"
-    title = (f"### Pipeline `{name}` {outcome} in {seconds:.1f} s: {counts['ran']} ran, {counts['skipped']} skipped"
-             + (f", {counts['failed']} failed" if counts["failed"] else "") + f" of {len(steps)} steps")
-    lines = [title, "", "| # | step | status | seconds | run | registered version | alias | reason |", "|---|---|---|---|---|---|---|---|"]
+    title = (
+        f"### Pipeline `{name}` {outcome} in {seconds:.1f} s: {counts['ran']} ran, {counts['skipped']} "
+        "skipped" + (f", {counts['failed']} failed" if counts["failed"] else "") + f" of {len(steps)} steps"
+    )
+    lines = [
+        title,
+        "",
+        "| # | step | status | seconds | run | registered version | alias | reason |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in reports:
-        lines.append(f"| {r.order:02d} | {links.run(r.run_id, r.name)} | {r.status} | {r.seconds:.1f} | {links.run(r.outputs.get('run_id'))} | "
-                     f"{links.version(r.outputs)} | {r.outputs.get('alias') or ''} | {_one_line(r.outputs.get('reason') or '')} |")
-    for order, step in enumerate(steps[len(reports):], len(reports) + 1):
+        lines.append(
+            f"| {r.order:02d} | {links.run(r.run_id, r.name)} | {r.status} | {r.seconds:.1f} | "
+            f"{links.run(r.outputs.get('run_id'))} | "
+            f"{links.version(r.outputs)} | {r.outputs.get('alias') or ''} | "
+            f"{_one_line(r.outputs.get('reason') or '')} |"
+        )
+    for order, step in enumerate(steps[len(reports) :], len(reports) + 1):
         lines.append(f"| {order:02d} | {step.name} | not run | | | | | |")
     failed = next((r for r in reports if r.status == "failed"), None)
     if failed is not None:
-        lines += ["", f"**Failed at {failed.order:02d} {failed.name}**: {_one_line(failed.error or '', 1000)} (its run's `error.txt` has the traceback)."]
-    lines += ["", "The step column links each step's nested run; the run column the step's own training or evaluation run."]
+        lines += [
+            "",
+            f"**Failed at {failed.order:02d} {failed.name}**: {_one_line(failed.error or '', 1000)} (its "
+            "run's `error.txt` has the traceback).",
+        ]
+    lines += [
+        "",
+        "The step column links each step's nested run; the run column the step's own training or evaluation "
+        "run.",
+    ]
     return "\n".join(lines)
 
 
@@ -176,7 +222,9 @@ def _headline_metrics(reports: list[StepReport], seconds: float) -> dict[str, fl
     metrics = {}
     for r in reports:
         for k, v in (r.outputs.get("metrics") or {}).items():
-            if not k.endswith("_ci"):  # intervals belong to tables (an evaluation from an older state may report them)
+            if not k.endswith(
+                "_ci"
+            ):  # intervals belong to tables (an evaluation from an older state may report them)
                 metrics[f"{r.name}/{k}"] = float(v)
     metrics["pipeline/seconds"] = seconds
     for status in ("ran", "skipped", "failed"):
@@ -184,8 +232,16 @@ def _headline_metrics(reports: list[StepReport], seconds: float) -> dict[str, fl
     return metrics
 
 
-def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, force: set[str] = frozenset(), experiment: str = "mmm-pipeline",
-              artifact_root: str = "mlartifacts", dataset: Callable[[Context], tuple[str, str, str] | None] | None = None) -> list[StepReport]:
+def run_steps(
+    name: str,
+    steps: list[Step],
+    ctx: Context,
+    state_file: Path,
+    force: set[str] = frozenset(),
+    experiment: str = "mmm-pipeline",
+    artifact_root: str = "mlartifacts",
+    dataset: Callable[[Context], tuple[str, str, str] | None] | None = None,
+) -> list[StepReport]:
     """Run `steps` in order under one parent run. `dataset`: (name, root, fingerprint) of the data
     the pipeline reads, recorded as the parent run's dataset input. Pipelines on one state file
     run one at a time (`state_lock`)."""
@@ -193,18 +249,23 @@ def run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, forc
         return _run_steps(name, steps, ctx, state_file, force, experiment, artifact_root, dataset)
 
 
-def _run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, force: set[str], experiment: str, artifact_root: str,
-               dataset: Callable[[Context], tuple[str, str, str] | None] | None) -> list[StepReport]:
-    from mlflow.entities import Metric
-    from mlflow.tracking import MlflowClient
-
-    from mmm.tracking import DESCRIPTION_TAG, log_dataset_input, prepare_experiment, run_link, source_tags, timestamp
-    from mmm.tracking import artifact_location
-
+def _run_steps(
+    name: str,
+    steps: list[Step],
+    ctx: Context,
+    state_file: Path,
+    force: set[str],
+    experiment: str,
+    artifact_root: str,
+    dataset: Callable[[Context], tuple[str, str, str] | None] | None,
+) -> list[StepReport]:
     client = MlflowClient(ctx.tracking_uri)
     experiment_id = prepare_experiment(client, experiment, artifact_location(ctx.tracking_uri, artifact_root))
-    parent = client.create_run(experiment_id, run_name=f"pipeline-{name}-{timestamp()}",
-                               tags={"mmm.pipeline": name, **source_tags(f"mmm pipeline {name}")})
+    parent = client.create_run(
+        experiment_id,
+        run_name=f"pipeline-{name}-{timestamp()}",
+        tags={"mmm.pipeline": name, **source_tags(f"mmm pipeline {name}")},
+    )
     parent_id = parent.info.run_id
     parent_link = run_link(experiment_id, parent_id, parent.info.run_name)
     links = _Links(client)
@@ -217,30 +278,53 @@ def _run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, for
         if data is not None:
             log_dataset_input(client, parent_id, *data, context="pipeline")
         for order, step in enumerate(steps, 1):
-            child = client.create_run(experiment_id, run_name=f"{order:02d}-{step.name}", tags={
-                "mlflow.parentRunId": parent_id, "mmm.pipeline": name, "mmm.step": step.name, "mmm.step.order": str(order),
-            })
+            child = client.create_run(
+                experiment_id,
+                run_name=f"{order:02d}-{step.name}",
+                tags={
+                    "mlflow.parentRunId": parent_id,
+                    "mmm.pipeline": name,
+                    "mmm.step": step.name,
+                    "mmm.step.order": str(order),
+                },
+            )
             child_id = child.info.run_id
             started = time.perf_counter()
             inputs, previous, reuse = {}, {}, False
             try:
-                # Inside the step's run: composing its config (part of its key) fails on a bad override like the step itself.
+                # Inside the step's run: composing its config (part of its key) fails on a bad override like
+                # the step itself.
                 inputs = step.inputs(ctx)
                 key = step_key(step.name, inputs)
                 client.set_tag(child_id, "step.key", key)
                 previous = state.get(step.name, {})
-                reuse = step.name not in force and previous.get("key") == key and step.valid(ctx, previous.get("outputs", {}))
+                reuse = (
+                    step.name not in force
+                    and previous.get("key") == key
+                    and step.valid(ctx, previous.get("outputs", {}))
+                )
                 if reuse:
                     outputs = previous["outputs"]
                     log.info("pipeline %s: %s unchanged (key %s), skipped", name, step.name, key)
                 else:
                     log.info("pipeline %s: running %s", name, step.name)
                     outputs = step.run(ctx)
-                    state[step.name] = {"key": key, "outputs": outputs, "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
+                    state[step.name] = {
+                        "key": key,
+                        "outputs": outputs,
+                        "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
+                    }
                     _save_state(state_file, state)
             except BaseException as error:
-                report = StepReport(step.name, "failed", time.perf_counter() - started, {}, child_id, order,
-                                    f"{type(error).__name__}: {' '.join(str(error).split())}")
+                report = StepReport(
+                    step.name,
+                    "failed",
+                    time.perf_counter() - started,
+                    {},
+                    child_id,
+                    order,
+                    f"{type(error).__name__}: {' '.join(str(error).split())}",
+                )
                 reports.append(report)
                 client.set_tag(child_id, "step.status", "failed")
                 client.log_text(child_id, traceback.format_exc(), "error.txt")
@@ -252,7 +336,11 @@ def _run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, for
             report = StepReport(step.name, "skipped" if reuse else "ran", seconds, outputs, child_id, order)
             for k, v in {"step.status": report.status, **_flat(outputs)}.items():
                 client.set_tag(child_id, k, v)
-            client.set_tag(child_id, DESCRIPTION_TAG, _step_description(report, parent_link, links, previous.get("finished") if reuse else None))
+            client.set_tag(
+                child_id,
+                DESCRIPTION_TAG,
+                _step_description(report, parent_link, links, previous.get("finished") if reuse else None),
+            )
             for k, v in json.loads(json.dumps(inputs, default=str)).items():
                 client.log_param(child_id, f"input.{k}", str(v)[:500])
             for k, v in (outputs.get("metrics") or {}).items():
@@ -272,11 +360,17 @@ def _run_steps(name: str, steps: list[Step], ctx: Context, state_file: Path, for
             metrics = [Metric(k, v, now, 0) for k, v in _headline_metrics(reports, seconds).items()]
             for i in range(0, len(metrics), 500):
                 client.log_batch(parent_id, metrics=metrics[i : i + 500])
-            client.set_tag(parent_id, DESCRIPTION_TAG, _pipeline_description(name, steps, reports, status, seconds, links))
+            client.set_tag(
+                parent_id,
+                DESCRIPTION_TAG,
+                _pipeline_description(name, steps, reports, status, seconds, links),
+            )
         except Exception:
             if status == "FINISHED":
                 client.set_terminated(parent_id, "FAILED")
                 raise
-            log.exception("pipeline %s: could not record the failed run's summary", name)  # the step's error is what propagates
+            log.exception(
+                "pipeline %s: could not record the failed run's summary", name
+            )  # the step's error is what propagates
         client.set_terminated(parent_id, status)
     return reports

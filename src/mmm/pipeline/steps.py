@@ -16,18 +16,41 @@ champion tokenizer always agree. Every step writes to the same tracking store an
 from __future__ import annotations
 
 import hashlib
+import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
-from mmm.config import compose, to_object
-from mmm.data.datamodule import DataConfig
+from mmm.config import compose, config_hash, to_object
+from mmm.data.datamodule import DataConfig, TokenizerDataModule
+from mmm.evaluation.run import evaluate, load_evaluate_config
+from mmm.fingerprint import dataset_fingerprint
+from mmm.kinds import PROMOTABLE
 from mmm.pipeline.runner import Context, Step, StepReport, run_steps
+from mmm.registry import versions
+from mmm.registry.promote import load_promote_config, promote
+from mmm.registry.versions import EVALUATOR, TOKENIZER
 from mmm.tracking import TrackingConfig, resolve_tracking_uri
+from mmm.training.evaluator import load_evaluator_config, train_evaluator
+from mmm.training.length import load_length_config, train_length
+from mmm.training.stage1 import load_stage1_config, train_stage1
+from mmm.training.stage2 import load_stage2_config, prepare_stage2_data, train_stage2
 
 PIPELINES = {
-    "full": ["evaluator", "promote-evaluator", "stage1", "promote-tokenizer", "tokenize", "stage2", "length", "evaluate", "promote-text2motion"],
+    "full": [
+        "evaluator",
+        "promote-evaluator",
+        "stage1",
+        "promote-tokenizer",
+        "tokenize",
+        "stage2",
+        "length",
+        "evaluate",
+        "promote-text2motion",
+    ],
     "stage1": ["stage1", "promote-tokenizer"],
     "stage2": ["tokenize", "stage2", "length"],
     "evaluate": ["evaluate"],
@@ -64,17 +87,17 @@ def _common(ctx: Context) -> list[str]:
     """What every step shares: the data and the tracking store (with the user's data.*/logger.* overrides)."""
     cfg: PipelineConfig = ctx.cfg
     return [
-        f"data={cfg.data.name}", f"data.root={cfg.data.root}", f"logger.tracking_uri={cfg.logger.tracking_uri}",
-        f"logger.artifact_root={cfg.logger.artifact_root}", *ctx.shared_overrides,
+        f"data={cfg.data.name}",
+        f"data.root={cfg.data.root}",
+        f"logger.tracking_uri={cfg.logger.tracking_uri}",
+        f"logger.artifact_root={cfg.logger.artifact_root}",
+        *ctx.shared_overrides,
     ]
 
 
 def _data_fingerprint(ctx: Context, extra_parts: tuple[str, ...] = ()) -> str:
     """The content fingerprint of the pipeline's data (features, captions, splits, statistics), with
     `extra_parts` (labels, new_joints) for the steps that read them too."""
-    from mmm.data.datamodule import TokenizerDataModule
-    from mmm.fingerprint import dataset_fingerprint
-
     memo = f"data_fingerprint{'+' + '+'.join(extra_parts) if extra_parts else ''}"
     if memo not in ctx.outputs:
         TokenizerDataModule(ctx.cfg.data).prepare_data()  # synthesize the default dataset when missing
@@ -89,15 +112,13 @@ def code_key() -> str:
     """The code a step runs: the package's version (the git commit, `+dirty` with changes, or the
     installed version) and, for a dirty checkout, a digest of the changes to src/, so an edit
     between two runs is noticed."""
-    import subprocess
-
-    from mmm.registry.versions import code_version
-
-    version = code_version()
+    version = versions.code_version()  # looked up at call time: tests stand in another version
     if version.endswith("+dirty"):
         root = Path(__file__).resolve().parents[3]
         try:
-            diff = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--", "src"], capture_output=True, timeout=30).stdout
+            diff = subprocess.run(
+                ["git", "-C", str(root), "diff", "HEAD", "--", "src"], capture_output=True, timeout=30
+            ).stdout
         except (OSError, subprocess.SubprocessError):
             diff = b""
         version += "-" + hashlib.sha256(diff).hexdigest()[:12]
@@ -113,9 +134,12 @@ def _code(ctx: Context) -> str:
 def _key(ctx: Context, config: DictConfig, extra_parts: tuple[str, ...] = (), **consumed) -> dict:
     """A step's inputs: its resolved config (hash), the code version, the data's content
     fingerprint and what it consumes from earlier steps."""
-    from mmm.config import config_hash
-
-    return {"config": config_hash(config), "code": _code(ctx), "data": _data_fingerprint(ctx, extra_parts), **consumed}
+    return {
+        "config": config_hash(config),
+        "code": _code(ctx),
+        "data": _data_fingerprint(ctx, extra_parts),
+        **consumed,
+    }
 
 
 def _dataset(ctx: Context) -> tuple[str, str, str]:
@@ -125,9 +149,6 @@ def _dataset(ctx: Context) -> tuple[str, str, str]:
 
 def _champion(ctx: Context, name: str) -> str | None:
     """'<name> v<version>' of the current champion, or None."""
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
     try:
         version = MlflowClient(ctx.tracking_uri).get_model_version_by_alias(name, "champion")
     except MlflowException:
@@ -136,9 +157,6 @@ def _champion(ctx: Context, name: str) -> str | None:
 
 
 def _run_exists(ctx: Context, outputs: dict) -> bool:
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
     try:
         return MlflowClient(ctx.tracking_uri).get_run(outputs["run_id"]).info.status == "FINISHED"
     except (KeyError, MlflowException):
@@ -146,7 +164,11 @@ def _run_exists(ctx: Context, outputs: dict) -> bool:
 
 
 def _trained(result) -> dict:
-    return {"run_id": result.run_id, "checkpoint": result.best_checkpoint, "metrics": {k: v for k, v in result.metrics.items() if k.startswith(("val/", "test/"))}}
+    return {
+        "run_id": result.run_id,
+        "checkpoint": result.best_checkpoint,
+        "metrics": {k: v for k, v in result.metrics.items() if k.startswith(("val/", "test/"))},
+    }
 
 
 def _promoted(name: str, decision) -> dict:
@@ -156,171 +178,202 @@ def _promoted(name: str, decision) -> dict:
 # -- the steps -------------------------------------------------------------------------------------
 # Each step's overrides build both its config (whose resolved hash is part of its key) and its run.
 def step_evaluator() -> Step:
-    from mmm.training.evaluator import load_evaluator_config
-
     def config(ctx):
-        return load_evaluator_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.evaluator])
+        return load_evaluator_config(
+            [*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.evaluator]
+        )
 
     def run(ctx):
-        from mmm.training.evaluator import train_evaluator
-
         return _trained(train_evaluator(config(ctx)))
 
     return Step("evaluator", lambda ctx: _key(ctx, config(ctx)), run, _run_exists)
 
 
 def _promote_step(kind: str, source_step: str | None) -> Step:
-    from mmm.registry.promote import load_promote_config
-    from mmm.registry.versions import EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY
-
-    name = {"evaluator": EVALUATOR, "tokenizer": TOKENIZER, "text2motion": TEXT2MOTION, "upperbody": UPPERBODY}[kind]
+    name = PROMOTABLE[kind].registered
 
     def candidate(ctx):
         return ctx.outputs.get(source_step, {}).get("run_id") if source_step else None
 
     def config(ctx):
         chosen = candidate(ctx)
-        return load_promote_config([*_common(ctx), *([f"candidate={chosen}"] if chosen else []), *ctx.cfg.overrides.promote])
+        return load_promote_config(
+            [*_common(ctx), *([f"candidate={chosen}"] if chosen else []), *ctx.cfg.overrides.promote]
+        )
 
     def inputs(ctx):
-        return _key(ctx, config(ctx), LABELLED if kind == "upperbody" else (), candidate=candidate(ctx),
-                    evaluator=_champion(ctx, EVALUATOR) if kind in ("tokenizer", "text2motion") else None)
+        return _key(
+            ctx,
+            config(ctx),
+            LABELLED if kind == "upperbody" else (),
+            candidate=candidate(ctx),
+            evaluator=_champion(ctx, EVALUATOR) if kind in ("tokenizer", "text2motion") else None,
+        )
 
     def run(ctx):
-        from mmm.registry.promote import promote
-
         return _promoted(name, promote(kind, config(ctx)))
 
     return Step(f"promote-{kind}", inputs, run, lambda ctx, outputs: _champion(ctx, name) is not None)
 
 
 def _stage2_options(ctx) -> list[str]:
-    from mmm.registry.versions import TOKENIZER
-
-    tokenizer = "models:/mmm-tokenizer@champion" if _champion(ctx, TOKENIZER) else ctx.outputs.get("stage1", {}).get("run_id")
+    tokenizer = (
+        f"models:/{TOKENIZER}@champion"
+        if _champion(ctx, TOKENIZER)
+        else ctx.outputs.get("stage1", {}).get("run_id")
+    )
     return [*_common(ctx), *([f"stage1={tokenizer}"] if tokenizer else [])]
 
 
 def step_stage1() -> Step:
-    from mmm.training.stage1 import load_stage1_config
-
     def config(ctx):
-        return load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1])
+        return load_stage1_config(
+            [*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1]
+        )
 
     def run(ctx):
-        from mmm.training.stage1 import train_stage1
-
         return _trained(train_stage1(config(ctx)))
 
     return Step("stage1", lambda ctx: _key(ctx, config(ctx)), run, _run_exists)
 
 
 def step_tokenize() -> Step:
-    from mmm.registry.versions import TOKENIZER
-    from mmm.training.stage2 import load_stage2_config
-
     def config(ctx):
         return load_stage2_config([*_stage2_options(ctx), *ctx.cfg.overrides.stage2])
 
     def run(ctx):
-        from mmm.training.stage2 import prepare_stage2_data
-
         dm = prepare_stage2_data(config(ctx))
-        return {"tokens": str(dm.tokens.folder), "motions": len(dm.tokens), "captions": len(dm.caption_cache), "tokenizer": dm.source.identity}
+        return {
+            "tokens": str(dm.tokens.folder),
+            "motions": len(dm.tokens),
+            "captions": len(dm.caption_cache),
+            "tokenizer": dm.source.identity,
+        }
 
-    return Step("tokenize", lambda ctx: _key(ctx, config(ctx), tokenizer=_champion(ctx, TOKENIZER) or ctx.outputs.get("stage1", {}).get("run_id")),
-                run, lambda ctx, outputs: Path(outputs.get("tokens", "")).is_dir())
+    return Step(
+        "tokenize",
+        lambda ctx: _key(
+            ctx,
+            config(ctx),
+            tokenizer=_champion(ctx, TOKENIZER) or ctx.outputs.get("stage1", {}).get("run_id"),
+        ),
+        run,
+        lambda ctx, outputs: Path(outputs.get("tokens", "")).is_dir(),
+    )
 
 
 def step_stage2() -> Step:
-    from mmm.training.stage2 import load_stage2_config
-
     def config(ctx):
-        return load_stage2_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage2])
+        return load_stage2_config(
+            [*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage2]
+        )
 
     def run(ctx):
-        from mmm.training.stage2 import train_stage2
-
         return _trained(train_stage2(config(ctx)))
 
-    return Step("stage2", lambda ctx: _key(ctx, config(ctx), tokens=ctx.outputs.get("tokenize", {}).get("tokenizer")), run, _run_exists)
+    return Step(
+        "stage2",
+        lambda ctx: _key(ctx, config(ctx), tokens=ctx.outputs.get("tokenize", {}).get("tokenizer")),
+        run,
+        _run_exists,
+    )
 
 
 def step_length() -> Step:
-    from mmm.training.length import load_length_config
-
     def config(ctx):
-        return load_length_config([*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.length])
+        return load_length_config(
+            [*_stage2_options(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.length]
+        )
 
     def run(ctx):
-        from mmm.training.length import train_length
-
         return _trained(train_length(config(ctx)))
 
-    return Step("length", lambda ctx: _key(ctx, config(ctx), tokens=ctx.outputs.get("tokenize", {}).get("tokenizer")), run, _run_exists)
+    return Step(
+        "length",
+        lambda ctx: _key(ctx, config(ctx), tokens=ctx.outputs.get("tokenize", {}).get("tokenizer")),
+        run,
+        _run_exists,
+    )
 
 
 def step_evaluate() -> Step:
-    from mmm.evaluation.run import load_evaluate_config
-    from mmm.registry.versions import EVALUATOR
-
     def model(ctx):
         return ctx.outputs.get("stage2", {}).get("run_id")
 
     def config(ctx):
         chosen = model(ctx)
-        evaluator = ["evaluator.reference=models:/mmm-evaluator@champion"] if _champion(ctx, EVALUATOR) else []
-        return load_evaluate_config([*_common(ctx), *([f"text2motion={chosen}"] if chosen else []), *evaluator, *ctx.cfg.overrides.evaluate])
+        evaluator = [f"evaluator.reference=models:/{EVALUATOR}@champion"] if _champion(ctx, EVALUATOR) else []
+        return load_evaluate_config(
+            [
+                *_common(ctx),
+                *([f"text2motion={chosen}"] if chosen else []),
+                *evaluator,
+                *ctx.cfg.overrides.evaluate,
+            ]
+        )
 
     def run(ctx):
-        from mmm.evaluation.run import evaluate
-
         results = evaluate(config(ctx))
         return {"run_id": results.get("run_id"), "metrics": results["metrics"], "table": results["table"]}
 
     # Prompt adherence reads labels/ and new_joints/: they are part of its data.
-    return Step("evaluate", lambda ctx: _key(ctx, config(ctx), LABELLED, model=model(ctx), evaluator=_champion(ctx, EVALUATOR)), run, _run_exists)
+    return Step(
+        "evaluate",
+        lambda ctx: _key(ctx, config(ctx), LABELLED, model=model(ctx), evaluator=_champion(ctx, EVALUATOR)),
+        run,
+        _run_exists,
+    )
 
 
 def step_stage1_parts() -> Step:
-    from mmm.training.stage1 import load_stage1_config
-
     def config(ctx):
-        return load_stage1_config([*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1_parts], parts=True)
+        return load_stage1_config(
+            [*_common(ctx), "trainer.enable_progress_bar=false", *ctx.cfg.overrides.stage1_parts], parts=True
+        )
 
     def run(ctx):
-        from mmm.training.stage1 import train_stage1
-
         return _trained(train_stage1(config(ctx)))
 
     return Step("stage1-parts", lambda ctx: _key(ctx, config(ctx)), run, _run_exists)
 
 
 def step_stage2_parts() -> Step:
-    from mmm.training.stage2 import load_stage2_config
-
     def tokenizer(ctx):
         return ctx.outputs.get("stage1-parts", {}).get("run_id")
 
     def config(ctx):
         chosen = tokenizer(ctx)
-        return load_stage2_config([*_common(ctx), *([f"stage1={chosen}"] if chosen else []), "trainer.enable_progress_bar=false",
-                                   *ctx.cfg.overrides.stage2_parts], parts=True)
+        return load_stage2_config(
+            [
+                *_common(ctx),
+                *([f"stage1={chosen}"] if chosen else []),
+                "trainer.enable_progress_bar=false",
+                *ctx.cfg.overrides.stage2_parts,
+            ],
+            parts=True,
+        )
 
     def run(ctx):
-        from mmm.training.stage2 import train_stage2
-
         return _trained(train_stage2(config(ctx)))
 
-    return Step("stage2-parts", lambda ctx: _key(ctx, config(ctx), tokenizer=tokenizer(ctx)), run, _run_exists)
+    return Step(
+        "stage2-parts", lambda ctx: _key(ctx, config(ctx), tokenizer=tokenizer(ctx)), run, _run_exists
+    )
 
 
 STEPS = {
-    "evaluator": step_evaluator, "promote-evaluator": lambda: _promote_step("evaluator", "evaluator"),
-    "stage1": step_stage1, "promote-tokenizer": lambda: _promote_step("tokenizer", "stage1"),
-    "tokenize": step_tokenize, "stage2": step_stage2, "length": step_length, "evaluate": step_evaluate,
+    "evaluator": step_evaluator,
+    "promote-evaluator": lambda: _promote_step("evaluator", "evaluator"),
+    "stage1": step_stage1,
+    "promote-tokenizer": lambda: _promote_step("tokenizer", "stage1"),
+    "tokenize": step_tokenize,
+    "stage2": step_stage2,
+    "length": step_length,
+    "evaluate": step_evaluate,
     "promote-text2motion": lambda: _promote_step("text2motion", "stage2"),
-    "stage1-parts": step_stage1_parts, "stage2-parts": step_stage2_parts, "promote-upperbody": lambda: _promote_step("upperbody", "stage2-parts"),
+    "stage1-parts": step_stage1_parts,
+    "stage2-parts": step_stage2_parts,
+    "promote-upperbody": lambda: _promote_step("upperbody", "stage2-parts"),
 }
 
 
@@ -329,14 +382,26 @@ def shared_overrides(overrides: list[str]) -> list[str]:
     return [o for o in overrides if o.split("=", 1)[0].lstrip("+~").startswith(("data.", "logger."))]
 
 
-def run_pipeline(name: str, cfg_node: DictConfig, force: list[str] = (), overrides: list[str] = ()) -> list[StepReport]:
+def run_pipeline(
+    name: str, cfg_node: DictConfig, force: list[str] = (), overrides: list[str] = ()
+) -> list[StepReport]:
     if name not in PIPELINES:
         raise ValueError(f"unknown pipeline {name!r}; choose one of {', '.join(PIPELINES)}")
     unknown = set(force) - set(PIPELINES[name]) - {"all"}
     if unknown:
-        raise ValueError(f"--force {sorted(unknown)}: not steps of pipeline {name!r} ({', '.join(PIPELINES[name])})")
+        raise ValueError(
+            f"--force {sorted(unknown)}: not steps of pipeline {name!r} ({', '.join(PIPELINES[name])})"
+        )
     cfg: PipelineConfig = to_object(cfg_node)
     ctx = Context(cfg, resolve_tracking_uri(cfg.logger.tracking_uri), shared_overrides(list(overrides)))
     steps = [STEPS[s]() for s in PIPELINES[name]]
     forced = set(PIPELINES[name]) if "all" in force else set(force)
-    return run_steps(name, steps, ctx, Path(cfg.state_file), forced, artifact_root=cfg.logger.artifact_root, dataset=_dataset)
+    return run_steps(
+        name,
+        steps,
+        ctx,
+        Path(cfg.state_file),
+        forced,
+        artifact_root=cfg.logger.artifact_root,
+        dataset=_dataset,
+    )

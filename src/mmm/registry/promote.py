@@ -17,36 +17,76 @@ import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import mlflow
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
 from mmm.atomic import sha256_file
-from mmm.config import compose, to_object
+from mmm.config import ConfigError, compose, to_object
 from mmm.data.datamodule import DataConfig
-from mmm.evaluation.protocol import ProtocolConfig
+from mmm.data.humanml3d import load_clips, load_items, load_stats
+from mmm.evaluation.evaluators import load_evaluator
+from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion
+from mmm.evaluation.run import reconstruction_metrics
+from mmm.evaluation.upper_body import upper_body_adherence
+from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
+from mmm.generation.model import TextToMotion
+from mmm.kinds import PROMOTABLE
+from mmm.registry.bundle import log_bundle
 from mmm.registry.versions import (
-    CI_SUFFIX, EVALUATOR, TEXT2MOTION, TOKENIZER, UPPERBODY, WEIGHTS_SHA256, Criterion, Decision, criteria_errors, freeze_weights,
-    promote_version, register_version, version_tags,
+    CI_SUFFIX,
+    EVALUATOR,
+    TEXT2MOTION,
+    TOKENIZER,
+    UPPERBODY,
+    WEIGHTS_SHA256,
+    Criterion,
+    Decision,
+    criteria_errors,
+    freeze_weights,
+    promote_version,
+    register_version,
+    version_tags,
 )
+from mmm.resolve import ModelNotFound, download_artifact
+from mmm.tokenizer.load import load_tokenizer_checkpoint
 from mmm.tracking import TrackingConfig, resolve_tracking_uri
 
 log = logging.getLogger(__name__)
 
-EXPERIMENTS = {"tokenizer": "mmm-stage1", "text2motion": "mmm-stage2", "evaluator": "mmm-evaluator", "upperbody": "mmm-stage2-parts"}
-# The registered models' own descriptions (each version's description says what that version is and why it has its alias).
+# The registered models' own descriptions (each version's description says what that version is and why it
+# has its alias).
 MODEL_DESCRIPTIONS = {
-    TOKENIZER: "Stage-1 motion tokenizers (VQ-VAE), promoted on reconstruction (conf/promote.yaml `criteria.tokenizer`).",
-    TEXT2MOTION: "Text-to-motion bundles (tokenizer, transformer, normalization, text encoder), promoted on the evaluation protocol "
-                 "(conf/promote.yaml `criteria.text2motion`); `@champion` is what generation uses by default.",
-    EVALUATOR: "Contrastive text-motion evaluators: the yardstick generators are promoted with (conf/promote.yaml `criteria.evaluator`).",
-    UPPERBODY: "Part-aware models for upper-body editing, promoted on editing adherence (conf/promote.yaml `criteria.upperbody`).",
+    TOKENIZER: (
+        "Stage-1 motion tokenizers (VQ-VAE), promoted on reconstruction (conf/promote.yaml "
+        "`criteria.tokenizer`)."
+    ),
+    TEXT2MOTION: (
+        "Text-to-motion bundles (tokenizer, transformer, normalization, text encoder), promoted on the "
+        "evaluation protocol "
+        "(conf/promote.yaml `criteria.text2motion`); `@champion` is what generation uses by default."
+    ),
+    EVALUATOR: (
+        "Contrastive text-motion evaluators: the yardstick generators are promoted with (conf/promote.yaml "
+        "`criteria.evaluator`)."
+    ),
+    UPPERBODY: (
+        "Part-aware models for upper-body editing, promoted on editing adherence (conf/promote.yaml "
+        "`criteria.upperbody`)."
+    ),
 }
 
 
 @dataclass
 class Criteria:
-    tokenizer: list[Criterion] = field(default_factory=lambda: [Criterion("recon/mpjpe_root_aligned_mm", "min", 0.0)])
+    tokenizer: list[Criterion] = field(
+        default_factory=lambda: [Criterion("recon/mpjpe_root_aligned_mm", "min", 0.0)]
+    )
     text2motion: list[Criterion] = field(default_factory=lambda: [Criterion("generated/fid", "min", 0.0)])
-    evaluator: list[Criterion] = field(default_factory=lambda: [Criterion("test/r_precision_top1", "max", 0.0)])
+    evaluator: list[Criterion] = field(
+        default_factory=lambda: [Criterion("test/r_precision_top1", "max", 0.0)]
+    )
     upperbody: list[Criterion] = field(default_factory=lambda: [Criterion("upper_body/both", "max", 0.0)])
 
 
@@ -60,7 +100,9 @@ class UpperBodyCheck:
 @dataclass
 class PromoteConfig:
     candidate: str | None = None  # the run to promote; default: the newest finished run of the kind
-    evaluator: str | None = None  # evaluator for the metrics; default: the champion evaluator, else the newest
+    evaluator: str | None = (
+        None  # evaluator for the metrics; default: the champion evaluator, else the newest
+    )
     split: str = "test"
     device: str = "cpu"
     criteria: Criteria = field(default_factory=Criteria)
@@ -72,39 +114,49 @@ class PromoteConfig:
 
 def load_promote_config(overrides: list[str] = ()) -> DictConfig:
     """conf/promote.yaml with `overrides`; ConfigError naming the key when a criterion is invalid."""
-    from mmm.config import ConfigError
-
     cfg_node = compose("promote", list(overrides), schema=PromoteConfig)
     criteria: Criteria = to_object(cfg_node.criteria)
-    problems = [p for kind in EXPERIMENTS for p in criteria_errors(getattr(criteria, kind), f"criteria.{kind}")]
+    problems = [
+        p for kind in PROMOTABLE for p in criteria_errors(getattr(criteria, kind), f"criteria.{kind}")
+    ]
     if problems:
         raise ConfigError("conf/promote.yaml (with the command line's overrides): " + "; ".join(problems))
     return cfg_node
 
 
 def _length_rules(data: DataConfig) -> dict:
-    return {"data.fps": data.fps, "data.min_length": data.min_length, "data.length_limit": data.length_limit, "data.on_invalid": data.on_invalid}
+    return {
+        "data.fps": data.fps,
+        "data.min_length": data.min_length,
+        "data.length_limit": data.length_limit,
+        "data.on_invalid": data.on_invalid,
+    }
 
 
 def _newest_run(client, experiment: str) -> str:
-    from mmm.resolve import ModelNotFound
-
     found = client.get_experiment_by_name(experiment)
-    runs = client.search_runs([found.experiment_id], "attributes.status = 'FINISHED'", order_by=["attributes.start_time DESC"], max_results=20) if found else []
+    runs = (
+        client.search_runs(
+            [found.experiment_id],
+            "attributes.status = 'FINISHED'",
+            order_by=["attributes.start_time DESC"],
+            max_results=20,
+        )
+        if found
+        else []
+    )
     for run in runs:
-        if any(f.path == "checkpoints/best.ckpt" for f in client.list_artifacts(run.info.run_id, "checkpoints")):
+        if any(
+            f.path == "checkpoints/best.ckpt" for f in client.list_artifacts(run.info.run_id, "checkpoints")
+        ):
             return run.info.run_id
-    raise ModelNotFound(f"no finished run with a checkpoint in MLflow experiment {experiment!r}: train one first")
+    raise ModelNotFound(
+        f"no finished run with a checkpoint in MLflow experiment {experiment!r}: train one first"
+    )
 
 
 def _evaluator(cfg: PromoteConfig, tracking_uri: str, required: bool):
     """The evaluator the metrics are measured with: the configured one, the champion, or the newest."""
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
-    from mmm.evaluation.evaluators import load_evaluator
-    from mmm.resolve import ModelNotFound
-
     reference = cfg.evaluator
     if reference is None:
         try:
@@ -117,11 +169,16 @@ def _evaluator(cfg: PromoteConfig, tracking_uri: str, required: bool):
     except ModelNotFound:
         if required:
             raise
-        log.warning("no evaluator found: tokenizer promotion measures MPJPE only (train one with `make train-evaluator`)")
+        log.warning(
+            "no evaluator found: tokenizer promotion measures MPJPE only (train one with `make "
+            "train-evaluator`)"
+        )
         return None
 
 
-def _decision_metrics(metrics: dict[str, float], intervals: dict[str, float], criteria: list[Criterion]) -> dict[str, float]:
+def _decision_metrics(
+    metrics: dict[str, float], intervals: dict[str, float], criteria: list[Criterion]
+) -> dict[str, float]:
     """The metrics a version is tagged with: the criteria's, each with its interval where it has one."""
     chosen = {}
     for c in criteria:
@@ -130,13 +187,17 @@ def _decision_metrics(metrics: dict[str, float], intervals: dict[str, float], cr
             if c.metric in intervals:
                 chosen[c.metric + CI_SUFFIX] = intervals[c.metric]
         else:
-            log.warning("criterion %s was not measured (measured: %s): the candidate cannot beat a champion on it", c.metric,
-                        ", ".join(sorted(metrics)) or "nothing")
+            log.warning(
+                "criterion %s was not measured (measured: %s): the candidate cannot beat a champion on it",
+                c.metric,
+                ", ".join(sorted(metrics)) or "nothing",
+            )
     return chosen
 
 
 def _measurements(metrics: dict[str, float], intervals: dict[str, float]) -> str:
     """Every measured number, for the version's description (its tags keep only the criteria's)."""
+
     def value(k):
         return f"{metrics[k]:.4g}" + (f" ± {intervals[k]:.2g}" if k in intervals else "")
 
@@ -144,17 +205,12 @@ def _measurements(metrics: dict[str, float], intervals: dict[str, float]) -> str
 
 
 def promote(kind: str, cfg_node: DictConfig) -> Decision:
-    from mlflow.tracking import MlflowClient
-
-    from mmm.fingerprint import dataset_fingerprint
-    from mmm.resolve import download_artifact
-
-    if kind not in EXPERIMENTS:
-        raise ValueError(f"unknown model kind {kind!r}; choose {', '.join(EXPERIMENTS)}")
+    if kind not in PROMOTABLE:
+        raise ValueError(f"unknown model kind {kind!r}; choose {', '.join(PROMOTABLE)}")
     cfg: PromoteConfig = to_object(cfg_node)
     uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     client = MlflowClient(uri)
-    run_id = cfg.candidate or _newest_run(client, EXPERIMENTS[kind])
+    run_id = cfg.candidate or _newest_run(client, PROMOTABLE[kind].experiment)
     run = client.get_run(run_id)
     criteria = getattr(cfg.criteria, kind)
     config_hash = run.data.tags.get("config.hash")
@@ -165,14 +221,29 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         existing = [v for v in client.search_model_versions(f"name='{EVALUATOR}'") if v.run_id == run_id]
         fingerprint = run.data.tags.get("data.fingerprint", "")
         params = run.data.params
-        protocol = {"split": "test", "measured_by": "training run", **{k: params.get(k) for k in sorted(params) if k.startswith("retrieval.")},
-                    "data.min_length": params.get("data.min_length"), "data.length_limit": params.get("data.length_limit"),
-                    "data.max_length": params.get("data.max_length")}
-        tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, None, config_hash,
-                            {"text_encoder": run.data.tags.get("text_encoder", "")}, protocol=protocol)
-        about = ("The package's own contrastive text-motion evaluator (motion encoder and text head over the frozen sentence embeddings of "
-                 f"`{tags['text_encoder'] or '?'}`): the yardstick generators are promoted with. Source: a copy of its best checkpoint kept "
-                 "in its training run under `registered/` (a resumed run never rewrites it).")
+        protocol = {
+            "split": "test",
+            "measured_by": "training run",
+            **{k: params.get(k) for k in sorted(params) if k.startswith("retrieval.")},
+            "data.min_length": params.get("data.min_length"),
+            "data.length_limit": params.get("data.length_limit"),
+            "data.max_length": params.get("data.max_length"),
+        }
+        tags = version_tags(
+            _decision_metrics(metrics, intervals, criteria),
+            fingerprint,
+            None,
+            config_hash,
+            {"text_encoder": run.data.tags.get("text_encoder", "")},
+            protocol=protocol,
+        )
+        about = (
+            "The package's own contrastive text-motion evaluator (motion encoder and text head over the "
+            "frozen sentence embeddings of "
+            f"`{tags['text_encoder'] or '?'}`): the yardstick generators are promoted with. Source: a copy "
+            "of its best checkpoint kept "
+            "in its training run under `registered/` (a resumed run never rewrites it)."
+        )
         if existing:
             version = existing[0]
             for key, value in tags.items():
@@ -182,109 +253,228 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         else:
             local = download_artifact(uri, run_id, "checkpoints/best.ckpt", "outputs/cache/models")
             source, digest = freeze_weights(client, run_id, local, EVALUATOR)
-            version = register_version(client, EVALUATOR, source, run_id, {**tags, WEIGHTS_SHA256: digest}, about, MODEL_DESCRIPTIONS[EVALUATOR])
-        measured = f"retrieval on the {run.data.tags.get('data.name', 'data')} test split, by its training run{_measurements(metrics, intervals)}"
-        return promote_version(client, EVALUATOR, version.version, criteria, needs_evaluator=False, about=about, measured=measured)
+            version = register_version(
+                client,
+                EVALUATOR,
+                source,
+                run_id,
+                {**tags, WEIGHTS_SHA256: digest},
+                about,
+                MODEL_DESCRIPTIONS[EVALUATOR],
+            )
+        measured = (
+            f"retrieval on the {run.data.tags.get('data.name', 'data')} test split, by its training "
+            f"run{_measurements(metrics, intervals)}"
+        )
+        return promote_version(
+            client,
+            EVALUATOR,
+            version.version,
+            criteria,
+            needs_evaluator=False,
+            about=about,
+            measured=measured,
+        )
     fingerprint = dataset_fingerprint(root)
     checkpoint = download_artifact(uri, run_id, "checkpoints/best.ckpt", "outputs/cache/models")
     if kind == "tokenizer":
-        from mmm.data.humanml3d import load_clips
-        from mmm.evaluation.run import reconstruction_metrics
-        from mmm.fingerprint import tensors_fingerprint
-        from mmm.tokenizer.load import load_tokenizer_checkpoint
-
         tokenizer = load_tokenizer_checkpoint(checkpoint).to(cfg.device)
         evaluator = _evaluator(cfg, uri, required=any(c.metric == "recon/fid" for c in criteria))
-        clips, _ = load_clips(root, cfg.split, feature_dim=cfg.data.feature_dim, min_length=cfg.data.min_length, on_invalid=cfg.data.on_invalid)
+        clips, _ = load_clips(
+            root,
+            cfg.split,
+            feature_dim=cfg.data.feature_dim,
+            min_length=cfg.data.min_length,
+            on_invalid=cfg.data.on_invalid,
+        )
         recon = reconstruction_metrics(tokenizer, evaluator, clips)
         metrics = {f"recon/{k}": v for k, v in recon.items() if k != "clips"}
         metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
         identity = tensors_fingerprint(tokenizer.state_dict())
-        needs_fid = any(c.metric == "recon/fid" for c in criteria)  # MPJPE needs no evaluator: then which one was around does not matter
-        protocol = {"split": cfg.split, "reconstruction": "whole clips", "data.min_length": cfg.data.min_length,
-                    "data.on_invalid": cfg.data.on_invalid, "evaluator": getattr(evaluator, "identity", None) if needs_fid else "not used"}
-        tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, getattr(evaluator, "identity", None), config_hash,
-                            {"tokenizer.identity": identity}, protocol=protocol)
-        about = (f"Stage-1 motion tokenizer (VQ-VAE: motion features to codes and back, with its feature normalization), weights `{identity}`. "
-                 "Source: a copy of its best checkpoint kept in its training run under `registered/` (a resumed run never rewrites it).")
-        measured = (f"reconstruction of the {cfg.split} split ({recon['clips']} clips) by `mmm promote`"
-                    + (f", FID with evaluator `{evaluator.identity}`" if evaluator is not None else "") + "; `val/*` from the training run"
-                    + _measurements(metrics, intervals))
+        needs_fid = any(
+            c.metric == "recon/fid" for c in criteria
+        )  # MPJPE needs no evaluator: then which one was around does not matter
+        protocol = {
+            "split": cfg.split,
+            "reconstruction": "whole clips",
+            "data.min_length": cfg.data.min_length,
+            "data.on_invalid": cfg.data.on_invalid,
+            "evaluator": getattr(evaluator, "identity", None) if needs_fid else "not used",
+        }
+        tags = version_tags(
+            _decision_metrics(metrics, intervals, criteria),
+            fingerprint,
+            getattr(evaluator, "identity", None),
+            config_hash,
+            {"tokenizer.identity": identity},
+            protocol=protocol,
+        )
+        about = (
+            "Stage-1 motion tokenizer (VQ-VAE: motion features to codes and back, with its feature "
+            f"normalization), weights `{identity}`. "
+            "Source: a copy of its best checkpoint kept in its training run under `registered/` (a resumed "
+            "run never rewrites it)."
+        )
+        measured = (
+            f"reconstruction of the {cfg.split} split ({recon['clips']} clips) by `mmm promote`"
+            + (f", FID with evaluator `{evaluator.identity}`" if evaluator is not None else "")
+            + "; `val/*` from the training run"
+            + _measurements(metrics, intervals)
+        )
         source, digest = freeze_weights(client, run_id, checkpoint, TOKENIZER)
-        version = register_version(client, TOKENIZER, source, run_id, {**tags, WEIGHTS_SHA256: digest}, about, MODEL_DESCRIPTIONS[TOKENIZER])
-        return promote_version(client, TOKENIZER, version.version, criteria, needs_evaluator=any(c.metric == "recon/fid" for c in criteria),
-                               about=about, measured=measured)
+        version = register_version(
+            client,
+            TOKENIZER,
+            source,
+            run_id,
+            {**tags, WEIGHTS_SHA256: digest},
+            about,
+            MODEL_DESCRIPTIONS[TOKENIZER],
+        )
+        return promote_version(
+            client,
+            TOKENIZER,
+            version.version,
+            criteria,
+            needs_evaluator=any(c.metric == "recon/fid" for c in criteria),
+            about=about,
+            measured=measured,
+        )
     # text2motion and upperbody: measure, bundle, register.
-    from mmm.generation.model import TextToMotion
 
     # The stage-1 file the checkpoint records is followed only inside outputs/, else its MLflow run
     # is used (TextToMotion.from_files); the bundle carries the file that was used and checked.
     model = TextToMotion.from_files(checkpoint, None, cfg.device, tracking_uri=uri)
     tokenizer_checkpoint = model.identity["stage1_checkpoint"]
-    extra = {"stage1.identity": model.identity["stage1"]["identity"], "text_encoder": model.identity["text_encoder"]}
+    extra = {
+        "stage1.identity": model.identity["stage1"]["identity"],
+        "text_encoder": model.identity["text_encoder"],
+    }
     if kind == "upperbody":
-        from mmm.evaluation.upper_body import upper_body_adherence
-
         if not model.part_aware:
-            raise ValueError(f"run {run_id} is a whole-body model; `promote upperbody` takes part-aware runs (mmm-stage2-parts)")
+            raise ValueError(
+                f"run {run_id} is a whole-body model; `promote upperbody` takes part-aware runs "
+                "(mmm-stage2-parts)"
+            )
         check = cfg.upper_body
-        protocol = {"split": cfg.split, "upper_body.max_sources": check.max_sources, "upper_body.lower_mask": check.lower_mask,
-                    "upper_body.seed": check.seed, "labels": (root / "labels").is_dir(), **_length_rules(cfg.data)}
+        protocol = {
+            "split": cfg.split,
+            "upper_body.max_sources": check.max_sources,
+            "upper_body.lower_mask": check.lower_mask,
+            "upper_body.seed": check.seed,
+            "labels": (root / "labels").is_dir(),
+            **_length_rules(cfg.data),
+        }
         if (root / "labels").is_dir():
-            result = upper_body_adherence(model, root, cfg.split, check.max_sources, check.lower_mask, check.seed)
+            result = upper_body_adherence(
+                model, root, cfg.split, check.max_sources, check.lower_mask, check.seed
+            )
             metrics = {f"upper_body/{k}": v for k, v in result.items() if isinstance(v, float)}
             extra["upper_body.edits"] = result["edits"]
-            measured = (f"upper-body editing adherence by `mmm promote` on the {cfg.split} split's labels: {result['edits']} edits of "
-                        f"{result['sources']} walking/squatting clips, lower-body mask {check.lower_mask}, checked by the synthetic action checker")
+            measured = (
+                f"upper-body editing adherence by `mmm promote` on the {cfg.split} split's labels: "
+                f"{result['edits']} edits of "
+                f"{result['sources']} walking/squatting clips, lower-body mask {check.lower_mask}, checked "
+                "by the synthetic action checker"
+            )
         else:  # no action labels to check edits against: only the run's validation numbers
-            log.warning("%s has no labels/: upper-body adherence not measured; criteria on upper_body/* cannot be met", root)
+            log.warning(
+                "%s has no labels/: upper-body adherence not measured; criteria on upper_body/* cannot be "
+                "met",
+                root,
+            )
             metrics = {}
             measured = f"not measured: {root} has no labels/ to check edits against"
-        evaluator_identity, name, description = None, UPPERBODY, "part-aware model for upper-body editing: tokenizer (lower/upper), transformer, text encoder"
+        evaluator_identity, name, description = (
+            None,
+            UPPERBODY,
+            "part-aware model for upper-body editing: tokenizer (lower/upper), transformer, text encoder",
+        )
     else:
-        from mmm.data.humanml3d import load_items, load_stats
-        from mmm.evaluation.protocol import evaluate_text_to_motion
-
         if model.part_aware:
-            raise ValueError(f"run {run_id} is a part-aware model (it edits upper bodies); promote it with `mmm promote upperbody candidate={run_id}`")
+            raise ValueError(
+                f"run {run_id} is a part-aware model (it edits upper bodies); promote it with `mmm promote "
+                f"upperbody candidate={run_id}`"
+            )
 
         evaluator = _evaluator(cfg, uri, required=True)
-        items, _ = load_items(root, cfg.split, feature_dim=cfg.data.feature_dim, fps=cfg.data.fps, min_length=cfg.data.min_length,
-                              length_limit=cfg.data.length_limit, on_invalid=cfg.data.on_invalid)
+        items, _ = load_items(
+            root,
+            cfg.split,
+            feature_dim=cfg.data.feature_dim,
+            fps=cfg.data.fps,
+            min_length=cfg.data.min_length,
+            length_limit=cfg.data.length_limit,
+            on_invalid=cfg.data.on_invalid,
+        )
         mean, std = load_stats(root, cfg.data.feature_dim)
         result = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol, progress=False)
         metrics, intervals = {}, {}
         for which in ("generated", "real"):
             for m, (value, ci) in result[which].items():
                 metrics[f"{which}/{m}"], intervals[f"{which}/{m}"] = value, ci
-        evaluator_identity, name, description = evaluator.identity, TEXT2MOTION, "text-to-motion bundle: tokenizer, transformer, normalization, text encoder"
+        evaluator_identity, name, description = (
+            evaluator.identity,
+            TEXT2MOTION,
+            "text-to-motion bundle: tokenizer, transformer, normalization, text encoder",
+        )
         p = cfg.protocol
-        # Everything the numbers depend on besides the model and the data fingerprint: the split, the protocol (replications, batches,
-        # seed, the retrieval batch size, diversity and multimodality sizes, sampling), the length rules, the crop and the evaluator.
-        protocol = {"split": cfg.split, "evaluator": evaluator.identity, "model.max_frames": model.max_frames, "model.unit": model.unit,
-                    **{f"protocol.{k}": v for k, v in asdict(p).items()}, **_length_rules(cfg.data)}
+        # Everything the numbers depend on besides the model and the data fingerprint: the split, the
+        # protocol (replications, batches,
+        # seed, the retrieval batch size, diversity and multimodality sizes, sampling), the length rules, the
+        # crop and the evaluator.
+        protocol = {
+            "split": cfg.split,
+            "evaluator": evaluator.identity,
+            "model.max_frames": model.max_frames,
+            "model.unit": model.unit,
+            **{f"protocol.{k}": v for k, v in asdict(p).items()},
+            **_length_rules(cfg.data),
+        }
         batches = "all the split's batches" if p.max_batches is None else f"at most {p.max_batches} batches"
-        measured = (f"the text-to-motion protocol on the {cfg.split} split by `mmm promote` with evaluator `{evaluator.identity}`: {p.replications} "
-                    f"replications over {batches} of {p.batch_size}")
+        measured = (
+            f"the text-to-motion protocol on the {cfg.split} split by `mmm promote` with evaluator "
+            f"`{evaluator.identity}`: {p.replications} "
+            f"replications over {batches} of {p.batch_size}"
+        )
     metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
     info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint)
-    # The bundle holds copies of both checkpoints (logged with the model); their digests say which files they are.
-    extra.update({"weights.transformer.sha256": sha256_file(checkpoint), "weights.tokenizer.sha256": sha256_file(tokenizer_checkpoint)})
-    tags = version_tags(_decision_metrics(metrics, intervals, criteria), fingerprint, evaluator_identity, config_hash, extra, protocol=protocol)
-    about = (f"{description[0].upper()}{description[1:]}. An MLflow pyfunc model (`{info.model_uri}`, logged in the candidate's run as "
-             f"`bundle`); stage-1 weights `{extra['stage1.identity']}`, text encoder `{extra['text_encoder']}`.")
+    # The bundle holds copies of both checkpoints (logged with the model); their digests say which files they
+    # are.
+    extra.update(
+        {
+            "weights.transformer.sha256": sha256_file(checkpoint),
+            "weights.tokenizer.sha256": sha256_file(tokenizer_checkpoint),
+        }
+    )
+    tags = version_tags(
+        _decision_metrics(metrics, intervals, criteria),
+        fingerprint,
+        evaluator_identity,
+        config_hash,
+        extra,
+        protocol=protocol,
+    )
+    about = (
+        f"{description[0].upper()}{description[1:]}. An MLflow pyfunc model (`{info.model_uri}`, logged in "
+        "the candidate's run as "
+        f"`bundle`); stage-1 weights `{extra['stage1.identity']}`, text encoder `{extra['text_encoder']}`."
+    )
     version = register_version(client, name, info.model_uri, run_id, tags, about, MODEL_DESCRIPTIONS[name])
-    return promote_version(client, name, version.version, criteria, needs_evaluator=kind == "text2motion", about=about,
-                           measured=measured + _measurements(metrics, intervals))
+    return promote_version(
+        client,
+        name,
+        version.version,
+        criteria,
+        needs_evaluator=kind == "text2motion",
+        about=about,
+        measured=measured + _measurements(metrics, intervals),
+    )
 
 
 def _log_bundle(uri: str, run_id: str, checkpoint: str, tokenizer_checkpoint: str):
     """The bundle logged into the candidate's own run, whose status and end time are then put back:
     its duration in the dashboard stays the training's, not training until promotion."""
-    import mlflow
-
-    from mmm.registry.bundle import log_bundle
-
     mlflow.set_tracking_uri(uri)
     before = mlflow.MlflowClient(uri).get_run(run_id).info
     try:

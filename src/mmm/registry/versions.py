@@ -22,16 +22,28 @@ import fcntl
 import hashlib
 import json
 import math
+import shutil
 import subprocess
+import tempfile
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import urlparse
 
+from mlflow.exceptions import MlflowException
+from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
+
+from mmm import __version__
 from mmm.atomic import sha256_file
-from mmm.tracking import git_commit
+from mmm.kinds import PROMOTABLE
+from mmm.resolve import log_artifact_with_digest
+from mmm.tracking import git_commit, run_link, version_link
 
-TOKENIZER, TEXT2MOTION, EVALUATOR = "mmm-tokenizer", "mmm-text2motion", "mmm-evaluator"
-UPPERBODY = "mmm-upperbody"  # the part-aware model (upper-body editing)
+# The registered models, by what `mmm promote` calls them (kinds.py holds the names).
+TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY = (
+    PROMOTABLE[k].registered for k in ("tokenizer", "text2motion", "evaluator", "upperbody")
+)
 
 
 @dataclass
@@ -56,7 +68,9 @@ def criteria_errors(criteria: list[Criterion], key: str) -> list[str]:
         except (TypeError, ValueError):
             margin = math.nan
         if not math.isfinite(margin) or margin < 0:
-            errors.append(f"{at}.margin={c.margin!r} must be a finite number >= 0 (how much better a candidate must be)")
+            errors.append(
+                f"{at}.margin={c.margin!r} must be a finite number >= 0 (how much better a candidate must be)"
+            )
     return errors
 
 
@@ -76,15 +90,18 @@ CI_SUFFIX = "_ci"  # the protocol's interval of a metric (1.96·std/sqrt(n)), lo
 def code_version() -> str:
     """The git commit of this package's source checkout ("+dirty" when it has changes); for an
     installed (non-editable) package, or without git, the package version ("mmm-motion 0.1.0")."""
-    from mmm import __version__
-
     fallback = f"mmm-motion {__version__}"
     root = Path(__file__).resolve().parents[3]
     commit = git_commit(root)
     if commit is None:
         return fallback
     try:
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         dirty = ""
     return commit + ("+dirty" if dirty else "")
@@ -99,16 +116,33 @@ def protocol_hash(settings: dict) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def version_tags(metrics: dict[str, float], data_fingerprint: str, evaluator: str | None, config_hash: str | None, extra: dict | None = None,
-                 protocol: dict | None = None) -> dict[str, str]:
+def version_tags(
+    metrics: dict[str, float],
+    data_fingerprint: str,
+    evaluator: str | None,
+    config_hash: str | None,
+    extra: dict | None = None,
+    protocol: dict | None = None,
+) -> dict[str, str]:
     """A version's tags: its finite metrics (NaN and infinite values are left out: not measured),
     what they were measured on and with, and `protocol` (how: `protocol.hash`, and the settings
     as JSON in `protocol.settings`)."""
-    tags = {f"metric.{k}": repr(float(v)) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
-    tags.update({"data.fingerprint": data_fingerprint, "evaluator": evaluator or "", "config.hash": config_hash or "", "code.version": code_version()})
+    tags = {
+        f"metric.{k}": repr(float(v)) for k, v in metrics.items() if v is not None and math.isfinite(float(v))
+    }
+    tags.update(
+        {
+            "data.fingerprint": data_fingerprint,
+            "evaluator": evaluator or "",
+            "config.hash": config_hash or "",
+            "code.version": code_version(),
+        }
+    )
     if protocol is not None:
         tags[PROTOCOL_HASH] = protocol_hash(protocol)
-        tags[PROTOCOL_SETTINGS] = json.dumps(protocol, sort_keys=True, default=str)[:4900]  # the store's tag limit is 5000
+        tags[PROTOCOL_SETTINGS] = json.dumps(protocol, sort_keys=True, default=str)[
+            :4900
+        ]  # the store's tag limit is 5000
     tags.update({k: str(v) for k, v in (extra or {}).items()})
     return tags
 
@@ -120,37 +154,47 @@ def freeze_weights(client, run_id: str, checkpoint: str | Path, name: str) -> tu
     digest = sha256_file(checkpoint)
     folder = f"registered/{name}-{digest[:12]}"
     if not any(f.path == f"{folder}/best.ckpt" for f in client.list_artifacts(run_id, folder)):
-        import shutil
-        import tempfile
-
-        from mmm.resolve import log_artifact_with_digest
-
-        with tempfile.TemporaryDirectory() as tmp:  # the artifact keeps its name best.ckpt whatever the local file's
+        with (
+            tempfile.TemporaryDirectory() as tmp
+        ):  # the artifact keeps its name best.ckpt whatever the local file's
             local = Path(tmp) / "best.ckpt"
             shutil.copyfile(checkpoint, local)
-            log_artifact_with_digest(client, run_id, local, folder)  # the run records its digest too (the download cache's key)
+            log_artifact_with_digest(
+                client, run_id, local, folder
+            )  # the run records its digest too (the download cache's key)
     return f"runs:/{run_id}/{folder}", digest
 
 
-def register_version(client, name: str, source: str, run_id: str | None, tags: dict[str, str], description: str = "", model_description: str | None = None):
+def register_version(
+    client,
+    name: str,
+    source: str,
+    run_id: str | None,
+    tags: dict[str, str],
+    description: str = "",
+    model_description: str | None = None,
+):
     """A new version of `name` (created if missing) with `tags`. `source` is runs:/ID/PATH or a
     logged model's models:/m-ID; for the latter the version is registered as the logged model's
     (its id passed along) and the logged model records the version, as `mlflow.register_model`
     does, so the model's page shows it as registered. `model_description`: the registered model's
     own, when this creates it (default: `description`)."""
-    from mlflow.exceptions import MlflowException
-
     try:
         client.get_registered_model(name)
     except MlflowException:
         try:
-            client.create_registered_model(name, tags={"mmm.kind": name.removeprefix("mmm-")},
-                                          description=description if model_description is None else model_description)
+            client.create_registered_model(
+                name,
+                tags={"mmm.kind": name.removeprefix("mmm-")},
+                description=description if model_description is None else model_description,
+            )
         except MlflowException as e:  # another process created it meanwhile
             if "ALREADY_EXISTS" not in str(e.error_code):
                 raise
-    model_id = source[len("models:/"):] if source.startswith("models:/m-") else None
-    version = client.create_model_version(name, source, run_id=run_id, tags=tags, description=description, model_id=model_id)
+    model_id = source[len("models:/") :] if source.startswith("models:/m-") else None
+    version = client.create_model_version(
+        name, source, run_id=run_id, tags=tags, description=description, model_id=model_id
+    )
     if model_id:
         link_logged_model(client, model_id, name, version.version)
     return version
@@ -161,13 +205,13 @@ def link_logged_model(client, model_id: str, name: str, version) -> None:
     `mlflow.modelVersions` tag, a JSON list of {name, version}), which the dashboard reads for the
     model's "Registered" state. A tracking server already writes it when the version is created
     with the model id; an entry already there is not added twice."""
-    from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
-
     existing = client.get_logged_model(model_id).tags.get(MLFLOW_MODEL_VERSIONS)
     entries = json.loads(existing) if existing else []
     if any(e.get("name") == name and str(e.get("version")) == str(version) for e in entries):
         return
-    client.set_logged_model_tags(model_id, {MLFLOW_MODEL_VERSIONS: json.dumps([*entries, {"name": name, "version": version}])})
+    client.set_logged_model_tags(
+        model_id, {MLFLOW_MODEL_VERSIONS: json.dumps([*entries, {"name": name, "version": version}])}
+    )
 
 
 def _metric(version, name: str) -> float | None:
@@ -208,29 +252,60 @@ def _protocol_difference(candidate, champion) -> str | None:
     if ours == theirs:
         return None
     try:
-        a, b = json.loads(candidate.tags.get(PROTOCOL_SETTINGS) or "{}"), json.loads(champion.tags.get(PROTOCOL_SETTINGS) or "{}")
+        a, b = (
+            json.loads(candidate.tags.get(PROTOCOL_SETTINGS) or "{}"),
+            json.loads(champion.tags.get(PROTOCOL_SETTINGS) or "{}"),
+        )
     except ValueError:
         a, b = {}, {}
-    differing = [f"{k} {a.get(k, '-')} vs {b.get(k, '-')}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
-    detail = "; ".join(differing[:6]) if differing else f"protocol {ours or 'not recorded'} vs {theirs or 'not recorded'}"
-    return (f"measured with another protocol than the champion ({detail}): re-evaluate both with the same split, protocol, length "
-            "rules and evaluator to compare")
+    differing = [
+        f"{k} {a.get(k, '-')} vs {b.get(k, '-')}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)
+    ]
+    detail = (
+        "; ".join(differing[:6])
+        if differing
+        else f"protocol {ours or 'not recorded'} vs {theirs or 'not recorded'}"
+    )
+    return (
+        f"measured with another protocol than the champion ({detail}): re-evaluate both with the same split, "
+        "protocol, length "
+        "rules and evaluator to compare"
+    )
 
 
-def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool) -> tuple[bool, str, list[str]]:
+def decide(
+    candidate, champion, criteria: list[Criterion], needs_evaluator: bool
+) -> tuple[bool, str, list[str]]:
     """(promote?, reason, per-metric comparisons) for a candidate version against the champion.
     A candidate without a finite value for every criterion never promotes, champion or not."""
     unmeasured = _unmeasured(candidate, criteria)
     if unmeasured:
-        return False, "not measured: " + "; ".join(unmeasured) + " (a missing, NaN or infinite metric never promotes)", []
+        return (
+            False,
+            "not measured: " + "; ".join(unmeasured) + " (a missing, NaN or infinite metric never promotes)",
+            [],
+        )
     if champion is None:
         return True, "no champion yet", []
     if candidate.tags.get("data.fingerprint") != champion.tags.get("data.fingerprint"):
-        return False, (f"measured on other data (fingerprint {candidate.tags.get('data.fingerprint')} vs the champion's "
-                       f"{champion.tags.get('data.fingerprint')}): re-evaluate both on the same data to compare"), []
+        return (
+            False,
+            (
+                f"measured on other data (fingerprint {candidate.tags.get('data.fingerprint')} vs the "
+                "champion's "
+                f"{champion.tags.get('data.fingerprint')}): re-evaluate both on the same data to compare"
+            ),
+            [],
+        )
     if needs_evaluator and candidate.tags.get("evaluator") != champion.tags.get("evaluator"):
-        return False, (f"measured with another evaluator ({candidate.tags.get('evaluator')} vs the champion's "
-                       f"{champion.tags.get('evaluator')}): re-evaluate both with the same evaluator to compare"), []
+        return (
+            False,
+            (
+                f"measured with another evaluator ({candidate.tags.get('evaluator')} vs the champion's "
+                f"{champion.tags.get('evaluator')}): re-evaluate both with the same evaluator to compare"
+            ),
+            [],
+        )
     protocol = _protocol_difference(candidate, champion)
     if protocol:
         return False, protocol, []
@@ -241,7 +316,10 @@ def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool
             failures.append(f"{c.metric} missing ({'candidate' if new is None else 'champion'})")
             continue
         better = _is_better(c, new, old)
-        line = f"{c.metric}: {new:.4g} vs champion {old:.4g} (needs {_relation(c)} {_target(c, old):.4g}): {'better' if better else 'not better'}"
+        line = (
+            f"{c.metric}: {new:.4g} vs champion {old:.4g} (needs {_relation(c)} {_target(c, old):.4g}): "
+            f"{'better' if better else 'not better'}"
+        )
         comparisons.append(line)
         if not better:
             failures.append(line)
@@ -250,8 +328,15 @@ def decide(candidate, champion, criteria: list[Criterion], needs_evaluator: bool
     return True, "beats the champion on " + ", ".join(c.metric for c in criteria), comparisons
 
 
-def promote_version(client, name: str, version: str, criteria: list[Criterion], needs_evaluator: bool = True, about: str = "",
-                    measured: str = "") -> Decision:
+def promote_version(
+    client,
+    name: str,
+    version: str,
+    criteria: list[Criterion],
+    needs_evaluator: bool = True,
+    about: str = "",
+    measured: str = "",
+) -> Decision:
     """Give `version` of `name` the alias champion (if it beats the current one) or challenger, and
     write why into its description. `about`: what the model is (default: the version's description
     as registered); `measured`: how its metrics were measured (one sentence)."""
@@ -264,11 +349,9 @@ def promote_version(client, name: str, version: str, criteria: list[Criterion], 
 
 def _store_folder(client) -> Path | None:
     """The folder of a local tracking/registry store (sqlite file, file store), None for a server."""
-    from urllib.parse import urlparse
-
     uri = getattr(client, "_registry_uri", None) or client.tracking_uri
     if uri.startswith("sqlite:///"):
-        return Path(uri[len("sqlite:///"):]).resolve().parent
+        return Path(uri[len("sqlite:///") :]).resolve().parent
     parsed = urlparse(uri)
     if parsed.scheme == "file":
         return Path(parsed.path).resolve()
@@ -294,15 +377,21 @@ def promotion_lock(client, name: str):
 
 
 def _champion(client, name: str):
-    from mlflow.exceptions import MlflowException
-
     try:
         return client.get_model_version_by_alias(name, "champion")
     except MlflowException:
         return None
 
 
-def _promote_locked(client, name: str, version: str, criteria: list[Criterion], needs_evaluator: bool, about: str, measured: str) -> Decision:
+def _promote_locked(
+    client,
+    name: str,
+    version: str,
+    criteria: list[Criterion],
+    needs_evaluator: bool,
+    about: str,
+    measured: str,
+) -> Decision:
     candidate = client.get_model_version(name, version)
     champion = _champion(client, name)
     if champion is not None and champion.version == candidate.version:
@@ -323,11 +412,18 @@ def _promote_locked(client, name: str, version: str, criteria: list[Criterion], 
                     client.set_registered_model_alias(name, "champion", candidate.version)
                 else:
                     promoted, alias = False, "challenger"
-                    reason = f"another promotion made v{now.version} champion meanwhile, which this version does not beat"
+                    reason = (
+                        f"another promotion made v{now.version} champion meanwhile, which this version does "
+                        "not beat"
+                    )
                     client.set_registered_model_alias(name, alias, candidate.version)
         client.set_model_version_tag(name, candidate.version, "promotion", f"{alias}: {reason}")
-        decision = Decision(promoted, alias, reason, candidate.version, champion.version if champion else None, comparisons)
-    text = describe_version(client, name, candidate, champion, criteria, decision, about or _registered_about(candidate), measured)
+        decision = Decision(
+            promoted, alias, reason, candidate.version, champion.version if champion else None, comparisons
+        )
+    text = describe_version(
+        client, name, candidate, champion, criteria, decision, about or _registered_about(candidate), measured
+    )
     client.update_model_version(name, candidate.version, description=text)
     if decision.promoted and champion is not None and champion.version != candidate.version:
         _note_replaced(client, name, champion, candidate.version)
@@ -336,12 +432,10 @@ def _promote_locked(client, name: str, version: str, criteria: list[Criterion], 
 
 def _note_replaced(client, name: str, previous, version) -> None:
     """Tell the previous champion's description who took the alias, and when."""
-    import time
-
-    from mmm.tracking import version_link
-
     note = f"- **Replaced** as champion by {version_link(name, version)} on {time.strftime('%Y-%m-%d %H:%M')}"
-    client.update_model_version(name, previous.version, description="\n".join(filter(None, [previous.description or "", note])))
+    client.update_model_version(
+        name, previous.version, description="\n".join(filter(None, [previous.description or "", note]))
+    )
 
 
 _DESCRIPTION_TITLE = "### "
@@ -361,13 +455,18 @@ def _value(version, metric: str) -> str:
     return f"{value:.4g}" + (f" ± {ci:.2g}" if ci is not None else "")
 
 
-def describe_version(client, name: str, candidate, champion, criteria: list[Criterion], decision: Decision, about: str = "", measured: str = "") -> str:
+def describe_version(
+    client,
+    name: str,
+    candidate,
+    champion,
+    criteria: list[Criterion],
+    decision: Decision,
+    about: str = "",
+    measured: str = "",
+) -> str:
     """The version's markdown description: what it is, the criteria with both values and the
     margin needed, the verdict and its reason, the run that measured it, the previous champion."""
-    from mlflow.exceptions import MlflowException
-
-    from mmm.tracking import run_link, version_link
-
     tags = candidate.tags
     verdict = "promoted to `champion`" if decision.promoted else "`challenger`, not promoted"
     lines = [f"{_DESCRIPTION_TITLE}{name} v{candidate.version}: {verdict}", ""]
@@ -376,7 +475,11 @@ def describe_version(client, name: str, candidate, champion, criteria: list[Crit
     lines += [f"**Verdict: {decision.alias}.** {decision.reason[:1].upper()}{decision.reason[1:]}.", ""]
     compared = champion is not None and not decision.reason.startswith("measured ")
     champion_head = f"champion (v{champion.version})" if champion is not None else "champion"
-    lines += [f"| criterion | mode | margin | candidate (v{candidate.version}) | {champion_head} | needs | result |", "|---|---|---|---|---|---|---|"]
+    lines += [
+        f"| criterion | mode | margin | candidate (v{candidate.version}) | {champion_head} | needs | result "
+        "|",
+        "|---|---|---|---|---|---|---|",
+    ]
     for c in criteria:
         new, old = _metric(candidate, c.metric), _metric(champion, c.metric) if champion is not None else None
         if champion is None:
@@ -392,30 +495,41 @@ def describe_version(client, name: str, candidate, champion, criteria: list[Crit
             else:
                 result = "better" if _is_better(c, new, old) else "not better"
         mode = "min (lower is better)" if c.mode == "min" else "max (higher is better)"
-        lines.append(f"| `{c.metric}` | {mode} | {c.margin:g} | {_value(candidate, c.metric)} | "
-                     f"{_value(champion, c.metric) if champion is not None else '-'} | {needs} | {result} |")
+        lines.append(
+            f"| `{c.metric}` | {mode} | {c.margin:g} | {_value(candidate, c.metric)} | "
+            f"{_value(champion, c.metric) if champion is not None else '-'} | {needs} | {result} |"
+        )
     lines.append("")
     if any(_metric(candidate, c.metric + CI_SUFFIX) is not None for c in criteria):
         lines += ["± : the 95% confidence interval over the protocol's replications (1.96·std/sqrt(n)).", ""]
     facts = []
     if measured:
         facts.append(f"- **Measured**: {measured}")
-    facts.append(f"- **Data** `{tags.get('data.fingerprint') or '?'}`" + (f", evaluator `{tags['evaluator']}`" if tags.get("evaluator") else ""))
+    facts.append(
+        f"- **Data** `{tags.get('data.fingerprint') or '?'}`"
+        + (f", evaluator `{tags['evaluator']}`" if tags.get("evaluator") else "")
+    )
     if tags.get(PROTOCOL_HASH):
         try:
             settings = json.loads(tags.get(PROTOCOL_SETTINGS) or "{}")
         except ValueError:
             settings = {}
         readable = ", ".join(f"{k} `{v}`" for k, v in sorted(settings.items()))
-        facts.append(f"- **Protocol** `{tags[PROTOCOL_HASH]}`" + (f": {readable}" if readable else "")
-                     + " (only versions measured with the same protocol are compared)")
+        facts.append(
+            f"- **Protocol** `{tags[PROTOCOL_HASH]}`"
+            + (f": {readable}" if readable else "")
+            + " (only versions measured with the same protocol are compared)"
+        )
     if tags.get(WEIGHTS_SHA256):
         facts.append(f"- **Weights** sha256 `{tags[WEIGHTS_SHA256]}` (checked when the version is loaded)")
     if candidate.run_id:
         try:
             run = client.get_run(candidate.run_id)
-            facts.append(f"- **Run**: {run_link(run.info.experiment_id, run.info.run_id, run.info.run_name or run.info.run_id)} "
-                         "(the model's own run: its training curves and files)")
+            facts.append(
+                f"- **Run**: "
+                f"{run_link(run.info.experiment_id, run.info.run_id, run.info.run_name or run.info.run_id)} "
+                "(the model's own run: its training curves and files)"
+            )
         except MlflowException:
             facts.append(f"- **Run**: `{candidate.run_id}` (no longer in this store)")
     if decision.reason == "already the champion":
@@ -425,7 +539,10 @@ def describe_version(client, name: str, candidate, champion, criteria: list[Crit
         facts.append(f"- **Previous champion**: {version_link(name, decision.previous_champion)} ({after})")
     else:
         facts.append("- **Previous champion**: none (the first version promoted)")
-    facts.append(f"- **Source** `{candidate.source}`; code `{tags.get('code.version') or '?'}`, config hash `{tags.get('config.hash') or '-'}`")
+    facts.append(
+        f"- **Source** `{candidate.source}`; code `{tags.get('code.version') or '?'}`, config hash "
+        f"`{tags.get('config.hash') or '-'}`"
+    )
     return "\n".join(lines + facts)
 
 
@@ -438,8 +555,6 @@ def _verdict(version) -> str:
 def list_models(client, names=(TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY)) -> str:
     """A text table of every version of the package's registered models: its aliases, then its
     promotion's verdict and reason, then its metrics and data."""
-    from mlflow.exceptions import MlflowException
-
     lines = []
     for name in names:
         try:
@@ -453,8 +568,11 @@ def list_models(client, names=(TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY)) ->
         lines.append(f"{name}:")
         versions = sorted(client.search_model_versions(f"name='{name}'"), key=lambda v: int(v.version))
         for v in versions:
-            metrics = ", ".join(f"{k[7:]}={float(val):.4g}" for k, val in sorted(v.tags.items())
-                                if k.startswith("metric.") and not k.endswith(CI_SUFFIX) and val not in ("", None))
+            metrics = ", ".join(
+                f"{k[7:]}={float(val):.4g}"
+                for k, val in sorted(v.tags.items())
+                if k.startswith("metric.") and not k.endswith(CI_SUFFIX) and val not in ("", None)
+            )
             mark = ",".join(sorted(aliases.get(str(v.version), []))) or "-"
             lines.append(f"  v{v.version:<3} {mark:<12} {_verdict(v)}")
             lines.append(f"       data {v.tags.get('data.fingerprint') or '?'}  {metrics}")

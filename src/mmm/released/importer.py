@@ -18,26 +18,52 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import mlflow
 import numpy as np
 import torch
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 
 from mmm.atomic import atomic_write, sha256_file
-from mmm.released.keys import ReleasedKeyError, tokenizer_from_released, transformer_from_released
+from mmm.data.normalization import read_stats_folder
+from mmm.fingerprint import tensors_fingerprint
+from mmm.registry.bundle import log_bundle
+from mmm.registry.versions import TEXT2MOTION, TOKENIZER, register_version, version_tags
+from mmm.released.keys import (
+    ReleasedKeyError,
+    tokenizer_from_released,
+    tokenizer_to_released,
+    transformer_from_released,
+    transformer_to_released,
+)
+from mmm.resolve import log_artifact_with_digest
+from mmm.text import build_text_encoder
+from mmm.text.clip import find_vocab
+from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tracking import artifact_location, prepare_experiment, resolve_tracking_uri
+from mmm.training.optim import OptimConfig
+from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
 
 log = logging.getLogger(__name__)
 
 EXPERIMENT = "mmm-import"
 IMPORTED_TAG = "mmm.imported"
 UPPER_BODY_REFUSAL = (
-    "the released upper-body pair cannot be mapped onto this package's part-aware model: its two-part tokenizer moves the "
-    "upper-body joint heights to the root (subtracting the root height) and renormalizes them with statistics of its own "
-    "before encoding, and undoes that after decoding; this package's part-aware tokenizer has no such step, so the "
-    "released codes would decode into wrong upper bodies (no training script was released for it either, so its "
-    "settings cannot be reproduced). Train the part-aware model here instead: make train-stage1-parts train-stage2-parts"
+    "the released upper-body pair cannot be mapped onto this package's part-aware model: its two-part "
+    "tokenizer moves the "
+    "upper-body joint heights to the root (subtracting the root height) and renormalizes them with "
+    "statistics of its own "
+    "before encoding, and undoes that after decoding; this package's part-aware tokenizer has no such step, "
+    "so the "
+    "released codes would decode into wrong upper bodies (no training script was released for it either, so "
+    "its "
+    "settings cannot be reproduced). Train the part-aware model here instead: make train-stage1-parts "
+    "train-stage2-parts"
 )
 
 
@@ -63,11 +89,15 @@ def read_released(path: str | Path, key: str, what: str) -> dict[str, torch.Tens
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # a truncated file, another format, a pickle that needs code
-        raise ImportRefused(f"{path}: cannot be read as a released {what} checkpoint with weights_only=True "
-                            f"({type(e).__name__}: {str(e).splitlines()[0][:200]}); download it again") from None
+        raise ImportRefused(
+            f"{path}: cannot be read as a released {what} checkpoint with weights_only=True "
+            f"({type(e).__name__}: {str(e).splitlines()[0][:200]}); download it again"
+        ) from None
     if not isinstance(obj, dict) or not isinstance(obj.get(key), dict):
         found = sorted(obj)[:6] if isinstance(obj, dict) else type(obj).__name__
-        raise ImportRefused(f"{path}: a released {what} checkpoint is {{'{key}': state_dict}}, this holds {found}")
+        raise ImportRefused(
+            f"{path}: a released {what} checkpoint is {{'{key}': state_dict}}, this holds {found}"
+        )
     state = obj[key]
     bad = [k for k, v in state.items() if not torch.is_tensor(v)]
     if bad:
@@ -80,11 +110,11 @@ def read_released(path: str | Path, key: str, what: str) -> dict[str, torch.Tens
 def read_stats(folder: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarray, str]:
     """(mean, std, sha256 of both) from mean.npy/std.npy (the T2M evaluator's meta folder, which
     the release normalizes with) or Mean.npy/Std.npy in `folder`."""
-    from mmm.data.normalization import read_stats_folder
-
     if not Path(folder).is_dir():
-        raise FileNotFoundError(f"--stats {folder}: no such folder; give the folder with the mean.npy/std.npy the release was "
-                                "trained with (the T2M evaluator's checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta)")
+        raise FileNotFoundError(
+            f"--stats {folder}: no such folder; give the folder with the mean.npy/std.npy the release was "
+            "trained with (the T2M evaluator's checkpoints/t2m/VQVAEV3_CB1024_CMT_H1024_NRES3/meta)"
+        )
     mean, std = read_stats_folder(folder, feature_dim)
     return mean, std, hashlib.sha256(mean.tobytes() + std.tobytes()).hexdigest()
 
@@ -96,52 +126,78 @@ def _save_atomic(obj: dict, path: Path) -> None:
 
 def build_tokenizer(net: dict[str, torch.Tensor], source: str, mean: np.ndarray, std: np.ndarray):
     """A TokenizerModule holding the released stage-1 weights and the statistics it normalizes with."""
-    from mmm.tokenizer.module import OptimConfig, TokenizerLossConfig, TokenizerModule
-
     state, sizes = tokenizer_from_released(net, source)
-    module = TokenizerModule(sizes.feature_dim, sizes.config(), OptimConfig(), TokenizerLossConfig(), mean, std)
+    module = TokenizerModule(
+        sizes.feature_dim, sizes.config(), OptimConfig(), TokenizerLossConfig(), mean, std
+    )
     module.load_state_dict({**state, "mean": torch.as_tensor(mean), "std": torch.as_tensor(std)}, strict=True)
     return module.eval()
 
 
-def build_transformer(trans: dict[str, torch.Tensor], source: str, tokenizer, stage1: dict, text_encoder, text: dict, heads: int | None):
+def build_transformer(
+    trans: dict[str, torch.Tensor],
+    source: str,
+    tokenizer,
+    stage1: dict,
+    text_encoder,
+    text: dict,
+    heads: int | None,
+):
     """A MaskedTransformerModule (variant released) holding the released stage-2 weights; the stage-1
     model embedded in the file must be `tokenizer`'s."""
-    from mmm.released.keys import tokenizer_to_released
-    from mmm.tokenizer.module import OptimConfig
-    from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
-
     state, vq, sizes = transformer_from_released(trans, source)
     ours = tokenizer_to_released(tokenizer.state_dict(), tokenizer.model_cfg, tokenizer.tokenizer.feature_dim)
-    differ = sorted(k for k in set(ours) | set(vq) if k not in vq or k not in ours or not torch.equal(vq[k].float(), ours[k].float()))
+    differ = sorted(
+        k
+        for k in set(ours) | set(vq)
+        if k not in vq or k not in ours or not torch.equal(vq[k].float(), ours[k].float())
+    )
     if differ:
-        raise ImportRefused(f"{source}: the stage-1 model inside it (trans_base.vqvae.*) is not the one given with --vq "
-                            f"(first differing entries: {', '.join(differ[:4])}); give the VQ-VAE this transformer was trained with")
+        raise ImportRefused(
+            f"{source}: the stage-1 model inside it (trans_base.vqvae.*) is not the one given with --vq "
+            f"(first differing entries: {', '.join(differ[:4])}); give the VQ-VAE this transformer was "
+            "trained with"
+        )
     if (sizes.sentence_dim, sizes.word_dim) != (text_encoder.sentence_dim, text_encoder.word_dim):
-        raise ImportRefused(f"{source}: it reads {sizes.sentence_dim}-d sentence and {sizes.word_dim}-d word features, the text encoder "
-                            f"gives {text_encoder.sentence_dim}/{text_encoder.word_dim}")
+        raise ImportRefused(
+            f"{source}: it reads {sizes.sentence_dim}-d sentence and {sizes.word_dim}-d word features, the "
+            "text encoder "
+            f"gives {text_encoder.sentence_dim}/{text_encoder.word_dim}"
+        )
     heads = heads or max(1, sizes.embed_dim // 64)  # the release's heads are 64 wide (16 at E = 1024)
     if sizes.embed_dim % heads:
         raise ImportRefused(f"--heads {heads} does not divide the embedding width {sizes.embed_dim}")
     # The release's stage-2 recipe: AdamW (0.5, 0.9), lr 2e-4, x0.05 at 150k, no warm-up, no text dropout.
-    optim = OptimConfig(lr=2e-4, betas=[0.5, 0.9], weight_decay=1e-6, warmup_steps=0, milestones=[150_000], gamma=0.05)
+    optim = OptimConfig(
+        lr=2e-4, betas=[0.5, 0.9], weight_decay=1e-6, warmup_steps=0, milestones=[150_000], gamma=0.05
+    )
     codebook = tokenizer.tokenizer.codebook.detach().cpu()
-    module = MaskedTransformerModule(codebook, sizes.config(heads), optim, CorruptionConfig(cond_drop=0.0),
-                                     sizes.sentence_dim, sizes.word_dim, stage1, text)
+    module = MaskedTransformerModule(
+        codebook,
+        sizes.config(heads),
+        optim,
+        CorruptionConfig(cond_drop=0.0),
+        sizes.sentence_dim,
+        sizes.word_dim,
+        stage1,
+        text,
+    )
     module.load_state_dict({**state, "transformer.codebook": codebook}, strict=True)
     return module.eval()
 
 
 def released_text_encoder(clip: str | Path, vocab: str | Path | None):
     """CLIP ViT-B/32 as the release computes it: float16, all 77 word positions."""
-    from mmm.text import build_text_encoder
-
-    options = {"weights": str(clip), "vocab": str(vocab) if vocab else None, "activation": "quick_gelu", "precision": "float16", "words": "all"}
+    options = {
+        "weights": str(clip),
+        "vocab": str(vocab) if vocab else None,
+        "activation": "quick_gelu",
+        "precision": "float16",
+        "words": "all",
+    }
     encoder = build_text_encoder("clip", **{k: v for k, v in options.items() if v is not None})
     vocab_path = str(vocab) if vocab else None
     if vocab_path is None:
-        from mmm.text.clip import find_vocab
-
         vocab_path = str(find_vocab())
     options["vocab"] = vocab_path
     return encoder, {"name": encoder.name, "identity": encoder.identity, **options}
@@ -149,8 +205,6 @@ def released_text_encoder(clip: str | Path, vocab: str | Path | None):
 
 def _existing(client, name: str, tags: dict[str, str]):
     """A version of `name` imported from exactly these files, or None."""
-    from mlflow.exceptions import MlflowException
-
     try:
         versions = client.search_model_versions(f"name='{name}'")
     except MlflowException:
@@ -175,20 +229,25 @@ def import_released(
     register: bool = True,
 ) -> ImportedModels:
     """Import the released stage-1 (and stage-2) checkpoints; see the module docstring."""
-    from mmm.fingerprint import tensors_fingerprint
-
     if alias == "champion":
-        raise ImportRefused("--alias champion: the champion alias moves only when `mmm promote` measures a model better than the "
-                            "current one; import under another alias, then promote: mmm promote text2motion candidate=RUN_ID")
+        raise ImportRefused(
+            "--alias champion: the champion alias moves only when `mmm promote` measures a model better than "
+            "the "
+            "current one; import under another alias, then promote: mmm promote text2motion candidate=RUN_ID"
+        )
     if transformer is not None and clip is None:
-        raise ImportRefused("--transformer needs --clip PATH: the released transformer reads OpenAI CLIP ViT-B/32 features "
-                            "(OpenAI's ViT-B-32.pt, or open_clip's ViT-B-32 OpenAI weights)")
+        raise ImportRefused(
+            "--transformer needs --clip PATH: the released transformer reads OpenAI CLIP ViT-B/32 features "
+            "(OpenAI's ViT-B-32.pt, or open_clip's ViT-B-32 OpenAI weights)"
+        )
     net = read_released(vq, "net", "stage-1 (VQ-VAE)")
     trans = read_released(transformer, "trans", "stage-2 (transformer)") if transformer is not None else None
     try:
         feature_dim = int(net["vqvae.encoder.model.0.weight"].shape[1])
     except KeyError:
-        raise ImportRefused(f"{vq}: not a released stage-1 (VQ-VAE) checkpoint: missing vqvae.encoder.model.0.weight") from None
+        raise ImportRefused(
+            f"{vq}: not a released stage-1 (VQ-VAE) checkpoint: missing vqvae.encoder.model.0.weight"
+        ) from None
     mean, std, stats_sha = read_stats(stats, feature_dim)
     sources = {"source.vq.sha256": sha256_file(vq), "source.stats.sha256": stats_sha}
     # Everything is read, mapped and checked before anything is written.
@@ -196,43 +255,69 @@ def import_released(
     tokenizer_identity = tensors_fingerprint(tokenizer.state_dict())
     folder = Path(out_dir) / f"released-{sources['source.vq.sha256'][:12]}"
     tokenizer_path = folder / "tokenizer.ckpt"
-    imported = {"from": "released", "vq": str(Path(vq).resolve()), "stats": str(Path(stats).resolve()), **sources}
+    imported = {
+        "from": "released",
+        "vq": str(Path(vq).resolve()),
+        "stats": str(Path(stats).resolve()),
+        **sources,
+    }
     module = None
     if trans is not None:
-        sources.update({"source.transformer.sha256": sha256_file(transformer), "source.clip.sha256": sha256_file(clip)})
+        sources.update(
+            {"source.transformer.sha256": sha256_file(transformer), "source.clip.sha256": sha256_file(clip)}
+        )
         encoder, text = released_text_encoder(clip, clip_vocab)
-        stage1 = {"reference": str(tokenizer_path), "run_id": None, "identity": tokenizer_identity, "checkpoint": str(tokenizer_path.resolve())}
+        stage1 = {
+            "reference": str(tokenizer_path),
+            "run_id": None,
+            "identity": tokenizer_identity,
+            "checkpoint": str(tokenizer_path.resolve()),
+        }
         module = build_transformer(trans, str(transformer), tokenizer, stage1, encoder, text, heads)
-    _save_atomic({"state_dict": tokenizer.state_dict(), "hyper_parameters": dict(tokenizer.hparams), "imported": imported,
-                  "epoch": 0, "global_step": 0}, tokenizer_path)
+    _save_atomic(
+        {
+            "state_dict": tokenizer.state_dict(),
+            "hyper_parameters": dict(tokenizer.hparams),
+            "imported": imported,
+            "epoch": 0,
+            "global_step": 0,
+        },
+        tokenizer_path,
+    )
     result = ImportedModels(str(tokenizer_path), None, alias=alias if register else None)
     if module is not None:
         transformer_path = folder / f"transformer-{sources['source.transformer.sha256'][:12]}.ckpt"
-        _save_atomic({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                      "imported": {**imported, "transformer": str(Path(transformer).resolve()), **sources}, "epoch": 0, "global_step": 0},
-                     transformer_path)
+        _save_atomic(
+            {
+                "state_dict": module.state_dict(),
+                "hyper_parameters": dict(module.hparams),
+                "imported": {**imported, "transformer": str(Path(transformer).resolve()), **sources},
+                "epoch": 0,
+                "global_step": 0,
+            },
+            transformer_path,
+        )
         result.transformer_checkpoint = str(transformer_path)
     if register:
         _register(result, sources, tokenizer_identity, tracking_uri, artifact_root)
     return result
 
 
-def _register(result: ImportedModels, sources: dict[str, str], tokenizer_identity: str, tracking_uri: str, artifact_root: str) -> None:
+def _register(
+    result: ImportedModels,
+    sources: dict[str, str],
+    tokenizer_identity: str,
+    tracking_uri: str,
+    artifact_root: str,
+) -> None:
     """Log each checkpoint as a run of mmm-import, register it and set the alias (or reuse the
     versions an earlier import of the same files registered)."""
-    import shutil
-
-    import mlflow
-    from mlflow.tracking import MlflowClient
-
-    from mmm.registry.versions import TEXT2MOTION, TOKENIZER, register_version, version_tags
-    from mmm.tracking import artifact_location, resolve_tracking_uri
-
     uri = resolve_tracking_uri(tracking_uri)
     client = MlflowClient(uri)
-    from mmm.tracking import prepare_experiment
 
-    experiment_id = prepare_experiment(client, EXPERIMENT, artifact_location(uri, artifact_root))  # another process creating it too is fine
+    experiment_id = prepare_experiment(
+        client, EXPERIMENT, artifact_location(uri, artifact_root)
+    )  # another process creating it too is fine
     mlflow.set_tracking_uri(uri)
     base_tags = {IMPORTED_TAG: "released", **sources}
 
@@ -240,7 +325,9 @@ def _register(result: ImportedModels, sources: dict[str, str], tokenizer_identit
         wanted = {IMPORTED_TAG: "released", **{k: sources[k] for k in keys}}
         version = _existing(client, name, wanted)
         if version is None:
-            with mlflow.start_run(experiment_id=experiment_id, run_name=f"import-{name.removeprefix('mmm-')}") as run:
+            with mlflow.start_run(
+                experiment_id=experiment_id, run_name=f"import-{name.removeprefix('mmm-')}"
+            ) as run:
                 mlflow.set_tags({**wanted, "mmm.stage": "import"})
                 source = log(run.info.run_id)
             tags = version_tags({}, "", None, None, {**wanted, "tokenizer.identity": tokenizer_identity})
@@ -250,36 +337,43 @@ def _register(result: ImportedModels, sources: dict[str, str], tokenizer_identit
         client.set_registered_model_alias(name, result.alias, version.version)
         return str(version.version)
 
-    from mmm.resolve import log_artifact_with_digest
-
     def log_tokenizer(run_id: str) -> str:
         with tempfile.TemporaryDirectory() as tmp:
             staged = Path(tmp) / "best.ckpt"
             shutil.copyfile(result.tokenizer_checkpoint, staged)
-            log_artifact_with_digest(client, run_id, staged, "checkpoints")  # its sha256 keys the download cache
+            log_artifact_with_digest(
+                client, run_id, staged, "checkpoints"
+            )  # its sha256 keys the download cache
         return f"runs:/{run_id}/checkpoints"
 
-    result.tokenizer_version = registered(TOKENIZER, ["source.vq.sha256", "source.stats.sha256"], log_tokenizer,
-                                          "the authors' released VQ-VAE, imported (mmm import released)")
+    result.tokenizer_version = registered(
+        TOKENIZER,
+        ["source.vq.sha256", "source.stats.sha256"],
+        log_tokenizer,
+        "the authors' released VQ-VAE, imported (mmm import released)",
+    )
     if result.transformer_checkpoint:
-        from mmm.registry.bundle import log_bundle
 
         def log_text2motion(run_id: str) -> str:
             with tempfile.TemporaryDirectory() as tmp:
                 staged = Path(tmp) / "best.ckpt"
                 shutil.copyfile(result.transformer_checkpoint, staged)
                 log_artifact_with_digest(client, run_id, staged, "checkpoints")
-            return log_bundle(result.transformer_checkpoint, result.tokenizer_checkpoint, artifact_path="bundle").model_uri
+            return log_bundle(
+                result.transformer_checkpoint, result.tokenizer_checkpoint, artifact_path="bundle"
+            ).model_uri
 
-        result.text2motion_version = registered(TEXT2MOTION, list(base_tags.keys() - {IMPORTED_TAG}), log_text2motion,
-                                                "the authors' released transformer with its VQ-VAE and CLIP text encoder, imported")
+        result.text2motion_version = registered(
+            TEXT2MOTION,
+            list(base_tags.keys() - {IMPORTED_TAG}),
+            log_text2motion,
+            "the authors' released transformer with its VQ-VAE and CLIP text encoder, imported",
+        )
 
 
 def export_released(tokenizer, transformer=None) -> tuple[dict, dict | None]:
     """({"net": ...}, {"trans": ...} or None) in the released file layout, from a TokenizerModule and
     a released-variant MaskedMotionTransformer (e.g. `TextToMotion.load(...)`'s)."""
-    from mmm.released.keys import tokenizer_to_released, transformer_to_released
-
     net = tokenizer_to_released(tokenizer.state_dict(), tokenizer.model_cfg, tokenizer.tokenizer.feature_dim)
     if transformer is None:
         return {"net": net}, None
@@ -291,4 +385,11 @@ def export_released(tokenizer, transformer=None) -> tuple[dict, dict | None]:
     return {"net": net}, {"trans": trans}
 
 
-__all__ = ["ImportRefused", "ImportedModels", "ReleasedKeyError", "UPPER_BODY_REFUSAL", "export_released", "import_released"]
+__all__ = [
+    "ImportRefused",
+    "ImportedModels",
+    "ReleasedKeyError",
+    "UPPER_BODY_REFUSAL",
+    "export_released",
+    "import_released",
+]

@@ -30,8 +30,11 @@ class ReleasedKeyError(ValueError):
 def _check(given: Mapping[str, torch.Tensor], expected: dict[str, tuple], source: str, what: str) -> None:
     missing = sorted(set(expected) - set(given))
     extra = sorted(set(given) - set(expected))
-    wrong = [f"{k} {tuple(given[k].shape)} (expected {expected[k]})" for k in sorted(set(given) & set(expected))
-             if tuple(given[k].shape) != expected[k]]
+    wrong = [
+        f"{k} {tuple(given[k].shape)} (expected {expected[k]})"
+        for k in sorted(set(given) & set(expected))
+        if tuple(given[k].shape) != expected[k]
+    ]
     problems = []
     if missing:
         problems.append(f"missing {', '.join(missing[:8])}{' ...' if len(missing) > 8 else ''}")
@@ -68,8 +71,14 @@ class ReleasedVQSizes:
     depth: int
 
     def config(self, dilation_growth: int = 3) -> TokenizerConfig:
-        return TokenizerConfig(width=self.width, num_codes=self.num_codes, code_dim=self.code_dim, down_t=self.down_t, depth=self.depth,
-                               dilation_growth=dilation_growth)
+        return TokenizerConfig(
+            width=self.width,
+            num_codes=self.num_codes,
+            code_dim=self.code_dim,
+            down_t=self.down_t,
+            depth=self.depth,
+            dilation_growth=dilation_growth,
+        )
 
 
 def vq_sizes(net: Mapping[str, torch.Tensor], source: str) -> ReleasedVQSizes:
@@ -80,8 +89,18 @@ def vq_sizes(net: Mapping[str, torch.Tensor], source: str) -> ReleasedVQSizes:
         down_t += 1
     depth = _count(net, "vqvae.encoder.model.2.1.model.{}.conv1.weight")
     if down_t < 1 or depth < 1:
-        raise ReleasedKeyError(f"{source}: not a released stage-1 (VQ-VAE) checkpoint: no down-sampling blocks vqvae.encoder.model.2.*")
-    return ReleasedVQSizes(int(first.shape[1]), int(first.shape[0]), int(codebook.shape[1]), int(codebook.shape[0]), down_t, depth)
+        raise ReleasedKeyError(
+            f"{source}: not a released stage-1 (VQ-VAE) checkpoint: no down-sampling blocks "
+            "vqvae.encoder.model.2.*"
+        )
+    return ReleasedVQSizes(
+        int(first.shape[1]),
+        int(first.shape[0]),
+        int(codebook.shape[1]),
+        int(codebook.shape[0]),
+        down_t,
+        depth,
+    )
 
 
 def _vq_names(s: ReleasedVQSizes) -> dict[str, str]:
@@ -141,7 +160,9 @@ def _vq_shapes(s: ReleasedVQSizes) -> dict[str, tuple]:
     return shapes
 
 
-def tokenizer_from_released(net: Mapping[str, torch.Tensor], source: str) -> tuple[dict[str, torch.Tensor], ReleasedVQSizes]:
+def tokenizer_from_released(
+    net: Mapping[str, torch.Tensor], source: str
+) -> tuple[dict[str, torch.Tensor], ReleasedVQSizes]:
     """TokenizerModule tensors (without mean/std) of a released stage-1 state dict, and its sizes.
 
     The EMA statistics are not in the release: they restart from the codebook (count 1 per code),
@@ -157,7 +178,9 @@ def tokenizer_from_released(net: Mapping[str, torch.Tensor], source: str) -> tup
     return state, sizes
 
 
-def tokenizer_to_released(state: Mapping[str, torch.Tensor], cfg: TokenizerConfig, feature_dim: int) -> dict[str, torch.Tensor]:
+def tokenizer_to_released(
+    state: Mapping[str, torch.Tensor], cfg: TokenizerConfig, feature_dim: int
+) -> dict[str, torch.Tensor]:
     """The released stage-1 state dict (`net`) of a TokenizerModule state dict."""
     sizes = ReleasedVQSizes(feature_dim, cfg.width, cfg.code_dim, cfg.num_codes, cfg.down_t, cfg.depth)
     return {released: state[ours].detach().clone() for released, ours in _vq_names(sizes).items()}
@@ -179,11 +202,18 @@ class ReleasedTransformerSizes:
 
     def config(self, num_heads: int, dropout: float = 0.1) -> TransformerConfig:
         if self.mlp_dim % self.embed_dim:
-            raise ReleasedKeyError(f"MLP width {self.mlp_dim} is not a multiple of the embedding {self.embed_dim}")
+            raise ReleasedKeyError(
+                f"MLP width {self.mlp_dim} is not a multiple of the embedding {self.embed_dim}"
+            )
         return TransformerConfig(
-            embed_dim=self.embed_dim, num_heads=num_heads, num_layers=self.cross_layers + self.base_layers + self.head_layers,
-            num_cross_layers=self.cross_layers, mlp_ratio=self.mlp_dim // self.embed_dim, dropout=dropout,
-            max_tokens=self.block_size - 1, variant="released",
+            embed_dim=self.embed_dim,
+            num_heads=num_heads,
+            num_layers=self.cross_layers + self.base_layers + self.head_layers,
+            num_cross_layers=self.cross_layers,
+            mlp_ratio=self.mlp_dim // self.embed_dim,
+            dropout=dropout,
+            max_tokens=self.block_size - 1,
+            variant="released",
         )
 
 
@@ -197,12 +227,20 @@ def transformer_sizes(trans: Mapping[str, torch.Tensor], source: str) -> Release
     word = trans.get("trans_base.word_emb.weight")
     block = trans.get("trans_base.blocks.0.mlp.0.weight", trans.get("trans_head.blocks.0.mlp.0.weight"))
     if block is None:
-        raise ReleasedKeyError(f"{source}: not a released {what} checkpoint: missing trans_base.blocks.0.mlp.0.weight")
+        raise ReleasedKeyError(
+            f"{source}: not a released {what} checkpoint: missing trans_base.blocks.0.mlp.0.weight"
+        )
     return ReleasedTransformerSizes(
-        embed_dim=int(to_emb.shape[0]), code_dim=int(to_emb.shape[1]), num_codes=int(head.shape[0]), sentence_dim=int(cond.shape[1]),
-        word_dim=int(word.shape[1]) if word is not None else int(cond.shape[1]), cross_layers=cross,
-        base_layers=_count(trans, "trans_base.blocks.{}.ln1.weight"), head_layers=_count(trans, "trans_head.blocks.{}.ln1.weight"),
-        mlp_dim=int(block.shape[0]), block_size=int(table.shape[0]),
+        embed_dim=int(to_emb.shape[0]),
+        code_dim=int(to_emb.shape[1]),
+        num_codes=int(head.shape[0]),
+        sentence_dim=int(cond.shape[1]),
+        word_dim=int(word.shape[1]) if word is not None else int(cond.shape[1]),
+        cross_layers=cross,
+        base_layers=_count(trans, "trans_base.blocks.{}.ln1.weight"),
+        head_layers=_count(trans, "trans_head.blocks.{}.ln1.weight"),
+        mlp_dim=int(block.shape[0]),
+        block_size=int(table.shape[0]),
     )
 
 
@@ -210,34 +248,60 @@ def _block_names(released: str, ours: str, cross: bool) -> dict[str, str]:
     """Released block -> ours, for everything but the fused key/value projection."""
     names = {}
     norms = {"ln1": "ln_x", "ln2": "ln2", "ln3": "ln_words"} if cross else {"ln1": "ln1", "ln2": "ln2"}
-    for theirs, mine in {**norms, "attn.query": "attn.q", "attn.proj": "attn.out", "mlp.0": "mlp.0", "mlp.2": "mlp.2"}.items():
+    for theirs, mine in {
+        **norms,
+        "attn.query": "attn.q",
+        "attn.proj": "attn.out",
+        "mlp.0": "mlp.0",
+        "mlp.2": "mlp.2",
+    }.items():
         for p in ("weight", "bias"):
             names[f"{released}.{theirs}.{p}"] = f"{ours}.{mine}.{p}"
     return names
 
 
-def _transformer_layout(s: ReleasedTransformerSizes) -> tuple[dict[str, str], list[tuple[str, str]], dict[str, tuple]]:
+def _transformer_layout(
+    s: ReleasedTransformerSizes,
+) -> tuple[dict[str, str], list[tuple[str, str]], dict[str, tuple]]:
     """(released -> ours one to one, [(released block, our block)] whose key and value are fused
     into our `attn.kv`, every released key's shape)."""
     E, H = s.embed_dim, s.mlp_dim
-    names = {"trans_base.learn_tok_emb.weight": "transformer.special.weight", "trans_head.head.weight": "transformer.head.weight"}
-    for theirs, mine in {"trans_base.to_emb": "token_proj", "trans_base.cond_emb": "sentence_proj", "trans_head.ln_f": "ln_f"}.items():
+    names = {
+        "trans_base.learn_tok_emb.weight": "transformer.special.weight",
+        "trans_head.head.weight": "transformer.head.weight",
+    }
+    for theirs, mine in {
+        "trans_base.to_emb": "token_proj",
+        "trans_base.cond_emb": "sentence_proj",
+        "trans_head.ln_f": "ln_f",
+    }.items():
         for p in ("weight", "bias"):
             names[f"{theirs}.{p}"] = f"transformer.{mine}.{p}"
     shapes = {
-        "trans_base.learn_tok_emb.weight": (3, s.code_dim), "trans_base.to_emb.weight": (E, s.code_dim), "trans_base.to_emb.bias": (E,),
-        "trans_base.cond_emb.weight": (E, s.sentence_dim), "trans_base.cond_emb.bias": (E,),
-        "trans_base.pos_embedding.weight": (s.block_size, E), "trans_base.pos_embed.embed": (s.block_size, 1, E),
-        "trans_head.ln_f.weight": (E,), "trans_head.ln_f.bias": (E,), "trans_head.head.weight": (s.num_codes, E),
+        "trans_base.learn_tok_emb.weight": (3, s.code_dim),
+        "trans_base.to_emb.weight": (E, s.code_dim),
+        "trans_base.to_emb.bias": (E,),
+        "trans_base.cond_emb.weight": (E, s.sentence_dim),
+        "trans_base.cond_emb.bias": (E,),
+        "trans_base.pos_embedding.weight": (s.block_size, E),
+        "trans_base.pos_embed.embed": (s.block_size, 1, E),
+        "trans_head.ln_f.weight": (E,),
+        "trans_head.ln_f.bias": (E,),
+        "trans_head.head.weight": (s.num_codes, E),
     }
     fused = []
     if s.cross_layers:
         for p in ("weight", "bias"):
             names[f"trans_base.word_emb.{p}"] = f"transformer.word_proj.{p}"
         shapes["trans_base.word_emb.weight"], shapes["trans_base.word_emb.bias"] = (E, s.word_dim), (E,)
-    blocks = [(f"trans_base.cross_att.{i}", f"transformer.cross_layers.{i}", True) for i in range(s.cross_layers)]
+    blocks = [
+        (f"trans_base.cross_att.{i}", f"transformer.cross_layers.{i}", True) for i in range(s.cross_layers)
+    ]
     blocks += [(f"trans_base.blocks.{i}", f"transformer.layers.{i}", False) for i in range(s.base_layers)]
-    blocks += [(f"trans_head.blocks.{i}", f"transformer.layers.{s.base_layers + i}", False) for i in range(s.head_layers)]
+    blocks += [
+        (f"trans_head.blocks.{i}", f"transformer.layers.{s.base_layers + i}", False)
+        for i in range(s.head_layers)
+    ]
     for released, ours, cross in blocks:
         names.update(_block_names(released, ours, cross))
         fused.append((released, ours))
@@ -252,10 +316,12 @@ def _transformer_layout(s: ReleasedTransformerSizes) -> tuple[dict[str, str], li
     return names, fused, shapes
 
 
-def transformer_from_released(trans: Mapping[str, torch.Tensor], source: str) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], ReleasedTransformerSizes]:
+def transformer_from_released(
+    trans: Mapping[str, torch.Tensor], source: str
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], ReleasedTransformerSizes]:
     """(MaskedTransformerModule tensors except the codebook buffer, the embedded stage-1 state dict
     with its `vqvae.` names, sizes) of a released stage-2 state dict."""
-    vq = {k[len(VQ_PREFIX):]: v for k, v in trans.items() if k.startswith(VQ_PREFIX)}
+    vq = {k[len(VQ_PREFIX) :]: v for k, v in trans.items() if k.startswith(VQ_PREFIX)}
     own = {k: v for k, v in trans.items() if not k.startswith(VQ_PREFIX)}
     sizes = transformer_sizes(own, source)
     names, fused, shapes = _transformer_layout(sizes)
@@ -263,8 +329,11 @@ def transformer_from_released(trans: Mapping[str, torch.Tensor], source: str) ->
     table = own["trans_base.pos_embed.embed"].float()[:, 0]
     expected = sinusoidal_positions(sizes.block_size, sizes.embed_dim)
     if not torch.allclose(table, expected, atol=1e-4):
-        raise ReleasedKeyError(f"{source}: trans_base.pos_embed.embed is not the fixed sinusoidal table the released forward pass adds "
-                               f"(max difference {float((table - expected).abs().max()):.3g}); the file was modified")
+        raise ReleasedKeyError(
+            f"{source}: trans_base.pos_embed.embed is not the fixed sinusoidal table the released forward "
+            "pass adds "
+            f"(max difference {float((table - expected).abs().max()):.3g}); the file was modified"
+        )
     state = {ours: own[released].detach().float().clone() for released, ours in names.items()}
     for released, ours in fused:
         for p in ("weight", "bias"):
@@ -273,25 +342,37 @@ def transformer_from_released(trans: Mapping[str, torch.Tensor], source: str) ->
     return state, vq, sizes
 
 
-def transformer_to_released(state: Mapping[str, torch.Tensor], cfg: TransformerConfig, vq: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def transformer_to_released(
+    state: Mapping[str, torch.Tensor], cfg: TransformerConfig, vq: Mapping[str, torch.Tensor]
+) -> dict[str, torch.Tensor]:
     """The released stage-2 state dict (`trans`) of a released-variant MaskedTransformerModule state
     dict and the released stage-1 state dict `vq` (embedded under trans_base.vqvae.). The unused
     learned `pos_embedding` is written as zeros and the unused cross-attention mask as the
     release's lower-triangular one."""
     if cfg.variant != "released":
-        raise ValueError("only the released variant has the released layout (its head has no bias, its null text none)")
+        raise ValueError(
+            "only the released variant has the released layout (its head has no bias, its null text none)"
+        )
     # The release stacks num_layers - cross "base" blocks and num_layers "head" blocks.
     half = cfg.num_layers // 2
     if cfg.num_layers % 2 or half < cfg.num_cross_layers:
-        raise ValueError(f"{cfg.num_layers} layers with {cfg.num_cross_layers} cross layers have no released layout "
-                         "(it has n - cross base blocks and n head blocks, 2n layers in all)")
+        raise ValueError(
+            f"{cfg.num_layers} layers with {cfg.num_cross_layers} cross layers have no released layout "
+            "(it has n - cross base blocks and n head blocks, 2n layers in all)"
+        )
     codebook = state["transformer.codebook"]
     word = state.get("transformer.word_proj.weight")
     sizes = ReleasedTransformerSizes(
-        embed_dim=cfg.embed_dim, code_dim=int(codebook.shape[1]), num_codes=int(codebook.shape[0]),
-        sentence_dim=int(state["transformer.sentence_proj.weight"].shape[1]), word_dim=int(word.shape[1]) if word is not None else 0,
-        cross_layers=cfg.num_cross_layers, base_layers=half - cfg.num_cross_layers, head_layers=half,
-        mlp_dim=cfg.mlp_ratio * cfg.embed_dim, block_size=cfg.max_tokens + 1,
+        embed_dim=cfg.embed_dim,
+        code_dim=int(codebook.shape[1]),
+        num_codes=int(codebook.shape[0]),
+        sentence_dim=int(state["transformer.sentence_proj.weight"].shape[1]),
+        word_dim=int(word.shape[1]) if word is not None else 0,
+        cross_layers=cfg.num_cross_layers,
+        base_layers=half - cfg.num_cross_layers,
+        head_layers=half,
+        mlp_dim=cfg.mlp_ratio * cfg.embed_dim,
+        block_size=cfg.max_tokens + 1,
     )
     names, fused, _ = _transformer_layout(sizes)
     out = {released: state[ours].detach().clone() for released, ours in names.items()}
@@ -303,6 +384,8 @@ def transformer_to_released(state: Mapping[str, torch.Tensor], cfg: TransformerC
     out["trans_base.pos_embedding.weight"] = torch.zeros(sizes.block_size, E)
     out["trans_base.pos_embed.embed"] = sinusoidal_positions(sizes.block_size, E).unsqueeze(1)
     for i in range(cfg.num_cross_layers):
-        out[f"trans_base.cross_att.{i}.attn.mask"] = torch.tril(torch.ones(sizes.block_size, CLIP_POSITIONS)).view(1, 1, sizes.block_size, CLIP_POSITIONS)
+        out[f"trans_base.cross_att.{i}.attn.mask"] = torch.tril(
+            torch.ones(sizes.block_size, CLIP_POSITIONS)
+        ).view(1, 1, sizes.block_size, CLIP_POSITIONS)
     out.update({VQ_PREFIX + k: v.detach().clone() for k, v in vq.items()})
     return out

@@ -81,7 +81,10 @@ _ROLES: tuple[tuple[str, tuple[int, int, int]], ...] = (
 _TEXT_ROLES = ("text", "muted_text", "done_mark")
 _TEXT_LEVELS = 4  # anti-aliased text: blends of the background and the text colour
 _ROLES = _ROLES + tuple(
-    (f"{role}_{k}", tuple(round(b + (c - b) * k / _TEXT_LEVELS) for b, c in zip(_ROLES[0][1], dict(_ROLES)[role])))
+    (
+        f"{role}_{k}",
+        tuple(round(b + (c - b) * k / _TEXT_LEVELS) for b, c in zip(_ROLES[0][1], dict(_ROLES)[role])),
+    )
     for role in _TEXT_ROLES
     for k in range(1, _TEXT_LEVELS)
 )
@@ -89,7 +92,9 @@ COLOR = {name: i for i, (name, _) in enumerate(_ROLES)}
 PALETTE: dict[str, tuple[int, int, int]] = dict(_ROLES)
 _PALETTE_BYTES = [c for _, rgb in _ROLES for c in rgb] + [0, 0, 0] * (256 - len(_ROLES))
 
-_JOINT_SHAPES = "(T, 22, 3) joints or (T, 263) features (HumanML3D), or (T, 21, 3) joints or (T, 251) features (KIT-ML)"
+_JOINT_SHAPES = (
+    "(T, 22, 3) joints or (T, 263) features (HumanML3D), or (T, 21, 3) joints or (T, 251) features (KIT-ML)"
+)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -99,7 +104,7 @@ _JOINT_SHAPES = "(T, 22, 3) joints or (T, 263) features (HumanML3D), or (T, 21, 
 
 def _to_numpy(x) -> np.ndarray:
     try:
-        import torch
+        import torch  # optional here: rendering works without it
     except ImportError:  # pragma: no cover - torch is a dependency
         torch = None
     if torch is not None and isinstance(x, torch.Tensor):
@@ -116,7 +121,9 @@ def as_joints(motion, name: str = "motion") -> tuple[np.ndarray, Skeleton]:
         arr = _to_numpy(motion)
     except Exception as e:  # e.g. ragged lists
         raise ValueError(f"{name}: cannot be read as an array ({e}); expected {_JOINT_SHAPES}") from e
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
         raise ValueError(f"{name}: has dtype {arr.dtype}, not numbers; expected {_JOINT_SHAPES}")
     shape = tuple(arr.shape)
     if arr.ndim == 3 and shape[2] == 3 and shape[1] in (22, 21):
@@ -126,7 +133,9 @@ def as_joints(motion, name: str = "motion") -> tuple[np.ndarray, Skeleton]:
     else:
         raise ValueError(f"{name}: got shape {shape}; expected {_JOINT_SHAPES}")
     if shape[0] == 0:
-        raise ValueError(f"{name}: empty motion, shape {shape} has 0 frames; expected {_JOINT_SHAPES} with T >= 1")
+        raise ValueError(
+            f"{name}: empty motion, shape {shape} has 0 frames; expected {_JOINT_SHAPES} with T >= 1"
+        )
     arr = arr.astype(np.float64, copy=False)
     finite = np.isfinite(arr)
     if not finite.all():
@@ -141,8 +150,10 @@ def as_joints(motion, name: str = "motion") -> tuple[np.ndarray, Skeleton]:
     joints = recover_from_ric(arr) if kind == "features" else arr
     joints = np.asarray(joints, dtype=np.float64) * skeleton.unit_scale
     if not np.isfinite(joints).all():
-        raise ValueError(f"{name}: features of shape {shape} give NaN/Inf joint positions (overflow in "
-                         "recover_from_ric); render only finite, de-normalized features")
+        raise ValueError(
+            f"{name}: features of shape {shape} give NaN/Inf joint positions (overflow in "
+            "recover_from_ric); render only finite, de-normalized features"
+        )
     return joints, skeleton
 
 
@@ -167,7 +178,9 @@ def _split_captions(captions, n: int) -> list[str]:
         captions = [captions]
     captions = ["" if c is None else str(c) for c in captions]
     if len(captions) != n:
-        raise ValueError(f"got {len(captions)} captions for {n} motions; pass one caption per motion (or None)")
+        raise ValueError(
+            f"got {len(captions)} captions for {n} motions; pass one caption per motion (or None)"
+        )
     return captions
 
 
@@ -214,7 +227,9 @@ class _Camera:
     def to_pixels(self, cam: np.ndarray) -> np.ndarray:
         """Pixels (..., 2) of camera-space points (..., 3); depths clamped at NEAR."""
         z = np.maximum(cam[..., 2], NEAR)
-        return np.stack((self.cx + self.focal * cam[..., 0] / z, self.cy - self.focal * cam[..., 1] / z), axis=-1)
+        return np.stack(
+            (self.cx + self.focal * cam[..., 0] / z, self.cy - self.focal * cam[..., 1] / z), axis=-1
+        )
 
 
 def _make_camera(joints: np.ndarray, fps: float, width: int, height: int, top: int) -> _Camera:
@@ -230,7 +245,9 @@ def _make_camera(joints: np.ndarray, fps: float, width: int, height: int, top: i
     eye = target + CAMERA_DISTANCE * back
     view_h = height - top
     focal = min(view_h, width) * CAMERA_DISTANCE / VIEW_HEIGHT
-    return _Camera(eye=eye, rot=np.stack((right, up, forward)), focal=focal, cx=width / 2.0, cy=top + view_h * 0.5)
+    return _Camera(
+        eye=eye, rot=np.stack((right, up, forward)), focal=focal, cx=width / 2.0, cy=top + view_h * 0.5
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -321,18 +338,30 @@ class _Style:
         fsize = max(9, round(s / 24))
         font = _font(fsize)
         small = _font(max(8, round(s / 28)))
-        return cls(width, height, font, small, line_h=fsize + 3, limb_w=max(2, round(s / 100)),
-                   path_w=max(1, round(s / 200)), head_r=0.11)
+        return cls(
+            width,
+            height,
+            font,
+            small,
+            line_h=fsize + 3,
+            limb_w=max(2, round(s / 100)),
+            path_w=max(1, round(s / 200)),
+            head_r=0.11,
+        )
 
 
-def _header_lines(captions: list[str], style: _Style, width: int | None = None, max_lines: int = 3) -> list[list[str]]:
+def _header_lines(
+    captions: list[str], style: _Style, width: int | None = None, max_lines: int = 3
+) -> list[list[str]]:
     w = (width or style.width) - 8
     return [_wrap(c, style.font, w, max_lines) if c.strip() else [] for c in captions]
 
 
 _TEXT_LUT = {
-    role: np.array([COLOR["background"]] + [COLOR[f"{role}_{k}"] for k in range(1, _TEXT_LEVELS)] + [COLOR[role]],
-                   dtype=np.uint8)
+    role: np.array(
+        [COLOR["background"]] + [COLOR[f"{role}_{k}"] for k in range(1, _TEXT_LEVELS)] + [COLOR[role]],
+        dtype=np.uint8,
+    )
     for role in _TEXT_ROLES
 }
 
@@ -359,7 +388,9 @@ def _draw_text(image: Image.Image, xy: tuple[float, float], text: str, font, rol
     return font.getlength(text)
 
 
-def _draw_header(image: Image.Image, lines: list[str], style: _Style, x0: int = 0, width: int | None = None) -> None:
+def _draw_header(
+    image: Image.Image, lines: list[str], style: _Style, x0: int = 0, width: int | None = None
+) -> None:
     width = width or style.width
     y = 3
     for line in lines:
@@ -434,7 +465,9 @@ def _clip_segments(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray)
     return a + t0[:, None] * d, a + t1[:, None] * d, keep
 
 
-def _polyline(draw: ImageDraw.ImageDraw, pix: np.ndarray, fill: int, width: int, joint: str | None = None) -> None:
+def _polyline(
+    draw: ImageDraw.ImageDraw, pix: np.ndarray, fill: int, width: int, joint: str | None = None
+) -> None:
     """Draw a pixel polyline (N, 2); points far outside the image (wild motions) are clipped."""
     w, h = draw.im.size
     margin = 2.0 * max(w, h)
@@ -575,8 +608,12 @@ class _Panel:
                     continue
                 r = style.head_r * self.camera.focal / max(head_depth, NEAR)
                 outline = COLOR["done_spine"] if done else COLOR["spine"]
-                draw.ellipse((hx - r, hy - r, hx + r, hy + r), fill=COLOR["done_head" if done else "head"],
-                             outline=outline, width=max(1, style.limb_w - 1))
+                draw.ellipse(
+                    (hx - r, hy - r, hx + r, hy + r),
+                    fill=COLOR["done_head" if done else "head"],
+                    outline=outline,
+                    width=max(1, style.limb_w - 1),
+                )
                 nx, ny = self.nose_pix[t]
                 draw.line((hx, hy, nx, ny), fill=outline, width=max(1, style.limb_w - 1))
 
@@ -625,7 +662,9 @@ def _prepare(motions, captions, size, names: list[str] | None = None):
 # ----------------------------------------------------------------------------------------------
 
 
-def frames(motions, captions=None, size=(320, 320), *, columns: int | None = None, _names: list[str] | None = None) -> list[Image.Image]:
+def frames(
+    motions, captions=None, size=(320, 320), *, columns: int | None = None, _names: list[str] | None = None
+) -> list[Image.Image]:
     """One image per frame of the longest motion, the motions side by side (each `size` wide), or
     in rows of `columns` panels (e.g. references above their reconstructions).
 
@@ -690,13 +729,23 @@ def _save_gif(images: list[Image.Image], out_path, fps: float) -> Path:
     duration = max(10, int(round(1000.0 / fps / 10.0)) * 10)  # GIF stores centiseconds
 
     def write(tmp: Path) -> None:
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration,
-                       loop=0, optimize=False, disposal=1)
+        images[0].save(
+            tmp,
+            format="GIF",
+            save_all=True,
+            append_images=images[1:],
+            duration=duration,
+            loop=0,
+            optimize=False,
+            disposal=1,
+        )
 
     return _write_atomic(out_path, write)
 
 
-def render_gif(motions, out_path, captions=None, fps: float = 20.0, size=(320, 320), columns: int | None = None) -> Path:
+def render_gif(
+    motions, out_path, captions=None, fps: float = 20.0, size=(320, 320), columns: int | None = None
+) -> Path:
     """Write an animated GIF (looping forever, one frame per motion frame) of the motions side by
     side, or in rows of `columns`."""
     return _save_gif(frames(motions, captions, size, columns=columns), out_path, fps)
@@ -708,7 +757,7 @@ _ffmpeg_missing_logged = False
 def _find_ffmpeg() -> str | None:
     """An ffmpeg executable: imageio_ffmpeg's (never downloads) or `ffmpeg` on PATH, else None."""
     try:
-        import imageio_ffmpeg
+        import imageio_ffmpeg  # optional dependency (the mp4 extra)
     except ImportError:
         imageio_ffmpeg = None
     if imageio_ffmpeg is not None:
@@ -727,9 +776,38 @@ def _save_mp4(images: list[Image.Image], out_path, fps: float, exe: str) -> Path
     width, height = images[0].size
 
     def write(tmp: Path) -> None:
-        cmd = [exe, "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}",
-               "-r", f"{fps:g}", "-i", "-", "-an", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-c:v", "libx264", "-preset", "veryfast", "-crf", "23",
-               "-pix_fmt", "yuv420p", "-movflags", "+faststart", "-f", "mp4", str(tmp)]
+        cmd = [
+            exe,
+            "-y",
+            "-loglevel",
+            "error",
+            "-f",
+            "rawvideo",
+            "-pix_fmt",
+            "rgb24",
+            "-s",
+            f"{width}x{height}",
+            "-r",
+            f"{fps:g}",
+            "-i",
+            "-",
+            "-an",
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "-c:v",
+            "libx264",
+            "-preset",
+            "veryfast",
+            "-crf",
+            "23",
+            "-pix_fmt",
+            "yuv420p",
+            "-movflags",
+            "+faststart",
+            "-f",
+            "mp4",
+            str(tmp),
+        ]
         with tempfile.TemporaryFile() as err:
             proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=err)
             try:
@@ -742,7 +820,9 @@ def _save_mp4(images: list[Image.Image], out_path, fps: float, exe: str) -> Path
             if rc != 0:
                 err.seek(0)
                 msg = err.read().decode(errors="replace").strip()
-                raise RuntimeError(f"ffmpeg ({exe}) failed with exit code {rc} writing {out_path}: {msg[-2000:]}")
+                raise RuntimeError(
+                    f"ffmpeg ({exe}) failed with exit code {rc} writing {out_path}: {msg[-2000:]}"
+                )
 
     return _write_atomic(out_path, write)
 
@@ -757,7 +837,9 @@ def render_mp4(motions, out_path, captions=None, fps: float = 20.0, size=(320, 3
     exe = _find_ffmpeg()
     if exe is None:
         if not _ffmpeg_missing_logged:
-            log.info("no MP4 encoder (pip install imageio-ffmpeg, or put ffmpeg on PATH): skipping MP4 output")
+            log.info(
+                "no MP4 encoder (pip install imageio-ffmpeg, or put ffmpeg on PATH): skipping MP4 output"
+            )
             _ffmpeg_missing_logged = True
         return None
     return _save_mp4(frames(motions, captions, size), out_path, fps, exe)
@@ -781,7 +863,9 @@ def _sheet(loaded, captions, num_frames: int, size) -> Image.Image:
             _draw_header(header, cap_lines, style, width=row_w)
             sheet.paste(header, (0, r * height))
         for c in range(1, num_frames):
-            draw.line((c * width, r * height + top, c * width, (r + 1) * height), fill=COLOR["separator"], width=1)
+            draw.line(
+                (c * width, r * height + top, c * width, (r + 1) * height), fill=COLOR["separator"], width=1
+            )
         if r:
             draw.line((0, r * height, row_w, r * height), fill=COLOR["separator"], width=1)
     return sheet
@@ -815,13 +899,19 @@ def load_motion_file(path) -> np.ndarray:
     try:
         arr = np.load(p, allow_pickle=False)
     except Exception as e:
-        raise ValueError(f"{p}: cannot be loaded as .npy ({type(e).__name__}: {e}); "
-                         f"expected a .npy file holding {_JOINT_SHAPES}") from e
+        raise ValueError(
+            f"{p}: cannot be loaded as .npy ({type(e).__name__}: {e}); "
+            f"expected a .npy file holding {_JOINT_SHAPES}"
+        ) from e
     if not isinstance(arr, np.ndarray):  # .npz archives
-        raise ValueError(f"{p}: is an archive with arrays {list(arr.keys())}, not a single array; "
-                         f"expected a .npy file holding {_JOINT_SHAPES}")
+        raise ValueError(
+            f"{p}: is an archive with arrays {list(arr.keys())}, not a single array; "
+            f"expected a .npy file holding {_JOINT_SHAPES}"
+        )
     if arr.dtype.kind not in "biuf":  # strings or bytes are no motion
-        raise ValueError(f"{p}: holds {arr.dtype} values, not numbers; expected a .npy file holding {_JOINT_SHAPES}")
+        raise ValueError(
+            f"{p}: holds {arr.dtype} values, not numbers; expected a .npy file holding {_JOINT_SHAPES}"
+        )
     return arr
 
 
@@ -829,7 +919,9 @@ class EncoderNotFound(ValueError):
     """An MP4 was asked for but no ffmpeg executable is installed."""
 
 
-def render_files(paths: Sequence[str | Path], out_path, captions=None, fps: float | None = None) -> list[Path]:
+def render_files(
+    paths: Sequence[str | Path], out_path, captions=None, fps: float | None = None
+) -> list[Path]:
     """Render `.npy` motion files side by side to `out_path`; returns the written paths.
 
     The output type follows the suffix: `.gif`, `.mp4` (raises `EncoderNotFound`, a ValueError,
@@ -845,8 +937,10 @@ def render_files(paths: Sequence[str | Path], out_path, captions=None, fps: floa
     out_path = Path(out_path)
     suffix = out_path.suffix.lower()
     if suffix not in (".gif", ".mp4", ".png"):
-        raise ValueError(f"{out_path}: unknown output type {suffix or '(no suffix)'!r}; "
-                         "expected a path ending in .gif, .mp4 or .png")
+        raise ValueError(
+            f"{out_path}: unknown output type {suffix or '(no suffix)'!r}; "
+            "expected a path ending in .gif, .mp4 or .png"
+        )
     if captions is None:
         captions = [p.stem for p in paths]
     arrays = [load_motion_file(p) for p in paths]
@@ -859,7 +953,9 @@ def render_files(paths: Sequence[str | Path], out_path, captions=None, fps: floa
     if suffix == ".mp4":
         exe = _find_ffmpeg()
         if exe is None:
-            raise EncoderNotFound(f"cannot write {out_path}: no MP4 encoder found; pip install imageio-ffmpeg "
-                               "(the 'mp4' extra) or put ffmpeg on PATH, or write a .gif instead")
+            raise EncoderNotFound(
+                f"cannot write {out_path}: no MP4 encoder found; pip install imageio-ffmpeg "
+                "(the 'mp4' extra) or put ffmpeg on PATH, or write a .gif instead"
+            )
         return [_save_mp4(frames(arrays, captions, _names=names), out_path, fps, exe)]
     return [_save_gif(frames(arrays, captions, _names=names), out_path, fps)]

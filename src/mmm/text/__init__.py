@@ -4,4 +4,12 @@ from .base import TextEmbedding, TextEncoder
 from .cache import CaptionEmbeddingCache
 from .encoders import ENCODER_NAMES, TextConfig, build_text, build_text_encoder
 
-__all__ = ["ENCODER_NAMES", "CaptionEmbeddingCache", "TextEmbedding", "TextEncoder", "TextConfig", "build_text", "build_text_encoder"]
+__all__ = [
+    "ENCODER_NAMES",
+    "CaptionEmbeddingCache",
+    "TextEmbedding",
+    "TextEncoder",
+    "TextConfig",
+    "build_text",
+    "build_text_encoder",
+]

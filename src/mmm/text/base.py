@@ -1,4 +1,5 @@
-"""The frozen text encoder interface shared by MiniLM and CLIP (the encoders import this; it imports neither)."""
+"""The frozen text encoder interface shared by MiniLM and CLIP (the encoders import this; it imports
+neither)."""
 
 from __future__ import annotations
 
@@ -88,7 +89,10 @@ class TextEncoder(torch.nn.Module):
         raise NotImplementedError
 
     def extra_repr(self) -> str:
-        return f"name={self.name!r}, sentence_dim={self.sentence_dim}, word_dim={self.word_dim}, max_words={self.max_words}"
+        return (
+            f"name={self.name!r}, sentence_dim={self.sentence_dim}, word_dim={self.word_dim}, "
+            f"max_words={self.max_words}"
+        )
 
 
 def check_texts(texts: Sequence[str]) -> list[str]:
@@ -100,7 +104,9 @@ def check_texts(texts: Sequence[str]) -> list[str]:
         if not isinstance(t, str):
             raise TypeError(f"text #{i} is a {type(t).__name__}, not a str: {t!r}")
         if not t.strip():
-            raise ValueError(f"text #{i} is empty or whitespace only ({t!r}); every text needs at least one word")
+            raise ValueError(
+                f"text #{i} is empty or whitespace only ({t!r}); every text needs at least one word"
+            )
     return texts
 
 

@@ -24,8 +24,10 @@ from typing import Iterable
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from mmm.atomic import atomic_write, file_lock
+from mmm.data.arrays import load_array
 
 from .base import TextEmbedding, TextEncoder
 
@@ -87,7 +89,10 @@ class CaptionEmbeddingCache:
                 f"not {self.encoder_identity!r}; use another cache_dir or delete that folder"
             )
         if meta.get("format") != FORMAT_VERSION:
-            raise ValueError(f"the caption cache in {self.folder} has format {meta.get('format')}, expected {FORMAT_VERSION}; rebuild it")
+            raise ValueError(
+                f"the caption cache in {self.folder} has format {meta.get('format')}, expected "
+                f"{FORMAT_VERSION}; rebuild it"
+            )
         if self._meta is None or meta["generation"] != self._meta["generation"]:
             self._index = None
             self._arrays = {}
@@ -124,9 +129,13 @@ class CaptionEmbeddingCache:
         path = self._file(kind, self._meta["generation"])
         if not path.exists():
             raise FileNotFoundError(path)
-        from mmm.data.arrays import load_array
 
-        return load_array(path, "caption embedding cache", f"delete the folder {self.folder}: it is rebuilt on the next use", mmap_mode="r")
+        return load_array(
+            path,
+            "caption embedding cache",
+            f"delete the folder {self.folder}: it is rebuilt on the next use",
+            mmap_mode="r",
+        )
 
     def __contains__(self, caption) -> bool:
         return caption in self.index
@@ -158,11 +167,14 @@ class CaptionEmbeddingCache:
             if row is None:
                 raise KeyError(
                     f"caption {c!r} is not in the caption cache {self.folder} ({len(index)} captions); "
-                    f"build it first: CaptionEmbeddingCache(cache_dir, encoder.identity).build(encoder, captions)"
+                    "build it first: CaptionEmbeddingCache(cache_dir, encoder.identity).build(encoder, "
+                    "captions)"
                 )
             rows.append(row)
         if self._meta is None:  # only reachable with no captions at all
-            return TextEmbedding(torch.zeros(0, 0), torch.zeros(0, 0, 0), torch.zeros(0, 0, dtype=torch.bool), 0)
+            return TextEmbedding(
+                torch.zeros(0, 0), torch.zeros(0, 0, 0), torch.zeros(0, 0, dtype=torch.bool), 0
+            )
 
         sentences = self._array("sentences")
         words, offsets, truncated = self._array("words"), self._array("offsets"), self._array("truncated")
@@ -176,11 +188,15 @@ class CaptionEmbeddingCache:
             mask[i, :n] = True
         sent = np.asarray(sentences[np.asarray(rows, dtype=np.int64)], dtype=np.float32).reshape(B, -1)
         n_truncated = int(np.asarray(truncated[np.asarray(rows, dtype=np.int64)]).sum()) if rows else 0
-        return TextEmbedding(torch.from_numpy(sent), torch.from_numpy(out_words), torch.from_numpy(mask), n_truncated)
+        return TextEmbedding(
+            torch.from_numpy(sent), torch.from_numpy(out_words), torch.from_numpy(mask), n_truncated
+        )
 
     # ---------------------------------------------------------------- writing
 
-    def build(self, encoder: TextEncoder, captions: Iterable[str], batch_size: int = 256, progress: bool = True) -> dict:
+    def build(
+        self, encoder: TextEncoder, captions: Iterable[str], batch_size: int = 256, progress: bool = True
+    ) -> dict:
         """Encode the captions not cached yet and add them; returns {"cached", "added", "truncated"}:
         unique requested captions already present, captions encoded now, and how many of those
         were cut to the encoder's limit."""
@@ -194,7 +210,9 @@ class CaptionEmbeddingCache:
         unique: dict[str, None] = {}
         for i, c in enumerate(captions):
             if not isinstance(c, str) or not c.strip():
-                raise ValueError(f"caption #{i} is empty, whitespace only or not a string ({c!r}); it cannot be embedded")
+                raise ValueError(
+                    f"caption #{i} is empty, whitespace only or not a string ({c!r}); it cannot be embedded"
+                )
             unique.setdefault(c, None)
 
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -213,7 +231,10 @@ class CaptionEmbeddingCache:
         n_old = len(index)
         Ds, Dw = encoder.sentence_dim, encoder.word_dim
         if old and (old["sentence_dim"], old["word_dim"]) != (Ds, Dw):
-            raise ValueError(f"caption cache {self.folder} holds dims {old['sentence_dim']}/{old['word_dim']}, encoder gives {Ds}/{Dw}")
+            raise ValueError(
+                f"caption cache {self.folder} holds dims {old['sentence_dim']}/{old['word_dim']}, encoder "
+                f"gives {Ds}/{Dw}"
+            )
         # Similar lengths in a batch waste less padding; the row order does not matter.
         new = sorted(new, key=len)
         tmp_dir = Path(tempfile.mkdtemp(dir=self.folder, prefix=".build-"))
@@ -224,8 +245,6 @@ class CaptionEmbeddingCache:
             raw_words = tmp_dir / "words.raw"
             batches = range(0, len(new), batch_size)
             if progress:
-                from tqdm.auto import tqdm
-
                 batches = tqdm(batches, desc=f"caption embeddings ({encoder.name})", unit="batch")
             with open(raw_words, "wb") as fh:
                 for start in batches:
@@ -235,7 +254,10 @@ class CaptionEmbeddingCache:
                     mask = emb.word_mask.cpu()
                     n_real = mask.sum(1)
                     if not torch.equal(mask, torch.arange(mask.shape[1]) < n_real.unsqueeze(1)):
-                        raise ValueError(f"{encoder.name}: word_mask is not a prefix mask; the cache stores rows as prefixes")
+                        raise ValueError(
+                            f"{encoder.name}: word_mask is not a prefix mask; the cache stores rows as "
+                            "prefixes"
+                        )
                     lengths[start : start + len(chunk)] = n_real.numpy()
                     # One boolean index for the batch: the real positions, row after row. (Indexing
                     # row by row costs milliseconds per call on CPU.)
@@ -248,7 +270,9 @@ class CaptionEmbeddingCache:
             old_tokens = int(self._array("offsets")[-1]) if old else 0
             total_tokens = old_tokens + int(lengths.sum())
             open_memmap = np.lib.format.open_memmap
-            words_out = open_memmap(tmp_dir / "words.npy", mode="w+", dtype=np.float16, shape=(total_tokens, Dw))
+            words_out = open_memmap(
+                tmp_dir / "words.npy", mode="w+", dtype=np.float16, shape=(total_tokens, Dw)
+            )
             step = 1 << 16
             if old:
                 old_words = self._array("words")

@@ -89,11 +89,12 @@ def bytes_to_unicode() -> dict[int, str]:
 
 def _require_ftfy():
     try:
-        import ftfy
+        import ftfy  # optional dependency until a CLIP encoder is built
     except ImportError as e:
         raise ImportError(
             "the CLIP tokenizer needs the 'ftfy' package (OpenAI's tokenizer cleans every text with it; "
-            "without it curly quotes, accents, ligatures and full-width text get other token ids): pip install ftfy"
+            "without it curly quotes, accents, ligatures and full-width text get other token ids): pip "
+            "install ftfy"
         ) from e
     return ftfy
 
@@ -116,7 +117,7 @@ class CLIPTokenizer:
     def __init__(self, vocab_path: str | Path, context_length: int = 77):
         self._fix_text = _require_ftfy().fix_text
         try:
-            import regex
+            import regex  # optional dependency (the clip extra)
         except ImportError as e:
             raise ImportError("the CLIP tokenizer needs the 'regex' package: pip install regex") from e
         vocab_path = Path(vocab_path)
@@ -126,7 +127,9 @@ class CLIPTokenizer:
         try:
             lines = gzip.decompress(raw).decode("utf-8").split("\n")
         except (OSError, UnicodeDecodeError) as e:
-            raise ValueError(f"{vocab_path} is not a gzip-compressed CLIP merges file; expected {VOCAB_HINT}") from e
+            raise ValueError(
+                f"{vocab_path} is not a gzip-compressed CLIP merges file; expected {VOCAB_HINT}"
+            ) from e
         merges = []
         for line in lines[1 : 1 + self.MAX_MERGES]:  # line 0 is the '#version' header
             parts = line.split()
@@ -287,7 +290,9 @@ class ResidualAttentionBlock(nn.Module):
 class Transformer(nn.Module):
     def __init__(self, width: int, heads: int, layers: int, activation: str):
         super().__init__()
-        self.resblocks = nn.ModuleList(ResidualAttentionBlock(width, heads, activation) for _ in range(layers))
+        self.resblocks = nn.ModuleList(
+            ResidualAttentionBlock(width, heads, activation) for _ in range(layers)
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         for block in self.resblocks:
@@ -301,7 +306,9 @@ class CLIPTextTransformer(nn.Module):
     def __init__(self, cfg: CLIPTextConfig = CLIPTextConfig(), init: bool = True):
         super().__init__()
         if cfg.activation not in ("quick_gelu", "gelu"):
-            raise ValueError(f"activation must be 'quick_gelu' (OpenAI weights) or 'gelu' (LAION), not {cfg.activation!r}")
+            raise ValueError(
+                f"activation must be 'quick_gelu' (OpenAI weights) or 'gelu' (LAION), not {cfg.activation!r}"
+            )
         self.cfg = cfg
         self.token_embedding = nn.Embedding(cfg.vocab_size, cfg.width)
         self.positional_embedding = nn.Parameter(torch.empty(cfg.context_length, cfg.width))
@@ -368,16 +375,21 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         raise FileNotFoundError(f"CLIP weights file not found: {path}; expected {WEIGHTS_HINT}")
     if path.suffix == ".safetensors":
         try:
-            from safetensors.torch import load_file
+            from safetensors.torch import load_file  # optional dependency (the clip extra)
         except ImportError as e:
-            raise ImportError(f"reading {path.name} needs the 'safetensors' package: pip install safetensors") from e
+            raise ImportError(
+                f"reading {path.name} needs the 'safetensors' package: pip install safetensors"
+            ) from e
         return dict(load_file(str(path), device="cpu"))
     if _is_torchscript(path):
         return read_torchscript_tensors(path)  # never loaded as TorchScript: that runs its code
     try:
         obj = torch.load(str(path), map_location="cpu", weights_only=True)
     except (RuntimeError, pickle.UnpicklingError, EOFError, OSError) as e:
-        raise ValueError(f"cannot read the CLIP weights {path} ({e}); the file is damaged or not a checkpoint: {WEIGHTS_HINT}") from e
+        raise ValueError(
+            f"cannot read the CLIP weights {path} ({e}); the file is damaged or not a checkpoint: "
+            f"{WEIGHTS_HINT}"
+        ) from e
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]  # an open_clip training checkpoint
     if not isinstance(obj, Mapping):
@@ -385,7 +397,9 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     return dict(obj)
 
 
-def text_tower_state_dict(state: Mapping[str, torch.Tensor], source: str = "state dict") -> dict[str, torch.Tensor]:
+def text_tower_state_dict(
+    state: Mapping[str, torch.Tensor], source: str = "state dict"
+) -> dict[str, torch.Tensor]:
     """The text-tower tensors of a full CLIP state dict, as float32; visual.* and scalars dropped."""
     out = {}
     for key, value in state.items():
@@ -410,9 +424,15 @@ def load_text_tower(model: CLIPTextTransformer, state: Mapping[str, torch.Tensor
             f"missing {missing[:6]}{' ...' if len(missing) > 6 else ''}, "
             f"unexpected {unexpected[:6]}{' ...' if len(unexpected) > 6 else ''}; expected {WEIGHTS_HINT}"
         )
-    wrong = [f"{k} {tuple(state[k].shape)} (expected {tuple(v.shape)})" for k, v in expected.items() if state[k].shape != v.shape]
+    wrong = [
+        f"{k} {tuple(state[k].shape)} (expected {tuple(v.shape)})"
+        for k, v in expected.items()
+        if state[k].shape != v.shape
+    ]
     if wrong:
-        raise ValueError(f"{source}: shapes do not match CLIP ViT-B/32's text tower: {wrong[:4]}; expected {WEIGHTS_HINT}")
+        raise ValueError(
+            f"{source}: shapes do not match CLIP ViT-B/32's text tower: {wrong[:4]}; expected {WEIGHTS_HINT}"
+        )
     model.load_state_dict(state, strict=True)
 
 
@@ -462,15 +482,21 @@ class CLIPTextEncoder(TextEncoder):
         if words not in WORD_MODES:
             raise ValueError(f"words must be one of {WORD_MODES}, not {words!r}")
         if weights is None and random_init_seed is None:
-            raise ValueError(f"the 'clip' text encoder needs its weights file: pass weights=PATH to {WEIGHTS_HINT}")
+            raise ValueError(
+                f"the 'clip' text encoder needs its weights file: pass weights=PATH to {WEIGHTS_HINT}"
+            )
         if vocab is None:
             vocab = find_vocab()
             if vocab is None:
-                raise ValueError(f"the 'clip' text encoder needs its vocabulary file: pass vocab=PATH to {VOCAB_HINT}")
+                raise ValueError(
+                    f"the 'clip' text encoder needs its vocabulary file: pass vocab=PATH to {VOCAB_HINT}"
+                )
         self.tokenizer = CLIPTokenizer(vocab)
         cfg = CLIPTextConfig(activation=activation)
         if self.tokenizer.vocab_size > cfg.vocab_size:
-            raise ValueError(f"{vocab} defines {self.tokenizer.vocab_size} tokens, more than CLIP's {cfg.vocab_size}")
+            raise ValueError(
+                f"{vocab} defines {self.tokenizer.vocab_size} tokens, more than CLIP's {cfg.vocab_size}"
+            )
         if weights is None:
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(random_init_seed)

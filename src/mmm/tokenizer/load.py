@@ -17,12 +17,19 @@ from pathlib import Path
 
 from mmm.checkpoints import CheckpointError, load_checkpoint, load_state
 from mmm.fingerprint import tensors_fingerprint
-from mmm.resolve import ModelNotFound, resolve_checkpoint
+from mmm.kinds import STAGE1, STAGE1_PARTS
+from mmm.resolve import ModelNotFound, resolve_model
 from mmm.tokenizer.module import TokenizerModule
 
-STAGE1_EXPERIMENT = "mmm-stage1"
+STAGE1_EXPERIMENT = STAGE1.experiment
 
-__all__ = ["ModelNotFound", "TokenizerSource", "load_tokenizer", "load_tokenizer_checkpoint", "resolve_tokenizer"]
+__all__ = [
+    "ModelNotFound",
+    "TokenizerSource",
+    "load_tokenizer",
+    "load_tokenizer_checkpoint",
+    "resolve_tokenizer",
+]
 
 
 @dataclass
@@ -33,12 +40,17 @@ class TokenizerSource:
     identity: str  # fingerprint of the tokenizer's weights and normalization
 
 
-def resolve_tokenizer(reference: str | None, tracking_uri: str, output_dir: str = "outputs/stage1", cache_dir: str = "outputs/cache/models",
-                      experiment: str = STAGE1_EXPERIMENT) -> tuple[str, str, str | None]:
+def resolve_tokenizer(
+    reference: str | None,
+    tracking_uri: str,
+    output_dir: str = STAGE1.output_dir,
+    cache_dir: str = "outputs/cache/models",
+    experiment: str = STAGE1_EXPERIMENT,
+) -> tuple[str, str, str | None]:
     """(resolved reference, local checkpoint path, run id or None) for a tokenizer reference
     (None: the newest run of `experiment`, mmm-stage1-parts for the part-aware tokenizer)."""
-    hint = "make train-stage1-parts" if experiment.endswith("-parts") else "make train-stage1"
-    return resolve_checkpoint(reference, tracking_uri, experiment, output_dir, "stage-1 model", hint, "stage1", cache_dir)
+    kind = STAGE1_PARTS if experiment == STAGE1_PARTS.experiment else STAGE1
+    return resolve_model(reference, tracking_uri, kind, "stage1", output_dir, cache_dir, experiment)
 
 
 def load_tokenizer_checkpoint(path: str | Path, expected_fingerprint: str | None = None) -> TokenizerModule:
@@ -51,14 +63,23 @@ def load_tokenizer_checkpoint(path: str | Path, expected_fingerprint: str | None
     try:
         module = TokenizerModule(hp["feature_dim"], hp["model"], hp.get("optim") or {}, hp.get("loss") or {})
     except (TypeError, ValueError, KeyError) as e:
-        raise CheckpointError(f"{path}: its stage-1 hyper-parameters do not describe a tokenizer ({e}); use the checkpoint as training wrote it") from None
+        raise CheckpointError(
+            f"{path}: its stage-1 hyper-parameters do not describe a tokenizer ({e}); use the checkpoint as "
+            "training wrote it"
+        ) from None
     load_state(module, ckpt["state_dict"], path, "stage1")
     return module.eval()
 
 
-def load_tokenizer(reference: str | None, tracking_uri: str, output_dir: str = "outputs/stage1",
-                   experiment: str = STAGE1_EXPERIMENT) -> tuple[TokenizerModule, TokenizerSource]:
-    resolved, checkpoint, run_id = resolve_tokenizer(reference, tracking_uri, output_dir, experiment=experiment)
+def load_tokenizer(
+    reference: str | None,
+    tracking_uri: str,
+    output_dir: str = STAGE1.output_dir,
+    experiment: str = STAGE1_EXPERIMENT,
+) -> tuple[TokenizerModule, TokenizerSource]:
+    resolved, checkpoint, run_id = resolve_tokenizer(
+        reference, tracking_uri, output_dir, experiment=experiment
+    )
     module = load_tokenizer_checkpoint(checkpoint)
     identity = tensors_fingerprint(module.state_dict())
     return module, TokenizerSource(resolved, checkpoint, run_id, identity)

@@ -6,7 +6,7 @@ codebook metrics are then logged per codebook (`codebook/lower/perplexity`, ...)
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import lightning as L
 import numpy as np
@@ -14,21 +14,13 @@ import torch
 import torch.nn.functional as F
 from torchmetrics import MeanMetric
 
+from mmm.config import as_config
 from mmm.motion.features import FeatureLayout, recover_from_ric
 from mmm.motion.skeleton import skeleton_for
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.parts import PartAwareTokenizer
 from mmm.tokenizer.quantizer import EMAQuantizer, metric_name
-
-
-@dataclass
-class OptimConfig:
-    lr: float = 2e-4
-    betas: list[float] = field(default_factory=lambda: [0.9, 0.99])
-    weight_decay: float = 0.0
-    warmup_steps: int = 1000
-    milestones: list[int] = field(default_factory=lambda: [200_000])  # lr *= gamma at each
-    gamma: float = 0.05
+from mmm.training.optim import OptimConfig, build_optimizer
 
 
 @dataclass
@@ -38,21 +30,9 @@ class TokenizerLossConfig:
     # Mean distance (m) between the windows' global joint positions, the root path integrated from
     # the velocities as recover_from_ric does: small velocity errors add up along a clip.
     global_weight: float = 0.0
-    root_weight: float = 1.0  # the reconstruction loss of the root dims (yaw and x/z velocity, height) times this
-
-
-def _as(cls, value):
-    return cls(**value) if isinstance(value, dict) else value
-
-
-def warmup_step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
-    """lr multiplier at optimizer step s: linear warm-up, then x gamma at each milestone."""
-
-    def factor(step: int) -> float:
-        warm = min(1.0, (step + 1) / warmup_steps) if warmup_steps > 0 else 1.0
-        return warm * gamma ** sum(step >= m for m in milestones)
-
-    return factor
+    root_weight: float = (
+        1.0  # the reconstruction loss of the root dims (yaw and x/z velocity, height) times this
+    )
 
 
 def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -78,15 +58,31 @@ class TokenizerModule(L.LightningModule):
         std: np.ndarray | torch.Tensor | None = None,
     ):
         super().__init__()
-        model, optim, loss = _as(TokenizerConfig, model), _as(OptimConfig, optim), _as(TokenizerLossConfig, loss)
+        model, optim, loss = (
+            as_config(TokenizerConfig, model),
+            as_config(OptimConfig, optim),
+            as_config(TokenizerLossConfig, loss),
+        )
         # Tensors before save_hyperparameters, which compares its argument with every init
         # argument (a numpy array cannot be compared with a dict).
         mean = torch.as_tensor(mean if mean is not None else np.zeros(feature_dim), dtype=torch.float32)
         std = torch.as_tensor(std if std is not None else np.ones(feature_dim), dtype=torch.float32)
         # Plain dicts, so checkpoints load with torch.load(weights_only=True).
-        self.save_hyperparameters({"feature_dim": feature_dim, "model": asdict(model), "optim": asdict(optim), "loss": asdict(loss)}, logger=False)
+        self.save_hyperparameters(
+            {
+                "feature_dim": feature_dim,
+                "model": asdict(model),
+                "optim": asdict(optim),
+                "loss": asdict(loss),
+            },
+            logger=False,
+        )
         self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
-        self.tokenizer = PartAwareTokenizer(feature_dim, model) if model.part_aware else MotionTokenizer(feature_dim, model)
+        self.tokenizer = (
+            PartAwareTokenizer(feature_dim, model)
+            if model.part_aware
+            else MotionTokenizer(feature_dim, model)
+        )
         self.skeleton = skeleton_for(feature_dim)
         self.layout = FeatureLayout(self.skeleton.num_joints)
         self.register_buffer("mean", mean)
@@ -108,10 +104,14 @@ class TokenizerModule(L.LightningModule):
         quantizers = self.quantizers
         if len(quantizers) != 1:
             # Not AttributeError: nn.Module would swallow it and report a missing attribute.
-            raise TypeError(f"this tokenizer has {len(quantizers)} codebooks ({', '.join(quantizers)}): use `quantizers`")
+            raise TypeError(
+                f"this tokenizer has {len(quantizers)} codebooks ({', '.join(quantizers)}): use `quantizers`"
+            )
         return quantizers[""]
 
-    def losses(self, recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def losses(
+        self, recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor]:
         pos = self.layout.positions
         full = F.smooth_l1_loss(recon, target, reduction="none")
         if self.loss_cfg.root_weight != 1.0:
@@ -126,7 +126,11 @@ class TokenizerModule(L.LightningModule):
     def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
         out = self.tokenizer(batch)
         parts = self.losses(out.reconstruction, batch)
-        loss = parts["recon"] + self.loss_cfg.position_weight * parts["position"] + self.loss_cfg.commit_weight * out.commit_loss
+        loss = (
+            parts["recon"]
+            + self.loss_cfg.position_weight * parts["position"]
+            + self.loss_cfg.commit_weight * out.commit_loss
+        )
         if self.loss_cfg.global_weight > 0:
             parts["global_m"] = (self.joints(out.reconstruction) - self.joints(batch)).norm(dim=-1).mean()
             loss = loss + self.loss_cfg.global_weight * parts["global_m"]
@@ -154,7 +158,9 @@ class TokenizerModule(L.LightningModule):
 
     def joints(self, x: torch.Tensor) -> torch.Tensor:
         """Joint positions (B, T, J, 3) in metres of normalized features (B, T, D)."""
-        return recover_from_ric(self.denormalize(x).float(), self.skeleton.num_joints) * self.skeleton.unit_scale
+        return (
+            recover_from_ric(self.denormalize(x).float(), self.skeleton.num_joints) * self.skeleton.unit_scale
+        )
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         motion, lengths = batch["motion"], batch["lengths"]
@@ -163,15 +169,21 @@ class TokenizerModule(L.LightningModule):
         parts = self.losses(out.reconstruction, motion, mask)
         joints_gt, joints_rec = self.joints(motion), self.joints(out.reconstruction)
         error_global = (joints_gt - joints_rec).norm(dim=-1).mean(-1)  # (B, T)
-        error = ((joints_gt - joints_gt[..., :1, :]) - (joints_rec - joints_rec[..., :1, :])).norm(dim=-1).mean(-1)
+        error = (
+            ((joints_gt - joints_gt[..., :1, :]) - (joints_rec - joints_rec[..., :1, :]))
+            .norm(dim=-1)
+            .mean(-1)
+        )
         n = mask.sum()
         self.val_recon.update(parts["recon"], weight=n)
         self.val_mpjpe.update(masked_mean(error, mask) * 1000.0, weight=n)
         self.val_mpjpe_global.update(masked_mean(error_global, mask) * 1000.0, weight=n)
         if batch_idx == 0:
             self.preview_batch = {
-                "reference": joints_gt.detach().cpu(), "reconstruction": joints_rec.detach().cpu(),
-                "lengths": lengths.detach().cpu(), "names": batch.get("names"),
+                "reference": joints_gt.detach().cpu(),
+                "reconstruction": joints_rec.detach().cpu(),
+                "lengths": lengths.detach().cpu(),
+                "names": batch.get("names"),
             }
 
     def on_validation_epoch_end(self) -> None:
@@ -188,7 +200,4 @@ class TokenizerModule(L.LightningModule):
         self.val_mpjpe_global.reset()
 
     def configure_optimizers(self):
-        cfg = self.optim_cfg
-        optimizer = torch.optim.AdamW(self.parameters(), lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=True)
-        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"}}
+        return build_optimizer(self.parameters(), self.optim_cfg, foreach=True)

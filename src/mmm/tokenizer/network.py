@@ -1,7 +1,8 @@
 """The motion tokenizer (VQ-VAE): 1-D convolutional encoder, EMA quantizer, decoder.
 
 Motion (B, T, D) -> latents (B, C, T/4) -> code indices (B, T/4) -> motion (B, T, D).
-Sizes come from `TokenizerConfig` (the `tokenizer` part of conf/model/tiny.yaml, paper.yaml); `paper` is method.md's table.
+Sizes come from `TokenizerConfig` (the `tokenizer` part of conf/model/tiny.yaml, paper.yaml); `paper` is
+method.md's table.
 `part_aware` selects `PartAwareTokenizer` (mmm.tokenizer.parts): one such tokenizer per body part.
 """
 
@@ -58,7 +59,10 @@ class Encoder(nn.Module):
         W = cfg.width
         layers: list[nn.Module] = [nn.Conv1d(in_dim, W, 3, padding=1), nn.ReLU()]
         for _ in range(cfg.down_t):
-            layers += [nn.Conv1d(W, W, 4, stride=2, padding=1), residual_stack(W, cfg.depth, cfg.dilation_growth)]
+            layers += [
+                nn.Conv1d(W, W, 4, stride=2, padding=1),
+                residual_stack(W, cfg.depth, cfg.dilation_growth),
+            ]
         layers.append(nn.Conv1d(W, cfg.code_dim, 3, padding=1))
         self.net = nn.Sequential(*layers)
 

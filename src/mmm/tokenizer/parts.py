@@ -31,7 +31,8 @@ class PartAwareTokenizer(nn.Module):
         expected = FeatureLayout(22).dim
         if feature_dim != expected:
             raise ValueError(
-                f"a part-aware tokenizer reads the {expected}-d HumanML3D features, got feature_dim={feature_dim}; "
+                f"a part-aware tokenizer reads the {expected}-d HumanML3D features, got "
+                f"feature_dim={feature_dim}; "
                 "set model.tokenizer.part_aware=false for other data (KIT-ML)"
             )
         lower_idx, upper_idx = part_indices()
@@ -62,7 +63,10 @@ class PartAwareTokenizer(nn.Module):
     def decode(self, indices: torch.Tensor) -> torch.Tensor:
         """Motion (B, T' * 4, 263) of code index pairs (B, T', 2)."""
         if indices.dim() != 3 or indices.shape[-1] != len(PARTS):
-            raise ValueError(f"a part-aware tokenizer decodes index pairs (B, T', 2) (lower, upper), got shape {tuple(indices.shape)}")
+            raise ValueError(
+                "a part-aware tokenizer decodes index pairs (B, T', 2) (lower, upper), got shape "
+                f"{tuple(indices.shape)}"
+            )
         return self.decode_parts(indices[..., 0], indices[..., 1])
 
     @torch.no_grad()
@@ -70,7 +74,10 @@ class PartAwareTokenizer(nn.Module):
         """Motion (B, T' * 4, 263) of lower-body codes (B, T') and upper-body codes (B, T'),
         which may come from different motions."""
         if lower.shape != upper.shape:
-            raise ValueError(f"lower and upper codes must have the same shape (B, T'), got {tuple(lower.shape)} and {tuple(upper.shape)}")
+            raise ValueError(
+                f"lower and upper codes must have the same shape (B, T'), got {tuple(lower.shape)} and "
+                f"{tuple(upper.shape)}"
+            )
         return merge_parts(self.lower.decode(lower), self.upper.decode(upper))
 
     @property

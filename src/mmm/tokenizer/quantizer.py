@@ -51,16 +51,31 @@ class EMAQuantizer(nn.Module):
     l2_normalize: compare and store unit vectors (cosine lookup).
     """
 
-    def __init__(self, num_codes: int = 8192, code_dim: int = 32, decay: float = 0.99, l2_normalize: bool = False, eps: float = 1e-5):
+    def __init__(
+        self,
+        num_codes: int = 8192,
+        code_dim: int = 32,
+        decay: float = 0.99,
+        l2_normalize: bool = False,
+        eps: float = 1e-5,
+    ):
         super().__init__()
-        self.num_codes, self.code_dim, self.decay, self.l2_normalize, self.eps = num_codes, code_dim, decay, l2_normalize, eps
+        self.num_codes, self.code_dim, self.decay, self.l2_normalize, self.eps = (
+            num_codes,
+            code_dim,
+            decay,
+            l2_normalize,
+            eps,
+        )
         self.register_buffer("codebook", torch.zeros(num_codes, code_dim))
         self.register_buffer("ema_sum", torch.zeros(num_codes, code_dim))
         self.register_buffer("ema_count", torch.zeros(num_codes))
         self.register_buffer("window_usage", torch.zeros(num_codes))  # assignments since the last reset
         self.register_buffer("initialized", torch.tensor(False))
         self._latest_latents: torch.Tensor | None = None  # (N, C) of the last training batch, this rank
-        self.latest_counts: torch.Tensor | None = None  # (K,) assignments of the last training step, all ranks
+        self.latest_counts: torch.Tensor | None = (
+            None  # (K,) assignments of the last training step, all ranks
+        )
 
     # -- lookup ---------------------------------------------------------------------------------
     def _flatten(self, z: torch.Tensor) -> torch.Tensor:
@@ -70,7 +85,9 @@ class EMAQuantizer(nn.Module):
     def nearest(self, flat: torch.Tensor) -> torch.Tensor:
         """Index (N,) of the nearest code (L2) of each latent (N, C)."""
         codebook = self.codebook.to(flat.dtype)
-        distances = (flat.pow(2).sum(-1, keepdim=True) - 2 * flat @ codebook.t() + codebook.pow(2).sum(-1)[None])
+        distances = (
+            flat.pow(2).sum(-1, keepdim=True) - 2 * flat @ codebook.t() + codebook.pow(2).sum(-1)[None]
+        )
         return distances.argmin(dim=-1)
 
     def lookup(self, indices: torch.Tensor) -> torch.Tensor:

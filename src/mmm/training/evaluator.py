@@ -26,32 +26,48 @@ from typing import Callable
 
 import lightning as L
 import torch
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 from torch.utils.data import Dataset
 
+from mmm.callbacks.checkpoints import CheckpointConfig
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig, TextMotionDataModule
 from mmm.data.datasets import TextMotionDataset, collate_motions
 from mmm.data.resumable import ResumableDataLoader
 from mmm.evaluation.contrastive import (
-    ContrastiveEvaluator, ContrastiveEvaluatorModule, ContrastiveLossConfig, ContrastiveModelConfig, load_contrastive_evaluator,
+    ContrastiveEvaluator,
+    ContrastiveModelConfig,
+    load_contrastive_evaluator,
     retrieval_metrics,
 )
-from mmm.tokenizer.module import OptimConfig
-from mmm.training.common import (
-    CheckpointConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, resolve_tracking_uri, tag_run, tracked_fit,
-)
-from mmm.training.runs import run_directory
+from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule, ContrastiveLossConfig
+from mmm.fingerprint import dataset_fingerprint
+from mmm.kinds import EVALUATOR
+from mmm.registry.versions import WEIGHTS_SHA256, freeze_weights
 from mmm.text.encoders import TextConfig, build_text
+from mmm.tracking import TrackingConfig, resolve_tracking_uri
+from mmm.training.common import (
+    TrackedRun,
+    TrainResult,
+    log_final_metrics,
+    run_target,
+    tag_run,
+    text_record,
+    tracked_fit,
+)
+from mmm.training.configs import TrainerConfig
+from mmm.training.optim import OptimConfig
 
 log = logging.getLogger(__name__)
-
-EVALUATOR_EXPERIMENT = "mmm-evaluator"
 
 
 @dataclass
 class EvaluatorCallbacks:
-    checkpoint: CheckpointConfig = field(default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min"))
+    checkpoint: CheckpointConfig = field(
+        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
+    )
 
 
 @dataclass
@@ -65,27 +81,31 @@ class RetrievalConfig:
 @dataclass
 class RegistryConfig:
     register: bool = True
-    name: str = "mmm-evaluator"
+    name: str = EVALUATOR.registered
 
 
 @dataclass
 class EvaluatorTrainConfig:
     seed: int = 0
-    output_dir: str = "outputs/evaluator"
+    output_dir: str = EVALUATOR.output_dir
     data: DataConfig = field(default_factory=lambda: DataConfig(batch_size=128))
     text: TextConfig = field(default_factory=TextConfig)
     model: ContrastiveModelConfig = field(default_factory=ContrastiveModelConfig)
     loss: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
-    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=50, milestones=[1_000_000]))
+    optim: OptimConfig = field(
+        default_factory=lambda: OptimConfig(
+            lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=50, milestones=[1_000_000]
+        )
+    )
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=EVALUATOR_EXPERIMENT))
+    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=EVALUATOR.experiment))
     callbacks: EvaluatorCallbacks = field(default_factory=EvaluatorCallbacks)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
     registry: RegistryConfig = field(default_factory=RegistryConfig)
 
 
 def load_evaluator_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("train_evaluator", list(overrides), schema=EvaluatorTrainConfig)
+    return compose(EVALUATOR.config, list(overrides), schema=EvaluatorTrainConfig)
 
 
 @dataclass
@@ -129,7 +149,15 @@ class FixedOrder(Dataset):
 def protocol_dataset(items, mean, std, data: DataConfig, seed: int) -> TextMotionDataset:
     """Items as the evaluation protocol draws them: one random caption, the length cut to a
     multiple of unit_length (one unit shorter with probability 1/3), at a random offset; seeded."""
-    return TextMotionDataset(items, mean, std, max_length=data.max_length, unit_length=data.unit_length, random_crop=True, seed=seed)
+    return TextMotionDataset(
+        items,
+        mean,
+        std,
+        max_length=data.max_length,
+        unit_length=data.unit_length,
+        random_crop=True,
+        seed=seed,
+    )
 
 
 def seeded_order(n: int, seed: int) -> list[int]:
@@ -155,7 +183,13 @@ def evaluate_retrieval(
     if n < 2:
         raise ValueError(f"retrieval needs at least 2 items, the split has {n}")
     if n < batch_size:
-        log.warning("the split has %d items, fewer than one batch of %d: scoring one batch of %d (easier than the protocol's)", n, batch_size, n)
+        log.warning(
+            "the split has %d items, fewer than one batch of %d: scoring one batch of %d (easier than the "
+            "protocol's)",
+            n,
+            batch_size,
+            n,
+        )
         batch_size = n
     order = seeded_order(n, seed)[: n // batch_size * batch_size]
     samples = [dataset[i] for i in order]
@@ -168,7 +202,9 @@ def evaluate_retrieval(
     for start in range(0, len(samples), batch_size):
         batch = collate_motions(samples[start : start + batch_size])
         motions.append(evaluator.embed_motions(batch["motion"].to(device), batch["lengths"]).cpu())
-        texts.append(evaluator.embed_sentences(sentences_of(captions[start : start + batch_size]).to(device)).cpu())
+        texts.append(
+            evaluator.embed_sentences(sentences_of(captions[start : start + batch_size]).to(device)).cpu()
+        )
     scores = retrieval_metrics(texts, motions, top_k=3)
     return {**scores, "items": float(len(samples)), "batch_size": float(batch_size)}
 
@@ -176,33 +212,43 @@ def evaluate_retrieval(
 # ---------------------------------------------------------------------------------------- registry
 
 
-def register_evaluator(tracking_uri: str, name: str, run_id: str, tags: dict[str, object], description: str = "", checkpoint: str | None = None):
+def register_evaluator(
+    tracking_uri: str,
+    name: str,
+    run_id: str,
+    tags: dict[str, object],
+    description: str = "",
+    checkpoint: str | None = None,
+):
     """A new version of registered model `name` (created when missing); returns the ModelVersion.
     Its source is an immutable copy of `checkpoint` in the run (`registered/<name>-<sha256[:12]>/`,
     its digest tagged `weights.sha256`), or without one the run's checkpoints/ artifacts."""
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
     client = MlflowClient(tracking_uri)
     try:
         client.get_registered_model(name)
     except MlflowException:
         try:
             client.create_registered_model(
-                name, tags={"mmm.kind": "evaluator"},
-                description="Contrastive text-motion evaluators (mmm train evaluator): the yardstick generators are promoted against.",
+                name,
+                tags={"mmm.kind": EVALUATOR.name},
+                description=(
+                    "Contrastive text-motion evaluators (mmm train evaluator): the yardstick generators are "
+                    "promoted against."
+                ),
             )
         except MlflowException as e:  # another process created it meanwhile
             if "RESOURCE_ALREADY_EXISTS" not in str(e.error_code):
                 raise
     source = f"runs:/{run_id}/checkpoints"
     if checkpoint:
-        from mmm.registry.versions import WEIGHTS_SHA256, freeze_weights
-
         source, digest = freeze_weights(client, run_id, checkpoint, name)
         tags = {**tags, WEIGHTS_SHA256: digest}
     return client.create_model_version(
-        name, source=source, run_id=run_id, tags={k: "" if v is None else str(v) for k, v in tags.items()}, description=description,
+        name,
+        source=source,
+        run_id=run_id,
+        tags={k: "" if v is None else str(v) for k, v in tags.items()},
+        description=description,
     )
 
 
@@ -218,46 +264,90 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
     datamodule.setup()  # train, val and test items with the dataset's Mean/Std
     items = {split: datamodule.datasets[split].items for split in ("train", "val", "test")}
     mean, std = datamodule.mean, datamodule.std
-    from mmm.fingerprint import dataset_fingerprint
-
     fingerprint = dataset_fingerprint(datamodule.root)
 
     cache_started = time.perf_counter()
     text_encoder, caption_cache = build_text(cfg.text)
-    captions = sorted({c.text for split_items in items.values() for item in split_items for c in item.captions})
+    captions = sorted(
+        {c.text for split_items in items.values() for item in split_items for c in item.captions}
+    )
     counts = caption_cache.build(text_encoder, captions, progress=cfg.trainer.enable_progress_bar)
     cache_seconds = time.perf_counter() - cache_started
-    log.info("caption embeddings (%s): %d captions, %d newly encoded", text_encoder.identity, len(captions), counts["added"])
+    log.info(
+        "caption embeddings (%s): %d captions, %d newly encoded",
+        text_encoder.identity,
+        len(captions),
+        counts["added"],
+    )
 
     train = protocol_dataset(items["train"], mean, std, cfg.data, cfg.seed)
-    val = FixedOrder(protocol_dataset(items["val"], mean, std, cfg.data, cfg.seed + 1), seeded_order(len(items["val"]), cfg.seed + 1))
+    val = FixedOrder(
+        protocol_dataset(items["val"], mean, std, cfg.data, cfg.seed + 1),
+        seeded_order(len(items["val"]), cfg.seed + 1),
+    )
     val_batch = min(cfg.retrieval.batch_size, len(val))
     collate = CaptionedMotionCollator(caption_cache)
 
-    text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
+    text = text_record(text_encoder, cfg.text)
     data = {
-        "name": cfg.data.name, "root": str(cfg.data.root), "fingerprint": fingerprint, "skeleton": cfg.data.skeleton, "fps": cfg.data.fps,
-        "max_length": cfg.data.max_length, "unit_length": cfg.data.unit_length,
+        "name": cfg.data.name,
+        "root": str(cfg.data.root),
+        "fingerprint": fingerprint,
+        "skeleton": cfg.data.skeleton,
+        "fps": cfg.data.fps,
+        "max_length": cfg.data.max_length,
+        "unit_length": cfg.data.unit_length,
     }
-    module = ContrastiveEvaluatorModule(cfg.data.feature_dim, text_encoder.sentence_dim, cfg.model, cfg.optim, cfg.loss, mean, std, text, data)
+    module = ContrastiveEvaluatorModule(
+        cfg.data.feature_dim, text_encoder.sentence_dim, cfg.model, cfg.optim, cfg.loss, mean, std, text, data
+    )
     run = TrackedRun(
-        "evaluator", cfg_node,
-        tags={"text_encoder": text_encoder.identity, "data.fingerprint": fingerprint, "data.name": cfg.data.name, "data.root": cfg.data.root,
-              "evaluator.train_items": len(items["train"]), "evaluator.val_items": len(items["val"]), "evaluator.test_items": len(items["test"])},
+        EVALUATOR,
+        cfg_node,
+        tags={
+            "text_encoder": text_encoder.identity,
+            "data.fingerprint": fingerprint,
+            "data.name": cfg.data.name,
+            "data.root": cfg.data.root,
+            "evaluator.train_items": len(items["train"]),
+            "evaluator.val_items": len(items["val"]),
+            "evaluator.test_items": len(items["test"]),
+        },
         dataset=(cfg.data.name, cfg.data.root, fingerprint),
-        description=f"The package's own text-motion evaluator on {cfg.data.name} ({fingerprint}), text encoder {text_encoder.identity}: "
-                    "trained with InfoNCE, scored on the test split (`test/*`; `baseline/shuffled_*`: the same with shuffled captions).",
+        description=(
+            f"The package's own text-motion evaluator on {cfg.data.name} ({fingerprint}), text encoder "
+            f"{text_encoder.identity}: "
+            "trained with InfoNCE, scored on the test split (`test/*`; `baseline/shuffled_*`: the same with "
+            "shuffled captions)."
+        ),
     )
     loaders = {
         "train_dataloaders": ResumableDataLoader(
-            train, cfg.data.batch_size, shuffle=True, seed=cfg.seed, drop_last=len(train) > cfg.data.batch_size, collate_fn=collate,
-            num_workers=cfg.data.num_workers, persistent_workers=cfg.data.num_workers > 0,
+            train,
+            cfg.data.batch_size,
+            shuffle=True,
+            seed=cfg.seed,
+            drop_last=len(train) > cfg.data.batch_size,
+            collate_fn=collate,
+            num_workers=cfg.data.num_workers,
+            persistent_workers=cfg.data.num_workers > 0,
         ),
-        "val_dataloaders": ResumableDataLoader(val, val_batch, shuffle=False, seed=cfg.seed, drop_last=True, collate_fn=collate),
+        "val_dataloaders": ResumableDataLoader(
+            val, val_batch, shuffle=False, seed=cfg.seed, drop_last=True, collate_fn=collate
+        ),
     }
     fit_started = time.perf_counter()
-    result, trainer, logger = tracked_fit(run, cfg, module, run_directory(cfg.output_dir), [], loaders=loaders, result_type=EvaluatorTrainResult,
-                                          data_fingerprint=fingerprint, text_encoder=text_encoder.identity)
+    result, trainer, logger = tracked_fit(
+        run,
+        cfg,
+        module,
+        run_target(cfg),
+        [],
+        loaders=loaders,
+        result_type=EvaluatorTrainResult,
+        data_fingerprint=fingerprint,
+        text_encoder=text_encoder.identity,
+    )
     fit_seconds = time.perf_counter() - fit_started
     if not trainer.is_global_zero:
         return result
@@ -272,28 +362,47 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
         return caption_cache.lookup(captions).sentence
 
     scores = evaluate_retrieval(evaluator, test, sentences_of, cfg.retrieval.batch_size, cfg.retrieval.seed)
-    chance = evaluate_retrieval(evaluator, test, sentences_of, cfg.retrieval.batch_size, cfg.retrieval.seed, shuffle_captions=True)
+    chance = evaluate_retrieval(
+        evaluator, test, sentences_of, cfg.retrieval.batch_size, cfg.retrieval.seed, shuffle_captions=True
+    )
     evaluation = {f"test/{k}": v for k, v in scores.items()}
-    evaluation.update({f"baseline/shuffled_{k}": v for k, v in chance.items() if k not in ("items", "batch_size")})
-    timing = {"time/caption_cache_s": cache_seconds, "time/fit_s": fit_seconds, "time/test_s": time.perf_counter() - test_started}
+    evaluation.update(
+        {f"baseline/shuffled_{k}": v for k, v in chance.items() if k not in ("items", "batch_size")}
+    )
+    timing = {
+        "time/caption_cache_s": cache_seconds,
+        "time/fit_s": fit_seconds,
+        "time/test_s": time.perf_counter() - test_started,
+    }
     timing["time/total_s"] = time.perf_counter() - started
     log.info("test retrieval: %s; with shuffled captions: %s", scores, chance)
-    result.metrics.update({**evaluation, **timing})
+    log_final_metrics(result, trainer, logger, {**evaluation, **timing})
     if logger is not None:
-        logger.log_metrics({**evaluation, **timing}, step=trainer.global_step)
         if cfg.registry.register and cfg.logger.log_checkpoints and result.best_checkpoint:
             tags = {
-                "mmm.kind": "evaluator", "data.fingerprint": fingerprint, "data.name": cfg.data.name, "text_encoder": text_encoder.identity,
+                "mmm.kind": EVALUATOR.name,
+                "data.fingerprint": fingerprint,
+                "data.name": cfg.data.name,
+                "text_encoder": text_encoder.identity,
                 "global_step": trainer.global_step,
                 **{f"test.{k}": f"{v:.4f}" for k, v in scores.items() if k not in ("items", "batch_size")},
-                "test.items": int(scores["items"]), "test.batch_size": int(scores["batch_size"]),
+                "test.items": int(scores["items"]),
+                "test.batch_size": int(scores["batch_size"]),
                 "baseline.shuffled_r_precision_top1": f"{chance['r_precision_top1']:.4f}",
             }
             version = register_evaluator(
-                resolve_tracking_uri(cfg.logger.tracking_uri), cfg.registry.name, logger.run_id, tags,
-                description=f"{cfg.data.name} ({fingerprint}), text encoder {text_encoder.identity}: test R-precision top-1/2/3 "
-                f"{scores['r_precision_top1']:.3f}/{scores['r_precision_top2']:.3f}/{scores['r_precision_top3']:.3f}, "
-                f"matching distance {scores['matching_distance']:.3f}", checkpoint=checkpoint,
+                resolve_tracking_uri(cfg.logger.tracking_uri),
+                cfg.registry.name,
+                logger.run_id,
+                tags,
+                description=(
+                    f"{cfg.data.name} ({fingerprint}), text encoder {text_encoder.identity}: test "
+                    "R-precision top-1/2/3 "
+                    f"{scores['r_precision_top1']:.3f}/{scores['r_precision_top2']:.3f}/"
+                    f"{scores['r_precision_top3']:.3f}, "
+                    f"matching distance {scores['matching_distance']:.3f}"
+                ),
+                checkpoint=checkpoint,
             )
             result.registered_model, result.model_version = cfg.registry.name, str(version.version)
             tag_run(logger, {"registered_model": cfg.registry.name, "registered_version": version.version})

@@ -22,45 +22,62 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset
 
+from mmm.callbacks.checkpoints import CheckpointConfig
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
+from mmm.data.datasets import TokenTextDataset
 from mmm.data.resumable import ResumableDataLoader
-from mmm.generation.length import LengthEstimatorModule, LengthModelConfig, length_metrics
-from mmm.tokenizer.module import OptimConfig
-from mmm.training.common import (
-    CheckpointConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, tracked_fit,
-)
-from mmm.training.runs import run_directory
+from mmm.data.tokens import TokenCache
+from mmm.generation.length import LengthModelConfig, length_metrics
+from mmm.generation.length_module import LengthEstimatorModule
+from mmm.kinds import LENGTH, STAGE1
 from mmm.text.encoders import TextConfig
-from mmm.training.stage2 import Stage2Config, prepare_stage2_data
+from mmm.tracking import TrackingConfig
+from mmm.training.common import (
+    TrackedRun,
+    TrainResult,
+    log_final_metrics,
+    run_target,
+    text_record,
+    tracked_fit,
+)
+from mmm.training.configs import TrainerConfig
+from mmm.training.optim import OptimConfig
+from mmm.training.stage2 import Stage2Config, prepare_stage2_data, stage1_record, stage1_tags
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class LengthCallbacks:
-    checkpoint: CheckpointConfig = field(default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min"))
+    checkpoint: CheckpointConfig = field(
+        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
+    )
 
 
 @dataclass
 class LengthConfig:
     seed: int = 0
-    output_dir: str = "outputs/length"
+    output_dir: str = LENGTH.output_dir
     stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
-    stage1_output_dir: str = "outputs/stage1"
+    stage1_output_dir: str = STAGE1.output_dir
     token_cache_dir: str = "outputs/cache/tokens"
     data: DataConfig = field(default_factory=DataConfig)
     text: TextConfig = field(default_factory=TextConfig)
     model: LengthModelConfig = field(default_factory=LengthModelConfig)
-    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=20, milestones=[1_000_000]))
+    optim: OptimConfig = field(
+        default_factory=lambda: OptimConfig(
+            lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=20, milestones=[1_000_000]
+        )
+    )
     label_smoothing: float = 0.0
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment="mmm-length"))
+    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=LENGTH.experiment))
     callbacks: LengthCallbacks = field(default_factory=LengthCallbacks)
 
 
 def load_length_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("train_length", list(overrides), schema=LengthConfig)
+    return compose(LENGTH.config, list(overrides), schema=LengthConfig)
 
 
 def stage2_view(cfg_node: DictConfig) -> DictConfig:
@@ -69,10 +86,17 @@ def stage2_view(cfg_node: DictConfig) -> DictConfig:
     cfg: LengthConfig = to_object(cfg_node)
     node = OmegaConf.structured(Stage2Config)
     shared = {key: OmegaConf.to_container(cfg_node[key], resolve=True) for key in ("data", "text", "logger")}
-    return OmegaConf.merge(node, {
-        "seed": cfg.seed, "stage1": cfg.stage1, "stage1_output_dir": cfg.stage1_output_dir, "token_cache_dir": cfg.token_cache_dir,
-        **shared, "model": {"transformer": {"max_tokens": cfg.model.max_codes + 1}},
-    })
+    return OmegaConf.merge(
+        node,
+        {
+            "seed": cfg.seed,
+            "stage1": cfg.stage1,
+            "stage1_output_dir": cfg.stage1_output_dir,
+            "token_cache_dir": cfg.token_cache_dir,
+            **shared,
+            "model": {"transformer": {"max_tokens": cfg.model.max_codes + 1}},
+        },
+    )
 
 
 class LengthPairs(Dataset):
@@ -92,10 +116,10 @@ class LengthPairs(Dataset):
 def build_length_pairs(datamodule, split: str, max_codes: int, chunk: int = 512) -> LengthPairs:
     """Every caption of every item of `split` with the item's token count (items without a code are
     left out); the sentence embeddings come from the datamodule's caption cache."""
-    from mmm.data.datasets import TokenTextDataset
-
     items, _ = datamodule._items(split)
-    codes_of = TokenTextDataset(items, datamodule.tokens, unit_length=datamodule.cfg.unit_length, max_codes=max_codes, augment=False)
+    codes_of = TokenTextDataset(
+        items, datamodule.tokens, unit_length=datamodule.cfg.unit_length, max_codes=max_codes, augment=False
+    )
     captions, counts = [], []
     for item in items:
         n = len(codes_of.codes(item))
@@ -105,8 +129,15 @@ def build_length_pairs(datamodule, split: str, max_codes: int, chunk: int = 512)
             captions.append(caption.text)
             counts.append(n)
     if not captions:
-        raise ValueError(f"{datamodule.root}: no {split} item has a token; the length estimator has nothing to learn from")
-    sentences = torch.cat([datamodule.caption_cache.lookup(captions[i : i + chunk]).sentence for i in range(0, len(captions), chunk)])
+        raise ValueError(
+            f"{datamodule.root}: no {split} item has a token; the length estimator has nothing to learn from"
+        )
+    sentences = torch.cat(
+        [
+            datamodule.caption_cache.lookup(captions[i : i + chunk]).sentence
+            for i in range(0, len(captions), chunk)
+        ]
+    )
     return LengthPairs(sentences, torch.tensor(counts, dtype=torch.long))
 
 
@@ -118,8 +149,10 @@ def constant_baseline(train: LengthPairs, val: LengthPairs, unit_length: int) ->
     hits = length_metrics(torch.full_like(val.codes, mode), val.codes, unit_length)
     median_error = length_metrics(torch.full_like(val.codes, median), val.codes, unit_length)["mae_frames"]
     return {
-        "baseline/mode_codes": float(mode), **{f"baseline/{k}": float(v.mean()) for k, v in hits.items()},
-        "baseline/median_codes": float(median), "baseline/median_mae_frames": float(median_error.mean()),
+        "baseline/mode_codes": float(mode),
+        **{f"baseline/{k}": float(v.mean()) for k, v in hits.items()},
+        "baseline/median_codes": float(median),
+        "baseline/median_mae_frames": float(median_error.mean()),
     }
 
 
@@ -128,35 +161,62 @@ def train_length(cfg_node: DictConfig) -> TrainResult:
     started = time.perf_counter()
     L.seed_everything(cfg.seed, workers=True)
     datamodule = prepare_stage2_data(stage2_view(cfg_node))
-    if datamodule.tokens is None:  # prepare_data opens the token cache; setup() would also build stage-2 datasets
-        from mmm.data.tokens import TokenCache
-
+    if (
+        datamodule.tokens is None
+    ):  # prepare_data opens the token cache; setup() would also build stage-2 datasets
         datamodule.tokens = TokenCache(datamodule._token_folder())
     source, text_encoder = datamodule.source, datamodule.text_encoder
     train, val = (build_length_pairs(datamodule, split, cfg.model.max_codes) for split in ("train", "val"))
     baseline = constant_baseline(train, val, cfg.model.unit_length)
-    log.info("length pairs: %d train, %d val; the most frequent length scores %s", len(train), len(val), baseline)
+    log.info(
+        "length pairs: %d train, %d val; the most frequent length scores %s", len(train), len(val), baseline
+    )
 
-    stage1 = {"reference": source.reference, "run_id": source.run_id, "identity": source.identity, "checkpoint": source.checkpoint}
-    text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
-    module = LengthEstimatorModule(text_encoder.sentence_dim, cfg.model, cfg.optim, cfg.label_smoothing, text, stage1)
+    module = LengthEstimatorModule(
+        text_encoder.sentence_dim,
+        cfg.model,
+        cfg.optim,
+        cfg.label_smoothing,
+        text_record(text_encoder, cfg.text),
+        stage1_record(source),
+    )
     run = TrackedRun(
-        "length", cfg_node, exclude=("stage1", "stage1_output_dir"),
-        tags={"stage1.reference": source.reference, "stage1.run_id": source.run_id, "stage1.identity": source.identity,
-              "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint,
-              "length.train_pairs": len(train), "length.val_pairs": len(val)},
-        dataset=(cfg.data.name, cfg.data.root, datamodule.data_fingerprint), metrics=baseline,
-        description=f"Length estimator (caption -> codes) over {text_encoder.identity} sentence embeddings, on the tokens of "
-                    f"`{source.reference}`; {len(train)} training pairs. `baseline/*`: always the most frequent length.",
+        LENGTH,
+        cfg_node,
+        exclude=("stage1", "stage1_output_dir"),
+        tags={
+            **stage1_tags(source),
+            "text_encoder": text_encoder.identity,
+            "data.fingerprint": datamodule.data_fingerprint,
+            "length.train_pairs": len(train),
+            "length.val_pairs": len(val),
+        },
+        dataset=(cfg.data.name, cfg.data.root, datamodule.data_fingerprint),
+        metrics=baseline,
+        description=(
+            f"Length estimator (caption -> codes) over {text_encoder.identity} sentence embeddings, on the "
+            "tokens of "
+            f"`{source.reference}`; {len(train)} training pairs. "
+            "`baseline/*`: always the most frequent length."
+        ),
     )
     loaders = {
-        "train_dataloaders": ResumableDataLoader(train, cfg.data.batch_size, shuffle=True, seed=cfg.seed, drop_last=len(train) > cfg.data.batch_size),
+        "train_dataloaders": ResumableDataLoader(
+            train,
+            cfg.data.batch_size,
+            shuffle=True,
+            seed=cfg.seed,
+            drop_last=len(train) > cfg.data.batch_size,
+        ),
         "val_dataloaders": ResumableDataLoader(val, cfg.data.batch_size, shuffle=False, seed=cfg.seed),
     }
     fit_started = time.perf_counter()
-    result, trainer, logger = tracked_fit(run, cfg, module, run_directory(cfg.output_dir), [], loaders=loaders)
-    timing = {"time/fit_s": time.perf_counter() - fit_started, "time/total_s": time.perf_counter() - started}
-    if logger is not None and trainer.is_global_zero:
-        logger.log_metrics(timing, step=trainer.global_step)
-    result.metrics.update({**baseline, **timing})
+    result, trainer, logger = tracked_fit(run, cfg, module, run_target(cfg), [], loaders=loaders)
+    result.metrics.update(baseline)  # logged at step 0
+    log_final_metrics(
+        result,
+        trainer,
+        logger,
+        {"time/fit_s": time.perf_counter() - fit_started, "time/total_s": time.perf_counter() - started},
+    )
     return result

@@ -41,7 +41,9 @@ def is_launching_process() -> bool:
     or the process that Lightning launches its DDP children from (they inherit MMM_RUN_DIR)."""
     if os.environ.get(RUN_DIR_ENV):
         return False
-    return all(int(os.environ.get(name) or 0) == 0 for name in ("RANK", "SLURM_PROCID", "LOCAL_RANK", "NODE_RANK"))
+    return all(
+        int(os.environ.get(name) or 0) == 0 for name in ("RANK", "SLURM_PROCID", "LOCAL_RANK", "NODE_RANK")
+    )
 
 
 def run_directory(output_dir: str | Path) -> Path:
@@ -118,9 +120,13 @@ def find_last_checkpoint(output_dir: str | Path) -> Path:
     """The newest `last.ckpt` under output_dir/*/checkpoints/ whose run no other process is
     writing (those are skipped, and said so). Ranks other than the launching one accept the run
     their own launch holds."""
-    candidates = sorted(Path(output_dir).glob("*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime, reverse=True)
+    candidates = sorted(
+        Path(output_dir).glob("*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime, reverse=True
+    )
     if not candidates:
-        raise FileNotFoundError(f"{output_dir}: no */checkpoints/last.ckpt to resume from; train first or pass --resume PATH")
+        raise FileNotFoundError(
+            f"{output_dir}: no */checkpoints/last.ckpt to resume from; train first or pass --resume PATH"
+        )
     ours = launch_id()
     for path in candidates:
         owner = _busy_owner(path.parent.parent)
@@ -129,7 +135,8 @@ def find_last_checkpoint(output_dir: str | Path) -> Path:
         log.warning("--resume last: skipping %s, which %s is still writing", path.parent.parent, owner)
     raise FileNotFoundError(
         f"{output_dir}: every run with a last.ckpt is still being written by another training "
-        f"({', '.join(str(p.parent.parent.name) for p in candidates)}); wait for it to finish or pass --resume PATH"
+        f"({', '.join(str(p.parent.parent.name) for p in candidates)}); wait for it to finish or pass "
+        "--resume PATH"
     )
 
 
@@ -158,14 +165,22 @@ def resume_target(resume: str, output_dir: str | Path) -> tuple[Path, Path]:
         return checkpoint, checkpoint.parent.parent
     checkpoint = Path(resume).expanduser().resolve()
     if not checkpoint.is_file():
-        raise FileNotFoundError(f"--resume {resume}: no such checkpoint file; pass `last` or the path of a .ckpt file")
+        raise FileNotFoundError(
+            f"--resume {resume}: no such checkpoint file; pass `last` or the path of a .ckpt file"
+        )
     if inherited:
         return checkpoint, Path(inherited)
     if checkpoint.parent.name == "checkpoints" and checkpoint.parent.parent.parent == output_dir:
         return checkpoint, checkpoint.parent.parent
     where = "outside" if not _inside(checkpoint, output_dir) else "not in a run folder of"
     run_dir = run_directory(output_dir)
-    log.info("--resume %s: the checkpoint is %s %s; it is read only and the run continues in %s", checkpoint, where, output_dir, run_dir)
+    log.info(
+        "--resume %s: the checkpoint is %s %s; it is read only and the run continues in %s",
+        checkpoint,
+        where,
+        output_dir,
+        run_dir,
+    )
     return checkpoint, run_dir
 
 
@@ -179,11 +194,16 @@ def claim_run_directory(run_dir: Path, resuming: bool) -> RunLock | None:
     lock = RunLock.try_acquire(run_dir)
     if lock is None:
         owner = _busy_owner(run_dir) or "another process"
-        raise FileExistsError(f"{run_dir}: {owner} is still training in this run folder; wait for it to finish, or resume another run")
+        raise FileExistsError(
+            f"{run_dir}: {owner} is still training in this run folder; wait for it to finish, or resume "
+            "another run"
+        )
     if not resuming and any((run_dir / "checkpoints").glob("*.ckpt")):
         lock.release()
         raise FileExistsError(
-            f"{run_dir}: a new run would write over the checkpoints of an earlier launch with the same id ({run_dir.name}); "
-            "resume it with --resume last, or give this launch its own id (torchrun --rdzv-id, a new srun step)"
+            f"{run_dir}: a new run would write over the checkpoints of an earlier launch with the same id "
+            f"({run_dir.name}); "
+            "resume it with --resume last, or give this launch its own id (torchrun --rdzv-id, a new srun "
+            "step)"
         )
     return lock

@@ -11,19 +11,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import lightning as L
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
+from mmm.callbacks.checkpoints import CheckpointConfig
 from mmm.callbacks.previews import GenerationPreview
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig, TokenTextDataModule
+from mmm.kinds import STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS
+from mmm.resolve import registered_version
 from mmm.text.encoders import TextConfig, build_text
 from mmm.tokenizer.load import load_tokenizer
-from mmm.tokenizer.module import OptimConfig
+from mmm.tracking import TrackingConfig, resolve_tracking_uri, run_link, version_link
 from mmm.training.common import (
-    CheckpointConfig, ModelConfig, TrackedRun, TrackingConfig, TrainerConfig, TrainResult, read_checkpoint_meta, resolve_tracking_uri,
-    resumable_run_id, tracked_fit,
+    TrackedRun,
+    TrainResult,
+    read_checkpoint_meta,
+    run_target,
+    text_record,
+    tracked_fit,
 )
-from mmm.training.runs import claim_run_directory, resume_target, run_directory
+from mmm.training.configs import ModelConfig, TrainerConfig
+from mmm.training.optim import OptimConfig
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, stage2_codebooks
 
 log = logging.getLogger(__name__)
@@ -31,18 +41,26 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Stage2Callbacks:
-    checkpoint: CheckpointConfig = field(default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min"))
-    preview_captions: int = 3  # validation captions generated and rendered at each validation (0: none)
+    checkpoint: CheckpointConfig = field(
+        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
+    )
+    preview_captions: int = (
+        3  # GenerationPreview: validation captions generated and rendered at each validation (0: none)
+    )
 
 
 @dataclass
 class Stage2Config:
     seed: int = 0
-    output_dir: str = "outputs/stage2"
+    output_dir: str = STAGE2.output_dir
     stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
-    stage1_output_dir: str = "outputs/stage1"
-    stage1_experiment: str = "mmm-stage1"  # where the newest stage-1 run is looked for (mmm-stage1-parts: part-aware)
-    part_aware: bool = False  # the part-aware transformer (upper body given lower body); needs a part-aware stage-1 model
+    stage1_output_dir: str = STAGE1.output_dir
+    stage1_experiment: str = (
+        STAGE1.experiment
+    )  # where the newest stage-1 run is looked for (mmm-stage1-parts: part-aware)
+    part_aware: bool = (
+        False  # the part-aware transformer (upper body given lower body); needs a part-aware stage-1 model
+    )
     token_cache_dir: str = "outputs/cache/tokens"
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -55,15 +73,17 @@ class Stage2Config:
 
 
 def load_stage2_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:
-    """conf/train_stage2.yaml, or with parts=True conf/train_stage2_parts.yaml (the part-aware transformer)."""
-    return compose("train_stage2_parts" if parts else "train_stage2", list(overrides), schema=Stage2Config)
+    """conf/train_stage2.yaml, or with parts=True conf/train_stage2_parts.yaml (the part-aware
+    transformer)."""
+    return compose((STAGE2_PARTS if parts else STAGE2).config, list(overrides), schema=Stage2Config)
 
 
 def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:
     hp = read_checkpoint_meta(checkpoint)["hyper_parameters"] or {}
     if list(hp.get("codebook_shape", codebook_shape)) != list(codebook_shape):
         raise ValueError(
-            f"{checkpoint}: this transformer was trained on a codebook of shape {hp['codebook_shape']}, but the stage-1 model "
+            f"{checkpoint}: this transformer was trained on a codebook of shape {hp['codebook_shape']}, but "
+            "the stage-1 model "
             f"has {codebook_shape}; resume with the stage-1 model it was trained with (stage1=...)"
         )
 
@@ -74,8 +94,10 @@ def check_stage1_identity(checkpoint: Path, source) -> None:
     recorded = (read_checkpoint_meta(checkpoint)["hyper_parameters"] or {}).get("stage1") or {}
     if recorded.get("identity") and recorded["identity"] != source.identity:
         raise ValueError(
-            f"{checkpoint}: this transformer was trained on stage-1 model {recorded.get('reference', '?')} (weights {recorded['identity']}), "
-            f"but stage1= resolves to {source.reference} (weights {source.identity}); resume with stage1={recorded.get('reference', '...')} "
+            f"{checkpoint}: this transformer was trained on stage-1 model {recorded.get('reference', '?')} "
+            f"(weights {recorded['identity']}), "
+            f"but stage1= resolves to {source.reference} (weights {source.identity}); resume with "
+            f"stage1={recorded.get('reference', '...')} "
             "(the model it was trained with), or start a new run without --resume"
         )
 
@@ -83,87 +105,129 @@ def check_stage1_identity(checkpoint: Path, source) -> None:
 def prepare_stage2_data(cfg_node: DictConfig) -> TokenTextDataModule:
     """Resolve the stage-1 model, tokenize the dataset and cache the caption embeddings."""
     cfg: Stage2Config = to_object(cfg_node)
-    tokenizer, source = load_tokenizer(cfg.stage1, resolve_tracking_uri(cfg.logger.tracking_uri), cfg.stage1_output_dir, cfg.stage1_experiment)
+    tokenizer, source = load_tokenizer(
+        cfg.stage1,
+        resolve_tracking_uri(cfg.logger.tracking_uri),
+        cfg.stage1_output_dir,
+        cfg.stage1_experiment,
+    )
     log.info("stage-1 model: %s (identity %s)", source.reference, source.identity)
     tokenizer_parts = bool(getattr(tokenizer.tokenizer, "part_aware", False))
     if tokenizer_parts != cfg.part_aware:
         raise ValueError(
-            f"stage-1 model {source.reference} is {'part-aware' if tokenizer_parts else 'a whole-body tokenizer'}, but this stage-2 config "
+            f"stage-1 model {source.reference} is "
+            f"{'part-aware' if tokenizer_parts else 'a whole-body tokenizer'}, but this stage-2 config "
             f"trains {'the part-aware' if cfg.part_aware else 'the whole-body'} transformer; "
-            + ("use `mmm train stage2-parts` (make train-stage2-parts)" if tokenizer_parts else "train one with `make train-stage1-parts` or name it with stage1=...")
+            + (
+                f"use `mmm train {STAGE2_PARTS.name}` ({STAGE2_PARTS.train})"
+                if tokenizer_parts
+                else f"train one with `{STAGE1_PARTS.train}` or name it with stage1=..."
+            )
         )
     text_encoder, caption_cache = build_text(cfg.text)
     datamodule = TokenTextDataModule(
-        cfg.data, cfg.seed, tokenizer, source.identity, text_encoder, caption_cache, cfg.token_cache_dir, cfg.model.transformer.max_tokens,
+        cfg.data,
+        cfg.seed,
+        tokenizer,
+        source.identity,
+        text_encoder,
+        caption_cache,
+        cfg.token_cache_dir,
+        cfg.model.transformer.max_tokens,
     )
     datamodule.source = source
     datamodule.prepare_data()
     return datamodule
 
 
+def stage1_record(source) -> dict:
+    """The stage-1 model a stage-2 model (or a length estimator) was trained on, as its checkpoint
+    records it."""
+    return {
+        "reference": source.reference,
+        "run_id": source.run_id,
+        "identity": source.identity,
+        "checkpoint": source.checkpoint,
+    }
+
+
+def stage1_tags(source) -> dict:
+    """The stage-1 model as run tags (`stage1.reference`, `stage1.run_id`, `stage1.identity`)."""
+    return {
+        "stage1.reference": source.reference,
+        "stage1.run_id": source.run_id,
+        "stage1.identity": source.identity,
+    }
+
+
 def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
     cfg: Stage2Config = to_object(cfg_node)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = prepare_stage2_data(cfg_node)
-    tokenizer, source = datamodule.tokenizer, datamodule.source
-    codebook, condition_codebook = stage2_codebooks(tokenizer)
-    ckpt_path, run_id = None, None
-    if resume:
-        ckpt_path, run_dir = resume_target(resume, cfg.output_dir)
-        check_codebook(ckpt_path, list(codebook.shape))
-        check_stage1_identity(ckpt_path, source)
-        run_id = resumable_run_id(read_checkpoint_meta(ckpt_path)["mlflow_run_id"], cfg.logger)
-        log.info("resuming %s in %s (MLflow run %s)", ckpt_path, run_dir, run_id)
-    else:
-        run_dir = run_directory(cfg.output_dir)
-    lock = claim_run_directory(run_dir, resuming=ckpt_path is not None)
-    try:
-        return _fit_stage2(cfg, cfg_node, datamodule, codebook, condition_codebook, run_dir, ckpt_path, run_id)
-    finally:
-        if lock is not None:
-            lock.release()
-
-
-def _fit_stage2(cfg: Stage2Config, cfg_node: DictConfig, datamodule, codebook, condition_codebook, run_dir: Path, ckpt_path: Path | None,
-                run_id: str | None) -> TrainResult:
     tokenizer, source, text_encoder = datamodule.tokenizer, datamodule.source, datamodule.text_encoder
-    stage1 = {"reference": source.reference, "run_id": source.run_id, "identity": source.identity, "checkpoint": source.checkpoint}
-    text = {"name": text_encoder.name, "identity": text_encoder.identity, **cfg.text.options()}
+    codebook, condition_codebook = stage2_codebooks(tokenizer)
+
+    def check(checkpoint: Path) -> None:
+        check_codebook(checkpoint, list(codebook.shape))
+        check_stage1_identity(checkpoint, source)
+
+    target = run_target(cfg, resume, check)
     module = MaskedTransformerModule(
-        codebook, cfg.model.transformer, cfg.optim, cfg.corruption, text_encoder.sentence_dim, text_encoder.word_dim, stage1, text,
+        codebook,
+        cfg.model.transformer,
+        cfg.optim,
+        cfg.corruption,
+        text_encoder.sentence_dim,
+        text_encoder.word_dim,
+        stage1_record(source),
+        text_record(text_encoder, cfg.text),
         condition_codebook=condition_codebook,
     )
-    callbacks = [GenerationPreview(tokenizer, text_encoder, cfg.callbacks.preview_captions, cfg.seed)] if cfg.callbacks.preview_captions > 0 else []
-    lineage = stage1_lineage(source, resolve_tracking_uri(cfg.logger.tracking_uri)) if cfg.logger.enabled else {}
+    callbacks = (
+        [GenerationPreview(tokenizer, text_encoder, cfg.callbacks.preview_captions, cfg.seed)]
+        if cfg.callbacks.preview_captions > 0
+        else []
+    )
+    lineage = (
+        stage1_lineage(source, resolve_tracking_uri(cfg.logger.tracking_uri)) if cfg.logger.enabled else {}
+    )
     run = TrackedRun(
-        "stage2-parts" if cfg.part_aware else "stage2", cfg_node, model_cfg=cfg.model,
+        STAGE2_PARTS if cfg.part_aware else STAGE2,
+        cfg_node,
+        model_cfg=cfg.model,
         # The stage-1 model is recorded once, resolved (tags below), not as the options that found it.
         exclude=("model.tokenizer", "stage1", "stage1_output_dir", "stage1_experiment"),
-        tags={"stage1.reference": source.reference, "stage1.run_id": source.run_id, "stage1.identity": source.identity,
-              "stage1.version": lineage.get("version"), "text_encoder": text_encoder.identity, "data.fingerprint": datamodule.data_fingerprint},
+        tags={
+            **stage1_tags(source),
+            "stage1.version": lineage.get("version"),
+            "text_encoder": text_encoder.identity,
+            "data.fingerprint": datamodule.data_fingerprint,
+        },
         dataset=(cfg.data.name, cfg.data.root, datamodule.data_fingerprint),
-        description=f"Masked transformer ({'part-aware, ' if cfg.part_aware else ''}{cfg.model.transformer.num_layers} layers of "
-                    f"{cfg.model.transformer.embed_dim}) on the tokens of {lineage.get('markdown', source.reference)} "
-                    f"(weights {source.identity}), text encoder {text_encoder.identity}, data {cfg.data.name} ({datamodule.data_fingerprint}).",
+        description=(
+            "Masked transformer "
+            f"({'part-aware, ' if cfg.part_aware else ''}{cfg.model.transformer.num_layers} layers of "
+            f"{cfg.model.transformer.embed_dim}) on the tokens of "
+            f"{lineage.get('markdown', source.reference)} "
+            f"(weights {source.identity}), text encoder {text_encoder.identity}, data {cfg.data.name} "
+            f"({datamodule.data_fingerprint})."
+        ),
     )
-    result, _, _ = tracked_fit(run, cfg, module, run_dir, callbacks, datamodule=datamodule, ckpt_path=ckpt_path, run_id=run_id)
+    result, _, _ = tracked_fit(run, cfg, module, target, callbacks, datamodule=datamodule)
     return result
 
 
 def stage1_lineage(source, tracking_uri: str) -> dict:
     """The stage-1 model as links: its run, and the exact registered version a models:/ alias
     resolved to ({"version": "mmm-tokenizer/3", "markdown": ...})."""
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
-    from mmm.resolve import registered_version
-    from mmm.tracking import run_link, version_link
-
     out, links = {}, []
     if source.reference.startswith("models:/"):
         version = registered_version(source.reference, tracking_uri)
         out["version"] = f"{version.name}/{version.version}"
-        links.append(version_link(version.name, version.version) + (f" (`{source.reference}`)" if "@" in source.reference else ""))
+        links.append(
+            version_link(version.name, version.version)
+            + (f" (`{source.reference}`)" if "@" in source.reference else "")
+        )
     if source.run_id:
         try:
             experiment = MlflowClient(tracking_uri).get_run(source.run_id).info.experiment_id

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import lightning as L
@@ -10,18 +9,23 @@ import torch
 import torch.nn.functional as F
 from torchmetrics import MeanMetric
 
-from mmm.tokenizer.module import OptimConfig, _as, warmup_step_schedule
-from mmm.transformer.schedules import TRAINING_SCHEDULES, check_schedule
+from mmm.config import as_config
+from mmm.training.optim import OptimConfig, build_optimizer
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
+from mmm.transformer.schedules import TRAINING_SCHEDULES, check_schedule
 
 
 @dataclass
 class CorruptionConfig:
-    mask_schedule: str = "uniform"  # a name of transformer/schedules.py TRAINING_SCHEDULES (uniform: as released)
+    mask_schedule: str = (
+        "uniform"  # a name of transformer/schedules.py TRAINING_SCHEDULES (uniform: as released)
+    )
     pkeep: float = 0.5  # real tokens replaced by random codes with probability 1 - pkeep
     loss_on: str = "all"  # all real positions (released) | masked
     cond_drop: float = 0.0  # probability of dropping the text (0.1 enables classifier-free guidance)
-    lower_mask: float = 1.0  # part-aware model: a share ~ U(0, lower_mask) of the lower-body condition codes is masked
+    lower_mask: float = (
+        1.0  # part-aware model: a share ~ U(0, lower_mask) of the lower-body condition codes is masked
+    )
 
     def __post_init__(self):
         check_schedule(self.mask_schedule, TRAINING_SCHEDULES, "corruption.mask_schedule")
@@ -46,7 +50,13 @@ def random_positions(scores: torch.Tensor, real: torch.Tensor, count: torch.Tens
     return scores.argsort(dim=1).argsort(dim=1) < count[:, None]
 
 
-def corrupt(tokens: torch.Tensor, lengths: torch.Tensor, num_codes: int, cfg: CorruptionConfig, generator: torch.Generator | None = None) -> Corrupted:
+def corrupt(
+    tokens: torch.Tensor,
+    lengths: torch.Tensor,
+    num_codes: int,
+    cfg: CorruptionConfig,
+    generator: torch.Generator | None = None,
+) -> Corrupted:
     """Corrupt (B, M) token sequences as in training: random replacement, then masking.
 
     Each sequence masks round(r * L) of its L real positions (at least 1), chosen uniformly;
@@ -71,7 +81,13 @@ def corrupt(tokens: torch.Tensor, lengths: torch.Tensor, num_codes: int, cfg: Co
     return Corrupted(inputs, masked, replace & ~masked, real)
 
 
-def mask_condition(lower: torch.Tensor, lengths: torch.Tensor, max_share: float, mask_id: int, generator: torch.Generator | None = None) -> torch.Tensor:
+def mask_condition(
+    lower: torch.Tensor,
+    lengths: torch.Tensor,
+    max_share: float,
+    mask_id: int,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """Lower-body condition codes (B, M) with a share ~ U(0, max_share) of each sequence's real
     positions replaced by MASK (chosen uniformly), so the model learns every strength of the
     lower-body constraint, from all of it to none."""
@@ -123,42 +139,80 @@ class MaskedTransformerModule(L.LightningModule):
         condition_codebook: torch.Tensor | None = None,
     ):
         super().__init__()
-        model, optim, corruption = _as(TransformerConfig, model), _as(OptimConfig, optim), _as(CorruptionConfig, corruption)
+        model, optim, corruption = (
+            as_config(TransformerConfig, model),
+            as_config(OptimConfig, optim),
+            as_config(CorruptionConfig, corruption),
+        )
         codebook = torch.as_tensor(codebook, dtype=torch.float32)
-        condition_codebook = None if condition_codebook is None else torch.as_tensor(condition_codebook, dtype=torch.float32)
+        condition_codebook = (
+            None if condition_codebook is None else torch.as_tensor(condition_codebook, dtype=torch.float32)
+        )
         self.save_hyperparameters(
             {
-                "codebook_shape": list(codebook.shape), "model": asdict(model), "optim": asdict(optim), "corruption": asdict(corruption),
-                "sentence_dim": sentence_dim, "word_dim": word_dim, "stage1": stage1 or {}, "text_encoder": text_encoder or {},
-                "condition_codebook_shape": None if condition_codebook is None else list(condition_codebook.shape),
-            }, logger=False
+                "codebook_shape": list(codebook.shape),
+                "model": asdict(model),
+                "optim": asdict(optim),
+                "corruption": asdict(corruption),
+                "sentence_dim": sentence_dim,
+                "word_dim": word_dim,
+                "stage1": stage1 or {},
+                "text_encoder": text_encoder or {},
+                "condition_codebook_shape": None
+                if condition_codebook is None
+                else list(condition_codebook.shape),
+            },
+            logger=False,
         )
         self.model_cfg, self.optim_cfg, self.corruption_cfg = model, optim, corruption
-        self.transformer = MaskedMotionTransformer(codebook, model, sentence_dim, word_dim, condition_codebook)
+        self.transformer = MaskedMotionTransformer(
+            codebook, model, sentence_dim, word_dim, condition_codebook
+        )
         self.num_codes = codebook.shape[0]
         self.val_loss, self.val_acc_masked, self.val_acc_unmasked = MeanMetric(), MeanMetric(), MeanMetric()
         self.preview_batch: dict | None = None  # first validation batch, for generation previews
 
-    def targets_and_condition(self, batch: dict, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def targets_and_condition(
+        self, batch: dict, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(codes to predict (B, M), lower-body condition (B, M) or None) of a batch."""
         tokens = batch["tokens"]
         if not self.transformer.part_aware:
             return tokens, None
         if tokens.dim() != 3:
-            raise ValueError(f"a part-aware transformer trains on (B, M, 2) tokens of a part-aware stage-1 model, got {tuple(tokens.shape)}")
-        condition = mask_condition(tokens[..., 0], batch["lengths"], self.corruption_cfg.lower_mask, self.transformer.condition.mask_id, generator)
+            raise ValueError(
+                "a part-aware transformer trains on (B, M, 2) tokens of a part-aware stage-1 model, got "
+                f"{tuple(tokens.shape)}"
+            )
+        condition = mask_condition(
+            tokens[..., 0],
+            batch["lengths"],
+            self.corruption_cfg.lower_mask,
+            self.transformer.condition.mask_id,
+            generator,
+        )
         return tokens[..., 1], condition
 
-    def loss(self, logits: torch.Tensor, targets: torch.Tensor, corrupted: Corrupted) -> tuple[torch.Tensor, torch.Tensor]:
-        ce = F.cross_entropy(logits.transpose(1, 2), targets.clamp(max=self.num_codes - 1), reduction="none")  # (B, M); END/PAD are never targets
+    def loss(
+        self, logits: torch.Tensor, targets: torch.Tensor, corrupted: Corrupted
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        ce = F.cross_entropy(
+            logits.transpose(1, 2), targets.clamp(max=self.num_codes - 1), reduction="none"
+        )  # (B, M); END/PAD are never targets
         weight = corrupted.masked if self.corruption_cfg.loss_on == "masked" else corrupted.real
         return sequence_mean(ce, weight), logits.argmax(-1) == targets
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         targets, condition = self.targets_and_condition(batch)
         corrupted = corrupt(targets, batch["lengths"], self.num_codes, self.corruption_cfg)
-        drop = torch.rand(len(batch["lengths"]), device=self.device) < self.corruption_cfg.cond_drop if self.corruption_cfg.cond_drop > 0 else None
-        logits = self.transformer(corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], drop, condition)
+        drop = (
+            torch.rand(len(batch["lengths"]), device=self.device) < self.corruption_cfg.cond_drop
+            if self.corruption_cfg.cond_drop > 0
+            else None
+        )
+        logits = self.transformer(
+            corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], drop, condition
+        )
         loss, correct = self.loss(logits, targets, corrupted)
         unmasked = corrupted.real & ~corrupted.masked
         self.log_dict(
@@ -168,7 +222,8 @@ class MaskedTransformerModule(L.LightningModule):
                 "train/acc_unmasked": sequence_mean(correct.float(), unmasked),
                 "train/mask_fraction": corrupted.masked.sum() / corrupted.real.sum(),
             },
-            on_step=True, on_epoch=False,
+            on_step=True,
+            on_epoch=False,
         )
         self.log("loss", loss, prog_bar=True, logger=False)
         return loss
@@ -178,7 +233,9 @@ class MaskedTransformerModule(L.LightningModule):
         generator = torch.Generator(device=batch["tokens"].device).manual_seed(1234 + batch_idx)
         targets, condition = self.targets_and_condition(batch, generator)
         corrupted = corrupt(targets, batch["lengths"], self.num_codes, self.corruption_cfg, generator)
-        logits = self.transformer(corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], None, condition)
+        logits = self.transformer(
+            corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], None, condition
+        )
         loss, correct = self.loss(logits, targets, corrupted)
         unmasked = corrupted.real & ~corrupted.masked
         self.val_loss.update(loss, weight=len(batch["lengths"]))
@@ -186,18 +243,21 @@ class MaskedTransformerModule(L.LightningModule):
         if bool(unmasked.any()):
             self.val_acc_unmasked.update(correct[unmasked].float().mean(), weight=unmasked.sum())
         if batch_idx == 0:
-            self.preview_batch = {k: (v.detach().cpu() if torch.is_tensor(v) else v) for k, v in batch.items()}
+            self.preview_batch = {
+                k: (v.detach().cpu() if torch.is_tensor(v) else v) for k, v in batch.items()
+            }
 
     def on_validation_epoch_end(self) -> None:
         self.log_dict(
-            {"val/loss": self.val_loss.compute(), "val/acc_masked": self.val_acc_masked.compute(), "val/acc_unmasked": self.val_acc_unmasked.compute()},
+            {
+                "val/loss": self.val_loss.compute(),
+                "val/acc_masked": self.val_acc_masked.compute(),
+                "val/acc_unmasked": self.val_acc_unmasked.compute(),
+            },
             prog_bar=True,
         )
         for metric in (self.val_loss, self.val_acc_masked, self.val_acc_unmasked):
             metric.reset()
 
     def configure_optimizers(self):
-        cfg = self.optim_cfg
-        optimizer = torch.optim.AdamW(self.transformer.parameters(), lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=True)
-        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"}}
+        return build_optimizer(self.transformer.parameters(), self.optim_cfg, foreach=True)

@@ -43,7 +43,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-
 VARIANTS = ("fixed", "released")
 
 
@@ -56,13 +55,19 @@ class TransformerConfig:
     mlp_ratio: int = 4
     dropout: float = 0.1
     max_tokens: int = 50  # M: 196 frames / 4 + END
-    variant: str = "fixed"  # fixed (this package's) | released (the authors' forward pass, for imported weights)
+    variant: str = (
+        "fixed"  # fixed (this package's) | released (the authors' forward pass, for imported weights)
+    )
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
-            raise ValueError(f"model.transformer.variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
+            raise ValueError(
+                f"model.transformer.variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}"
+            )
         if not 0 <= self.num_cross_layers <= self.num_layers:
-            raise ValueError(f"num_cross_layers={self.num_cross_layers} must be between 0 and num_layers={self.num_layers}")
+            raise ValueError(
+                f"num_cross_layers={self.num_cross_layers} must be between 0 and num_layers={self.num_layers}"
+            )
         if self.embed_dim % self.num_heads:
             raise ValueError(f"embed_dim={self.embed_dim} is not divisible by num_heads={self.num_heads}")
 
@@ -78,7 +83,8 @@ def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
 
 
 class Attention(nn.Module):
-    """Multi-head attention of queries (B, S, E) over keys/values (B, T, E); key_mask (B, T) True = visible."""
+    """Multi-head attention of queries (B, S, E) over keys/values (B, T, E); key_mask (B, T) True =
+    visible."""
 
     def __init__(self, dim: int, heads: int, dropout: float):
         super().__init__()
@@ -91,13 +97,17 @@ class Attention(nn.Module):
         B, S, E = x.shape
         q = self.q(x).view(B, S, self.heads, -1).transpose(1, 2)
         k, v = self.kv(context).view(B, context.shape[1], 2, self.heads, -1).permute(2, 0, 3, 1, 4)
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=key_mask[:, None, None, :], dropout_p=self.dropout if self.training else 0.0)
+        y = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=key_mask[:, None, None, :], dropout_p=self.dropout if self.training else 0.0
+        )
         return self.out(y.transpose(1, 2).reshape(B, S, E))
 
 
 class MLP(nn.Sequential):
     def __init__(self, dim: int, ratio: int, dropout: float):
-        super().__init__(nn.Linear(dim, ratio * dim), nn.GELU(), nn.Linear(ratio * dim, dim), nn.Dropout(dropout))
+        super().__init__(
+            nn.Linear(dim, ratio * dim), nn.GELU(), nn.Linear(ratio * dim, dim), nn.Dropout(dropout)
+        )
 
 
 class SelfAttentionBlock(nn.Module):
@@ -130,12 +140,18 @@ class CrossAttentionBlock(nn.Module):
 
     def forward(self, x: torch.Tensor, words: torch.Tensor, word_mask: torch.Tensor | None) -> torch.Tensor:
         """word_mask (B, Lw) True = visible; None: every word position is read."""
-        mask = word_mask if word_mask is not None else torch.ones(words.shape[:2], dtype=torch.bool, device=words.device)
+        mask = (
+            word_mask
+            if word_mask is not None
+            else torch.ones(words.shape[:2], dtype=torch.bool, device=words.device)
+        )
         x = x + self.drop(self.attn(self.ln_x(x), self.ln_words(words), mask))
         return x + self.mlp(self.ln2(x))
 
 
-def embed_ids(tokens: torch.Tensor, codebook: torch.Tensor, special: nn.Embedding, proj: nn.Linear) -> torch.Tensor:
+def embed_ids(
+    tokens: torch.Tensor, codebook: torch.Tensor, special: nn.Embedding, proj: nn.Linear
+) -> torch.Tensor:
     """(B, M) ids -> (B, M, E): codebook (K, C) vectors for codes [0, K), the learned `special`
     vectors for END = K, PAD = K + 1 and MASK = K + 2, then `proj` to E."""
     K = codebook.shape[0]
@@ -166,7 +182,14 @@ class MaskedMotionTransformer(nn.Module):
     code vectors of the conditioning part (the lower body), or None for the plain model.
     """
 
-    def __init__(self, codebook: torch.Tensor, cfg: TransformerConfig, sentence_dim: int, word_dim: int, condition_codebook: torch.Tensor | None = None):
+    def __init__(
+        self,
+        codebook: torch.Tensor,
+        cfg: TransformerConfig,
+        sentence_dim: int,
+        word_dim: int,
+        condition_codebook: torch.Tensor | None = None,
+    ):
         super().__init__()
         self.cfg = cfg
         K, C = codebook.shape
@@ -175,20 +198,26 @@ class MaskedMotionTransformer(nn.Module):
         self.end_id, self.pad_id, self.mask_id = K, K + 1, K + 2
         self.released = cfg.variant == "released"
         if self.released and condition_codebook is not None:
-            raise ValueError("the released variant has no part-aware form: train the part-aware model with variant=fixed")
+            raise ValueError(
+                "the released variant has no part-aware form: train the part-aware model with variant=fixed"
+            )
         self.register_buffer("codebook", codebook.detach().clone().float())
         self.special = nn.Embedding(3, C)
         self.token_proj = nn.Linear(C, E)
         self.condition = None if condition_codebook is None else TokenEmbedding(condition_codebook, E)
         # The released form also positions the prepended sentence: one more row.
-        self.register_buffer("positions", sinusoidal_positions(cfg.max_tokens + self.released, E), persistent=False)
+        self.register_buffer(
+            "positions", sinusoidal_positions(cfg.max_tokens + self.released, E), persistent=False
+        )
         self.sentence_proj = nn.Linear(sentence_dim, E)
         self.word_proj = nn.Linear(word_dim, E)
         if not self.released:
             self.null_sentence = nn.Parameter(torch.zeros(E))
             self.null_word = nn.Parameter(torch.zeros(E))
         self.cross_layers = nn.ModuleList(CrossAttentionBlock(cfg) for _ in range(cfg.num_cross_layers))
-        self.layers = nn.ModuleList(SelfAttentionBlock(cfg) for _ in range(cfg.num_layers - cfg.num_cross_layers))
+        self.layers = nn.ModuleList(
+            SelfAttentionBlock(cfg) for _ in range(cfg.num_layers - cfg.num_cross_layers)
+        )
         self.ln_f = nn.LayerNorm(E)
         self.head = nn.Linear(E, K, bias=not self.released)
         self.apply(self._init)
@@ -231,14 +260,20 @@ class MaskedMotionTransformer(nn.Module):
         """
         B, M = tokens.shape
         if (condition is None) != (self.condition is None):
-            raise ValueError("a part-aware transformer needs the lower-body condition tokens; a plain one takes none"
-                             if condition is None else "condition tokens given to a transformer that is not part-aware")
+            raise ValueError(
+                "a part-aware transformer needs the lower-body condition tokens; a plain one takes none"
+                if condition is None
+                else "condition tokens given to a transformer that is not part-aware"
+            )
         if self.released:
             return self._forward_released(tokens, sentence, words, drop_text)
         x = self.embed_tokens(tokens) + self.positions[:M]
         if condition is not None:
             if condition.shape != tokens.shape:
-                raise ValueError(f"condition tokens {tuple(condition.shape)} must have the shape of the tokens {tuple(tokens.shape)}")
+                raise ValueError(
+                    f"condition tokens {tuple(condition.shape)} must have the shape of the tokens "
+                    f"{tuple(tokens.shape)}"
+                )
             x = x + self.condition(condition)
         s = self.sentence_proj(sentence)
         w = self.word_proj(words)
@@ -260,7 +295,13 @@ class MaskedMotionTransformer(nn.Module):
             x = layer(x, key_mask)
         return self.head(self.ln_f(x[:, 1:]))
 
-    def _forward_released(self, tokens: torch.Tensor, sentence: torch.Tensor, words: torch.Tensor, drop_text: torch.Tensor | None) -> torch.Tensor:
+    def _forward_released(
+        self,
+        tokens: torch.Tensor,
+        sentence: torch.Tensor,
+        words: torch.Tensor,
+        drop_text: torch.Tensor | None,
+    ) -> torch.Tensor:
         """The released forward pass (see the module docstring); logits (B, M, K)."""
         B, M = tokens.shape
         see_text = torch.ones(B, dtype=torch.bool, device=tokens.device)

@@ -25,11 +25,10 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 import torch
 
-from mmm.data.synthetic.adherence import HIP_DROP, NEUTRAL_FOOT_PITCH, STANDING_HEIGHT
+from mmm.data.synthetic.constants import HIP_DROP, NEUTRAL_FOOT_PITCH, STANDING_HEIGHT
 from mmm.data.synthetic.curves import smoothstep
 from mmm.motion.skeleton import T2M_SKELETON, forward_kinematics
 
-FPS = 20.0  # frames per second of a track
 GRAVITY = 9.81  # m/s^2, for flight phases (running, jumps)
 SKELETON = T2M_SKELETON
 _BONES = np.asarray(SKELETON.bone_lengths, dtype=np.float64)
@@ -109,12 +108,14 @@ def matrix_to_quat(m: np.ndarray) -> np.ndarray:
     tr = m00 + m11 + m22
     choice = np.argmax(np.stack((tr, m00, m11, m22), axis=-1), axis=-1)
     q = np.empty(m.shape[:-2] + (4,))
-    s = np.sqrt(np.maximum(1.0 + np.stack((tr, m00 - m11 - m22, m11 - m00 - m22, m22 - m00 - m11), -1), 1e-12)) * 2.0
+    diag = np.stack((tr, m00 - m11 - m22, m11 - m00 - m22, m22 - m00 - m11), -1)
+    s = np.sqrt(np.maximum(1.0 + diag, 1e-12)) * 2.0
     # case 0: w largest
-    c0 = np.stack((0.25 * s[..., 0], (m21 - m12) / s[..., 0], (m02 - m20) / s[..., 0], (m10 - m01) / s[..., 0]), -1)
-    c1 = np.stack(((m21 - m12) / s[..., 1], 0.25 * s[..., 1], (m01 + m10) / s[..., 1], (m02 + m20) / s[..., 1]), -1)
-    c2 = np.stack(((m02 - m20) / s[..., 2], (m01 + m10) / s[..., 2], 0.25 * s[..., 2], (m12 + m21) / s[..., 2]), -1)
-    c3 = np.stack(((m10 - m01) / s[..., 3], (m02 + m20) / s[..., 3], (m12 + m21) / s[..., 3], 0.25 * s[..., 3]), -1)
+    s0, s1, s2, s3 = s[..., 0], s[..., 1], s[..., 2], s[..., 3]
+    c0 = np.stack((0.25 * s0, (m21 - m12) / s0, (m02 - m20) / s0, (m10 - m01) / s0), -1)
+    c1 = np.stack(((m21 - m12) / s1, 0.25 * s1, (m01 + m10) / s1, (m02 + m20) / s1), -1)
+    c2 = np.stack(((m02 - m20) / s2, (m01 + m10) / s2, 0.25 * s2, (m12 + m21) / s2), -1)
+    c3 = np.stack(((m10 - m01) / s3, (m02 + m20) / s3, (m12 + m21) / s3, 0.25 * s3), -1)
     q = np.select([choice[..., None] == k for k in range(4)], [c0, c1, c2, c3])
     q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
     return normalize(q)
@@ -156,10 +157,20 @@ class Style:
     def sample(rng: np.random.Generator) -> "Style":
         u = rng.uniform
         return Style(
-            arm_fwd=u(-0.02, 0.12), arm_abd=u(0.1, 0.22), elbow=u(0.12, 0.4), lean=u(-0.03, 0.1),
-            pelvis_tilt=u(0.0, 0.1), head_pitch=u(-0.08, 0.15), step_width=u(-0.01, 0.035),
-            toe_out=u(0.03, 0.2), stand_fwd=u(0.0, 0.04), knee_soft=u(0.0, 0.015), arm_swing=u(0.75, 1.3),
-            shrug=u(-0.05, 0.1), noise=u(0.5, 1.5), cadence=u(0.92, 1.08),
+            arm_fwd=u(-0.02, 0.12),
+            arm_abd=u(0.1, 0.22),
+            elbow=u(0.12, 0.4),
+            lean=u(-0.03, 0.1),
+            pelvis_tilt=u(0.0, 0.1),
+            head_pitch=u(-0.08, 0.15),
+            step_width=u(-0.01, 0.035),
+            toe_out=u(0.03, 0.2),
+            stand_fwd=u(0.0, 0.04),
+            knee_soft=u(0.0, 0.015),
+            arm_swing=u(0.75, 1.3),
+            shrug=u(-0.05, 0.1),
+            noise=u(0.5, 1.5),
+            cadence=u(0.92, 1.08),
         )
 
     @property
@@ -218,7 +229,19 @@ class Track:
         return self.root.shape[0]
 
 
-_BLENDED = ("root", "heading", "pelvis", "spine", "neck", "arm", "hint", "shrug", "ankle", "foot_pitch", "foot_yaw")
+_BLENDED = (
+    "root",
+    "heading",
+    "pelvis",
+    "spine",
+    "neck",
+    "arm",
+    "hint",
+    "shrug",
+    "ankle",
+    "foot_pitch",
+    "foot_yaw",
+)
 
 
 def standing_track(n: int, state: State, style: Style) -> Track:
@@ -348,7 +371,9 @@ def pose_to_joints(quats: np.ndarray, root: np.ndarray) -> np.ndarray:
 
     Frames are independent, so many clips can go through in one call (concatenated frames).
     """
-    joints = forward_kinematics(torch.from_numpy(quats), torch.from_numpy(root), SKELETON, chains_from_root=False)
+    joints = forward_kinematics(
+        torch.from_numpy(quats), torch.from_numpy(root), SKELETON, chains_from_root=False
+    )
     return joints.numpy()
 
 

@@ -31,8 +31,12 @@ def hermite(t: np.ndarray, times, values, slopes) -> np.ndarray:
     h = np.maximum(times[idx + 1] - times[idx], 1e-9)
     u = np.clip((t - times[idx]) / h, 0.0, 1.0)
     u2, u3 = u * u, u * u * u
-    out = ((2 * u3 - 3 * u2 + 1) * values[idx] + (u3 - 2 * u2 + u) * h * slopes[idx]
-           + (-2 * u3 + 3 * u2) * values[idx + 1] + (u3 - u2) * h * slopes[idx + 1])
+    out = (
+        (2 * u3 - 3 * u2 + 1) * values[idx]
+        + (u3 - 2 * u2 + u) * h * slopes[idx]
+        + (-2 * u3 + 3 * u2) * values[idx + 1]
+        + (u3 - u2) * h * slopes[idx + 1]
+    )
     out = np.where(t < times[0], values[0], out)
     return np.where(t > times[-1], values[-1], out)
 
@@ -54,5 +58,5 @@ def smooth_noise(rng: np.random.Generator, n: int, sigma: float, dims: int = 1) 
     """Smooth random signal (n, dims) with unit standard deviation (frame-correlated by sigma)."""
     pad = int(3 * sigma) + 1
     white = rng.standard_normal((n + 2 * pad, dims))
-    sm = gaussian_smooth(white, sigma)[pad:pad + n]
+    sm = gaussian_smooth(white, sigma)[pad : pad + n]
     return sm / max(float(sm.std()), 1e-6)

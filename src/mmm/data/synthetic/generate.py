@@ -23,10 +23,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
-from mmm.data.synthetic.actions import FPS, Infeasible, PartSpec, make_pose, pose_to_joints
+from mmm.data.synthetic.actions import PartSpec, make_pose
 from mmm.data.synthetic.adherence import check_motion
+from mmm.data.synthetic.animations import Infeasible
+from mmm.data.synthetic.body import pose_to_joints
 from mmm.data.synthetic.captions import clip_captions, mirror_caption_line, mirror_params
+from mmm.data.synthetic.constants import FPS
+from mmm.data.synthetic.table import ACTIONS
 from mmm.motion.features import FeatureLayout, joints_to_features, recover_from_ric, reference_std
 from mmm.motion.skeleton import T2M_SKELETON
 
@@ -35,54 +40,18 @@ MIN_ROWS = 40
 COMPOSITE_FRACTION = 1 / 3
 CHUNK = 32  # clips whose first tries share one forward-kinematics call
 SPLITS = {"val": 0.05, "test": 0.15}  # the rest is train
-ACTION_WEIGHTS = {
-    "stand": 1.0, "walk": 3.0, "run": 1.0, "turn": 1.2, "circle": 0.9, "jump": 1.2, "squat": 1.0,
-    "wave": 1.0, "raise_arms": 0.9, "kick": 1.0, "punch": 1.0, "sit": 1.0,
-}
-_ACTIONS = tuple(ACTION_WEIGHTS)
-_P = np.array([ACTION_WEIGHTS[a] for a in _ACTIONS]) / sum(ACTION_WEIGHTS.values())
+_ACTIONS = tuple(ACTIONS)
+_P = np.array([ACTIONS[a].weight for a in _ACTIONS]) / sum(spec.weight for spec in ACTIONS.values())
 
 
 def sample_params(rng: np.random.Generator, action: str) -> dict:
     """Label parameters of an action, named as in the spec's Labels section."""
-    pick = lambda options: options[int(rng.integers(len(options)))]  # noqa: E731
-    if action == "walk":
-        return {"direction": pick(["forward", "backward", "left", "right"]), "speed": pick(["slow", "normal", "fast"])}
-    if action == "run":
-        return {"direction": "forward"}
-    if action == "turn":
-        return {"side": pick(["left", "right"]), "angle": pick([90, 180])}
-    if action == "circle":
-        return {"side": pick(["clockwise", "counterclockwise"])}
-    if action == "jump":
-        return {"count": int(rng.integers(1, 4)), "mode": pick(["in_place", "forward"])}
-    if action == "squat":
-        return {"count": int(rng.integers(1, 4))}
-    if action in ("wave", "punch"):
-        return {"hand": pick(["left", "right", "both"])}
-    if action == "kick":
-        return {"foot": pick(["left", "right"])}
-    return {}
+    return ACTIONS[action].sample_params(rng)
 
 
 def duration_range(action: str, params: dict, options: dict | None = None) -> tuple[float, float]:
     """Seconds an action may last (2-6 s, longer minimum where it needs the time)."""
-    options = options or {}
-    if action == "run":
-        return 2.5, 6.0
-    if action == "turn":
-        return (2.0, 4.0) if params["angle"] == 90 else (2.8, 5.0)
-    if action == "circle":
-        return 4.3, 6.0
-    if action == "jump":
-        return {1: (2.0, 4.0), 2: (2.7, 5.5), 3: (3.7, 6.0)}[params["count"]]
-    if action == "squat":
-        return {1: (2.0, 4.0), 2: (3.0, 6.0), 3: (4.2, 6.0)}[params["count"]]
-    if action == "sit":
-        return (3.6, 6.0) if options.get("stand_up") else (3.0, 6.0)
-    if action == "walk" and params["speed"] == "fast":
-        return 2.5, 6.0
-    return 2.0, 6.0
+    return ACTIONS[action].duration(params, options or {})
 
 
 def sample_clip_spec(rng: np.random.Generator) -> list[PartSpec]:
@@ -93,10 +62,7 @@ def sample_clip_spec(rng: np.random.Generator) -> list[PartSpec]:
         if composite and actions[0] == actions[1]:
             continue
         params = [sample_params(rng, a) for a in actions]
-        options = []
-        for i, a in enumerate(actions):
-            # A sit that is followed by something must stand up again.
-            options.append({"stand_up": i < len(actions) - 1 or bool(rng.random() < 0.4)} if a == "sit" else {})
+        options = [ACTIONS[a].sample_options(rng, i < len(actions) - 1) for i, a in enumerate(actions)]
         ranges = [duration_range(a, p, o) for a, p, o in zip(actions, params, options)]
         budget = MAX_ROWS / FPS
         if sum(r[0] for r in ranges) > budget:
@@ -104,7 +70,7 @@ def sample_clip_spec(rng: np.random.Generator) -> list[PartSpec]:
         frames = []
         used = 0.0
         for i, (lo, hi) in enumerate(ranges):
-            rest = sum(r[0] for r in ranges[i + 1:])
+            rest = sum(r[0] for r in ranges[i + 1 :])
             d = rng.uniform(lo, min(hi, budget - used - rest))
             rows = int(round(d * FPS))
             frames.append(rows)
@@ -151,7 +117,8 @@ def mirror_features(feats: np.ndarray) -> np.ndarray:
     pos = feats[:, L.positions].reshape(-1, 21, 3)[:, _PERM[1:] - 1].copy()
     pos[..., 0] *= -1
     out[:, L.positions] = pos.reshape(-1, 63)
-    rot = feats[:, L.rotations].reshape(-1, 21, 6)[:, _PERM[1:] - 1] * np.array([1, -1, -1, -1, 1, 1], dtype=feats.dtype)
+    flip = np.array([1, -1, -1, -1, 1, 1], dtype=feats.dtype)
+    rot = feats[:, L.rotations].reshape(-1, 21, 6)[:, _PERM[1:] - 1] * flip
     out[:, L.rotations] = rot.reshape(-1, 126)
     vel = feats[:, L.velocities].reshape(-1, 22, 3)[:, _PERM].copy()
     vel[..., 0] *= -1
@@ -192,11 +159,22 @@ def _finish(rng: np.random.Generator, specs, world: np.ndarray, parts, attempts:
     captions = clip_captions(rng, parts, stands_up)
     label = {"fps": int(FPS), "num_frames": int(feats.shape[0]), "parts": parts}
     m_label = {"fps": int(FPS), "num_frames": int(m_feats.shape[0]), "parts": m_parts}
-    return Clip(feats, joints, captions, label, m_feats, m_joints,
-                [mirror_caption_line(c) for c in captions], m_label, attempts=attempts)
+    return Clip(
+        feats,
+        joints,
+        captions,
+        label,
+        m_feats,
+        m_joints,
+        [mirror_caption_line(c) for c in captions],
+        m_label,
+        attempts=attempts,
+    )
 
 
-def _complete(rng: np.random.Generator, first, first_world, attempts: int, index: int, seed: int, max_attempts: int) -> Clip:
+def _complete(
+    rng: np.random.Generator, first, first_world, attempts: int, index: int, seed: int, max_attempts: int
+) -> Clip:
     """Finish a clip from its first try (already posed); retry from the same stream if needed."""
     clip = _finish(rng, first[0], first_world, first[3], attempts) if first is not None else None
     while clip is None:
@@ -244,7 +222,11 @@ def split_ids(num_clips: int, seed: int) -> dict[str, list[str]]:
     if num_clips >= 3:  # tiny datasets still get one clip in each split
         n_val, n_test = max(n_val, 1), max(n_test, 1)
     ids = [f"{i:06d}" for i in order]
-    return {"val": sorted(ids[:n_val]), "test": sorted(ids[n_val:n_val + n_test]), "train": sorted(ids[n_val + n_test:])}
+    return {
+        "val": sorted(ids[:n_val]),
+        "test": sorted(ids[n_val : n_val + n_test]),
+        "train": sorted(ids[n_val + n_test :]),
+    }
 
 
 class _Moments:
@@ -281,10 +263,13 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(
             f"{out} already exists and is not empty; pass overwrite=True (mmm data synth --overwrite) "
-            f"to replace it, or choose another output folder")
+            f"to replace it, or choose another output folder"
+        )
 
 
-def generate_dataset(out_dir, num_clips: int = 1500, seed: int = 0, progress: bool = True, overwrite: bool = False) -> dict:
+def generate_dataset(
+    out_dir, num_clips: int = 1500, seed: int = 0, progress: bool = True, overwrite: bool = False
+) -> dict:
     """Generate `num_clips` clips plus their mirrors into out_dir; returns a summary.
 
     Written into a temporary sibling folder that replaces out_dir only when complete, so a crash
@@ -307,12 +292,15 @@ def generate_dataset(out_dir, num_clips: int = 1500, seed: int = 0, progress: bo
         moments = _Moments(T2M_SKELETON.feature_dim)
         actions: Counter = Counter()
         composites = attempts = frames = 0
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=int(num_clips), desc="synthesizing clips", unit="clip", disable=not progress)
-        for i, clip in ((i, c) for lo in range(0, int(num_clips), CHUNK)
-                        for i, c in zip(range(lo, min(lo + CHUNK, int(num_clips))),
-                                        _generate_chunk(seed, range(lo, min(lo + CHUNK, int(num_clips)))))):
+        for i, clip in (
+            (i, c)
+            for lo in range(0, int(num_clips), CHUNK)
+            for i, c in zip(
+                range(lo, min(lo + CHUNK, int(num_clips))),
+                _generate_chunk(seed, range(lo, min(lo + CHUNK, int(num_clips)))),
+            )
+        ):
             bar.update(1)
             cid = f"{i:06d}"
             for motion_id, feats, joints, captions, label in (
@@ -364,5 +352,13 @@ def generate_dataset(out_dir, num_clips: int = 1500, seed: int = 0, progress: bo
     }
 
 
-__all__ = ["Clip", "duration_range", "generate_clip", "generate_dataset", "mirror_features", "sample_clip_spec",
-           "sample_params", "split_ids"]
+__all__ = [
+    "Clip",
+    "duration_range",
+    "generate_clip",
+    "generate_dataset",
+    "mirror_features",
+    "sample_clip_spec",
+    "sample_params",
+    "split_ids",
+]

@@ -20,9 +20,22 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mmm.data.synthetic.body import (
-    ANKLE_HEIGHT, FOOT, FPS, GRAVITY, P0, SIGN, State, Style, foot_ankle, forward_dir, left_dir, normalize,
-    reach_cap, standing_track, wrap_angle,
+    ANKLE_HEIGHT,
+    FOOT,
+    GRAVITY,
+    P0,
+    SIGN,
+    State,
+    Style,
+    foot_ankle,
+    forward_dir,
+    left_dir,
+    normalize,
+    reach_cap,
+    standing_track,
+    wrap_angle,
 )
+from mmm.data.synthetic.constants import FPS
 from mmm.data.synthetic.curves import gaussian_smooth, smoothstep
 
 
@@ -51,8 +64,18 @@ def _interp_path(te, values, tq):
     return np.stack([np.interp(tq, te, values[:, j]) for j in range(values.shape[1])], axis=-1)
 
 
-def plan_steps(te, pos, yaw, vbody, gait: Gait, style: Style, n: int, lead: int, first_center: float,
-               start_feet: State | None):
+def plan_steps(
+    te,
+    pos,
+    yaw,
+    vbody,
+    gait: Gait,
+    style: Style,
+    n: int,
+    lead: int,
+    first_center: float,
+    start_feet: State | None,
+):
     """Footsteps for a pelvis path sampled on the extended grid te (s).
 
     pos (m, 3) pelvis ground position, yaw (m,), vbody (m, 2) body-frame velocity (left, forward).
@@ -88,7 +111,9 @@ def plan_steps(te, pos, yaw, vbody, gait: Gait, style: Style, n: int, lead: int,
             flat[rest] = start_feet.feet[side]
             fy[rest] = start_feet.feet_yaw[side]
         # Merge footholds that do not move into one long stance.
-        still = (np.linalg.norm(np.diff(flat, axis=0), axis=-1) < 0.015) & (np.abs(wrap_angle(np.diff(fy))) < 0.04)
+        still = (np.linalg.norm(np.diff(flat, axis=0), axis=-1) < 0.015) & (
+            np.abs(wrap_angle(np.diff(fy))) < 0.04
+        )
         starts = np.concatenate([[0], np.flatnonzero(~still) + 1])
         groups = [list(range(a, b)) for a, b in zip(starts, np.concatenate([starts[1:], [len(centers)]]))]
         plants = []
@@ -141,7 +166,7 @@ def plan_steps(te, pos, yaw, vbody, gait: Gait, style: Style, n: int, lead: int,
             mv = smoothstep(u)
             step = float(np.linalg.norm((nxt[0] - flat_k)[[0, 2]]))
             lift = gait.lift_base + gait.lift * step
-            bump = np.sin(np.pi * u ** gait.swing_peak) ** 1.5
+            bump = np.sin(np.pi * u**gait.swing_peak) ** 1.5
             pos_s = a0 + (a1 - a0) * mh[:, None]
             pos_s[:, 1] = a0[1] + (a1[1] - a0[1]) * mv + lift * bump
             pp = p_a + (p_b - p_a) * mv
@@ -173,9 +198,27 @@ def _integrate(te, vel, anchor_index, anchor):
     return pos - pos[anchor_index] + anchor
 
 
-def locomotion(n, state: State, style: Style, *, gait: Gait, te, yaw, vbody, t_start, lead,
-               height, start_standing: bool, sway=0.35, twist=0.25, arm_gain=1.0, elbow=None,
-               lean=0.0, arm_abd=None, bounce=0.0):
+def locomotion(
+    n,
+    state: State,
+    style: Style,
+    *,
+    gait: Gait,
+    te,
+    yaw,
+    vbody,
+    t_start,
+    lead,
+    height,
+    start_standing: bool,
+    sway=0.35,
+    twist=0.25,
+    arm_gain=1.0,
+    elbow=None,
+    lean=0.0,
+    arm_abd=None,
+    bounce=0.0,
+):
     """Animate the legs, pelvis and arms for a pelvis path given on the extended grid te.
 
     yaw (m,), vbody (m, 2) body-frame velocity (left, forward); the path starts at the state's
@@ -189,13 +232,14 @@ def locomotion(n, state: State, style: Style, *, gait: Gait, te, yaw, vbody, t_s
     # The lead foot lifts off at t_start (standing starts).
     first_center = t_start + gait.period * (1 - gait.duty / 2) + 0.02
     ankle, pitch, fyaw, planted, end = plan_steps(
-        te, pos, yaw, vbody, gait, style, n, lead, first_center, state if start_standing else None)
+        te, pos, yaw, vbody, gait, style, n, lead, first_center, state if start_standing else None
+    )
     tr = standing_track(n, state, style)
-    tr.heading = yaw[E:E + n].copy()
-    root = pos[E:E + n].copy()
+    tr.heading = yaw[E : E + n].copy()
+    root = pos[E : E + n].copy()
     tr.ankle, tr.foot_pitch, tr.foot_yaw, tr.planted = ankle, pitch, fyaw, planted
     fwd, left = forward_dir(tr.heading), left_dir(tr.heading)
-    vb = vbody[E:E + n]
+    vb = vbody[E : E + n]
     # Lateral sway of the pelvis over the supporting foot (not along the direction of travel).
     w = gaussian_smooth(planted.astype(np.float64), 1.5) + 1e-3
     support = (w[:, :, None] * ankle).sum(1) / w.sum(1, keepdims=True)
@@ -264,19 +308,66 @@ def extended_grid(n: int, margin_s: float = 2.0):
 
 def walk_gait(direction: str, v: float) -> Gait:
     if direction == "forward":
-        return Gait(period=2 / (1.2 + 0.7 * v), duty=max(0.52, 0.64 - 0.055 * v), lift=0.035, lift_base=0.04,
-                    heel_strike=0.45, heel_off=0.7, toe_strike=0.55, toe_lift=0.35, step_ref=1.1,
-                    shift=0.15, reach=0.995, swing_peak=0.85)
+        return Gait(
+            period=2 / (1.2 + 0.7 * v),
+            duty=max(0.52, 0.64 - 0.055 * v),
+            lift=0.035,
+            lift_base=0.04,
+            heel_strike=0.45,
+            heel_off=0.7,
+            toe_strike=0.55,
+            toe_lift=0.35,
+            step_ref=1.1,
+            shift=0.15,
+            reach=0.995,
+            swing_peak=0.85,
+        )
     if direction == "backward":
-        return Gait(period=2 / (1.4 + 0.7 * v), duty=max(0.5, 0.62 - 0.06 * v), lift=0.04, lift_base=0.05,
-                    heel_strike=0.45, heel_off=0.6, toe_strike=0.6, toe_lift=0.4, step_ref=1.0,
-                    shift=0.15, reach=0.995, swing_peak=1.0)
-    return Gait(period=2 / (1.6 + 1.3 * v), duty=max(0.34, 0.62 - 0.14 * v), lift=0.03, lift_base=0.05,
-                heel_strike=0.2, heel_off=0.3, toe_strike=0.3, toe_lift=0.2, step_ref=1.0,
-                shift=0.0, reach=0.993, swing_peak=1.0)
+        return Gait(
+            period=2 / (1.4 + 0.7 * v),
+            duty=max(0.5, 0.62 - 0.06 * v),
+            lift=0.04,
+            lift_base=0.05,
+            heel_strike=0.45,
+            heel_off=0.6,
+            toe_strike=0.6,
+            toe_lift=0.4,
+            step_ref=1.0,
+            shift=0.15,
+            reach=0.995,
+            swing_peak=1.0,
+        )
+    return Gait(
+        period=2 / (1.6 + 1.3 * v),
+        duty=max(0.34, 0.62 - 0.14 * v),
+        lift=0.03,
+        lift_base=0.05,
+        heel_strike=0.2,
+        heel_off=0.3,
+        toe_strike=0.3,
+        toe_lift=0.2,
+        step_ref=1.0,
+        shift=0.0,
+        reach=0.993,
+        swing_peak=1.0,
+    )
 
 
 def run_gait(v: float) -> Gait:
-    return Gait(period=2 / (2.6 + 0.25 * v), duty=0.42 - 0.025 * v, lift=0.1, lift_base=0.15,
-                heel_strike=0.1, heel_off=0.8, toe_strike=0.5, toe_lift=0.3, step_ref=1.6,
-                shift=0.1, reach=0.975, swing_peak=0.7, td_frac=0.3, lo_frac=0.55, running=True)
+    return Gait(
+        period=2 / (2.6 + 0.25 * v),
+        duty=0.42 - 0.025 * v,
+        lift=0.1,
+        lift_base=0.15,
+        heel_strike=0.1,
+        heel_off=0.8,
+        toe_strike=0.5,
+        toe_lift=0.3,
+        step_ref=1.6,
+        shift=0.1,
+        reach=0.975,
+        swing_peak=0.7,
+        td_frac=0.3,
+        lo_frac=0.55,
+        running=True,
+    )

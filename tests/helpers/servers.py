@@ -47,7 +47,9 @@ def get(url: str, timeout: float = 30.0, **params):
 
 def post(url: str, body: dict, timeout: float = 60.0):
     """(status, decoded JSON) of a JSON POST."""
-    request = urllib.request.Request(url, data=json.dumps(body).encode(), headers={"Content-Type": "application/json"}, method="POST")
+    request = urllib.request.Request(
+        url, data=json.dumps(body).encode(), headers={"Content-Type": "application/json"}, method="POST"
+    )
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
             return response.status, json.loads(response.read())
@@ -92,12 +94,23 @@ def running(command: list[str], base_url: str, log_path: Path, cwd: Path, env: d
     yield the seconds start-up took, and stop the whole group afterwards (asserting it is gone)."""
     with open(log_path, "wb") as log:
         started = time.perf_counter()
-        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env, cwd=cwd, start_new_session=True)
+        proc = subprocess.Popen(
+            command,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            cwd=cwd,
+            start_new_session=True,
+        )
     try:
         deadline = time.monotonic() + startup_s
         while True:
             if proc.poll() is not None:
-                pytest.fail(f"the server exited with {proc.returncode} before answering /health:\n{log_path.read_text()[-4000:]}")
+                pytest.fail(
+                    f"the server exited with {proc.returncode} before answering "
+                    f"/health:\n{log_path.read_text()[-4000:]}"
+                )
             try:
                 with urllib.request.urlopen(f"{base_url}/health", timeout=2) as r:
                     if r.status == 200:
@@ -105,7 +118,10 @@ def running(command: list[str], base_url: str, log_path: Path, cwd: Path, env: d
             except (urllib.error.URLError, ConnectionError, TimeoutError):
                 pass
             if time.monotonic() > deadline:
-                pytest.fail(f"the server did not answer /health within {startup_s:.0f} s:\n{log_path.read_text()[-4000:]}")
+                pytest.fail(
+                    f"the server did not answer /health within {startup_s:.0f} "
+                    f"s:\n{log_path.read_text()[-4000:]}"
+                )
             time.sleep(0.5)
         yield time.perf_counter() - started
     finally:

@@ -1,0 +1,144 @@
+"""What training keeps in its checkpoints: best.ckpt and last.ckpt (`checkpoint_callbacks`,
+configured by `CheckpointConfig`, the `callbacks.checkpoint` section), and `RunState`, what a
+resumed run needs beyond Lightning's own state."""
+
+from __future__ import annotations
+
+import logging
+import random
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import MLFlowLogger
+
+from mmm.checkpoints import FINGERPRINT_KEY
+from mmm.fingerprint import tensors_fingerprint
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CheckpointConfig:
+    monitor: str = "val/mpjpe_root_aligned_mm"
+    mode: str = "min"
+
+
+def checkpoint_callbacks(directory: Path, cfg: CheckpointConfig) -> tuple[ModelCheckpoint, ModelCheckpoint]:
+    """best.ckpt (by the monitored metric) and last.ckpt (at every validation), overwritten in
+    place when a run resumes (no last-v1.ckpt)."""
+    best = ModelCheckpoint(
+        dirpath=directory,
+        filename="best",
+        monitor=cfg.monitor,
+        mode=cfg.mode,
+        save_top_k=1,
+        auto_insert_metric_name=False,
+        enable_version_counter=False,
+    )
+    last = ModelCheckpoint(
+        dirpath=directory, filename="last", monitor=None, save_top_k=1, enable_version_counter=False
+    )
+    return best, last
+
+
+# Optimizer settings the restored optimizer state would silently override (warmup, milestones and
+# gamma take effect: the schedule is rebuilt from the config).
+RESTORED_OPTIM_KEYS = ("lr", "betas", "weight_decay")
+
+
+class RunState(L.Callback):
+    """Keeps in every checkpoint what Lightning does not: the MLflow run id (a resumed run goes on
+    logging to the same run), the random generators' states (it goes on drawing the same
+    numbers) and the data position's meaning (batch size, world size), in types that load with
+    weights_only=True. On resume it refuses what would silently change the run: another batch
+    size or world size (unless `restart_epoch`), or optimizer settings the restored optimizer
+    state would override."""
+
+    def __init__(self, batch_size: int | None = None, restart_epoch: bool = False):
+        self.batch_size, self.restart_epoch = batch_size, restart_epoch
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        for logger in trainer.loggers:
+            if isinstance(logger, MLFlowLogger):
+                checkpoint["mlflow_run_id"] = logger.run_id
+        np_state = np.random.get_state()
+        checkpoint["rng"] = {
+            "torch": torch.get_rng_state(),
+            "numpy": [
+                np_state[0],
+                torch.from_numpy(np_state[1].astype(np.int64)),
+                int(np_state[2]),
+                int(np_state[3]),
+                float(np_state[4]),
+            ],
+            "python": random.getstate(),
+        }
+        checkpoint["data_position"] = {"batch_size": self.batch_size, "world_size": trainer.world_size}
+        # The weights' own fingerprint: every load checks it (mmm.checkpoints.load_checkpoint).
+        checkpoint[FINGERPRINT_KEY] = tensors_fingerprint(checkpoint.get("state_dict") or {})
+
+    def check_resume(self, trainer, pl_module, checkpoint: dict) -> None:
+        """Raise ValueError when resuming `checkpoint` would silently change the run (see the class)."""
+        self._check_optimizer(pl_module, checkpoint)
+        self._check_data_position(trainer, checkpoint)
+
+    def on_load_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        self.check_resume(trainer, pl_module, checkpoint)
+        rng = checkpoint.get("rng")
+        if rng is None:
+            return
+        torch.set_rng_state(rng["torch"])
+        name, keys, pos, has_gauss, cached = rng["numpy"]
+        np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+        version, state, gauss = rng["python"]
+        random.setstate((version, tuple(state), gauss))
+
+    @staticmethod
+    def _check_optimizer(pl_module, checkpoint: dict) -> None:
+        saved = (checkpoint.get("hyper_parameters") or {}).get("optim") or {}
+        ours = (getattr(pl_module, "hparams", None) or {}).get("optim") or {}
+        changed = [
+            f"optim.{k}: {saved[k]} in the checkpoint, {ours[k]} now"
+            for k in RESTORED_OPTIM_KEYS
+            if k in saved and k in ours and list(np.atleast_1d(saved[k])) != list(np.atleast_1d(ours[k]))
+        ]
+        if changed:
+            raise ValueError(
+                f"cannot resume with changed optimizer settings ({'; '.join(changed)}): the checkpoint's "
+                "optimizer state would override "
+                "them silently; resume with the checkpoint's values, or start a new run (without --resume) "
+                "to train with new ones"
+            )
+
+    def _check_data_position(self, trainer, checkpoint: dict) -> None:
+        saved = checkpoint.get("data_position")
+        if not saved:
+            return  # a checkpoint from before the data position was recorded
+        now = {"batch_size": self.batch_size, "world_size": trainer.world_size}
+        changed = [
+            f"{k} {saved[k]} in the checkpoint, {now[k]} now"
+            for k in ("batch_size", "world_size")
+            if saved.get(k) is not None and now[k] is not None and saved[k] != now[k]
+        ]
+        if not changed:
+            return
+        if not self.restart_epoch:
+            raise ValueError(
+                f"cannot resume mid-epoch with a changed {' and '.join(c.split(' ')[0] for c in changed)} "
+                f"({'; '.join(changed)}): the "
+                "position in the epoch would point at other batches; resume with the same data.batch_size "
+                "and devices/num_nodes, or "
+                "add trainer.resume_restart_epoch=true to start the interrupted epoch over"
+            )
+        fit_state = checkpoint.get("loops", {}).get("fit_loop", {}).get("state_dict", {})
+        for loader_state in fit_state.get("combined_loader", []):
+            if isinstance(loader_state, dict) and "batches" in loader_state:
+                loader_state["batches"] = 0  # the epoch restarts at its first batch
+        log.warning(
+            "resuming with %s: trainer.resume_restart_epoch=true, the interrupted epoch starts over",
+            "; ".join(changed),
+        )

@@ -1,0 +1,85 @@
+"""The `mmm` parser, logging set-up and the mapping of errors to exit codes."""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+from mmm.cli import data, generate, registry, train
+from mmm.cli.common import CLIError, Parser
+
+# The subcommands in the order `mmm --help` lists them.
+COMMANDS = (
+    data.add_convert,
+    data.add_data,
+    train.add_train,
+    train.add_tokenize,
+    generate.add_generate,
+    generate.add_edit,
+    generate.add_generate_long,
+    train.add_evaluate,
+    train.add_ablate,
+    train.add_pipeline,
+    registry.add_promote,
+    registry.add_import,
+    registry.add_export,
+    registry.add_dashboard,
+    registry.add_models,
+    data.add_render,
+)
+
+
+def build_parser() -> Parser:
+    parser = Parser(prog="mmm", description="MMM: text-to-motion training, generation and tracking")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in COMMANDS:
+        add(sub)
+    return parser
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever sys.stderr is at the time (not the one at set-up), so that `main` can be
+    called again after stderr was replaced, as tests and notebooks do."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value):
+        pass
+
+
+def _configure_logging(verbose: bool) -> None:
+    """This package's INFO lines and everyone's warnings, once each (Lightning prints its own
+    INFO lines through its own handler)."""
+    fmt = logging.Formatter("%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.WARNING, handlers=[_StderrHandler()])
+    for handler in logging.getLogger().handlers:
+        handler.setLevel(logging.DEBUG if verbose else logging.WARNING)
+        handler.setFormatter(fmt)
+    ours = logging.getLogger("mmm")
+    ours.setLevel(logging.DEBUG if verbose else logging.INFO)
+    if not ours.handlers:
+        handler = _StderrHandler()
+        handler.setFormatter(fmt)
+        ours.addHandler(handler)
+        ours.propagate = False
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Exit status 0 on success, 2 with a one-paragraph error (file, value, fix) on bad input."""
+    args = build_parser().parse_args(argv)
+    _configure_logging(args.verbose)
+    from mmm.config import ConfigError
+    from mmm.data.humanml3d import DataError
+
+    try:
+        args.func(args)
+    except (CLIError, DataError, ConfigError, FileExistsError, FileNotFoundError, ValueError) as e:
+        if args.verbose:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0

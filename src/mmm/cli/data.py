@@ -1,0 +1,205 @@
+"""Data commands: convert, data synth/stats/check/preview, render."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from mmm.cli.common import CLIError, load_npy, save_npy
+from mmm.cli.options import option_error
+
+SKELETON_NAMES = ["t2m", "kit"]
+
+
+def add_convert(sub) -> None:
+    convert = sub.add_parser("convert", help="joint positions <-> 263-d features")
+    convert.add_argument("direction", choices=["joints-to-features", "features-to-joints"])
+    convert.add_argument("input", help="(T, 22, 3) joints or (T, 263) features .npy")
+    convert.add_argument("output", help=".npy to write")
+    convert.add_argument("--no-retarget", action="store_true", help="keep the motion's own bone lengths")
+    convert.set_defaults(func=cmd_convert)
+
+
+def add_data(sub) -> None:
+    data = sub.add_parser("data", help="datasets: synthesize, statistics, checks, previews")
+    data = data.add_subparsers(dest="data_command", required=True)
+    synth = data.add_parser("synth", help="generate the synthetic text-motion dataset")
+    synth.add_argument("--out", required=True)
+    synth.add_argument("--num-clips", type=int, default=1500)
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    synth.set_defaults(func=cmd_data_synth)
+
+    stats = data.add_parser("stats", help="Mean/Std of a dataset computed the reference way")
+    stats.add_argument("root")
+    stats.add_argument("--skeleton", choices=SKELETON_NAMES, default="t2m")
+    stats.add_argument(
+        "--write",
+        action="store_true",
+        help="write Mean.npy and Std.npy into the dataset "
+        "(--evaluator-style: evaluator_style/{mean,std}.npy)",
+    )
+    stats.add_argument(
+        "--evaluator-style",
+        action="store_true",
+        help="the released recipe's statistics: "
+        "root (dims 0-3) and foot-contact (last 4) Std divided by --feat-bias",
+    )
+    stats.add_argument("--feat-bias", type=float, default=25.0)
+    stats.set_defaults(func=cmd_data_stats)
+
+    check = data.add_parser("check", help="load every split and report what is kept and left out")
+    check.add_argument("root")
+    check.add_argument("--skeleton", choices=SKELETON_NAMES, default="t2m")
+    check.add_argument("--min-length", type=int, default=None)
+    check.add_argument("--on-invalid", choices=["error", "skip"], default="skip")
+    check.set_defaults(func=cmd_data_check)
+
+    preview = data.add_parser(
+        "preview", help="render a few clips of a dataset (one per action when labelled)"
+    )
+    preview.add_argument("root")
+    preview.add_argument("--out", required=True)
+    preview.add_argument("--count", type=int, default=6)
+    preview.add_argument("--split", default="test")
+    preview.set_defaults(func=cmd_data_preview)
+
+
+def add_render(sub) -> None:
+    render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
+    render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")
+    render.add_argument("--out", required=True, help="FILE.gif, FILE.mp4 or FILE.png (contact sheet)")
+    render.add_argument("--caption", action="append", help="one per input, in order")
+    render.add_argument("--fps", type=float, default=None)
+    render.set_defaults(func=cmd_render)
+
+
+def cmd_convert(args: argparse.Namespace) -> None:
+    from mmm.motion.features import joints_to_features, recover_from_ric
+    from mmm.motion.skeleton import skeleton_for
+
+    arr = load_npy(args.input)
+    if not np.isfinite(arr).all():
+        raise CLIError(f"{args.input}: contains NaN/Inf values; fix the motion first")
+    if args.direction == "joints-to-features":
+        if arr.ndim != 3 or arr.shape[1:] not in ((22, 3), (21, 3)) or arr.shape[0] < 2:
+            raise CLIError(
+                f"{args.input}: shape {arr.shape}, expected joints (T, 22, 3) or (T, 21, 3) with T >= 2"
+            )
+        skeleton = skeleton_for(arr.shape[1])
+        out = joints_to_features(arr.astype(np.float32), skeleton, retarget=not args.no_retarget)
+    else:
+        if arr.ndim != 2 or arr.shape[1] not in (263, 251) or arr.shape[0] < 1:
+            raise CLIError(f"{args.input}: shape {arr.shape}, expected features (T, 263) or (T, 251)")
+        out = recover_from_ric(arr.astype(np.float32))
+    save_npy(args.output, out.astype(np.float32))
+
+
+def cmd_data_synth(args: argparse.Namespace) -> None:
+    # imported here: keeps `mmm --help` fast
+    from mmm.data.synthetic.generate import generate_dataset
+    from mmm.generation.sampler import SamplingValueError, check_seed
+
+    try:
+        check_seed(args.seed)
+    except SamplingValueError as e:
+        raise option_error(e) from None
+    summary = generate_dataset(args.out, num_clips=args.num_clips, seed=args.seed, overwrite=args.overwrite)
+    print(summary)
+
+
+def cmd_data_stats(args: argparse.Namespace) -> None:
+    from mmm.data.arrays import load_array
+    from mmm.data.humanml3d import compute_stats, save_array_atomic
+    from mmm.data.normalization import evaluator_style_std
+    from mmm.motion.features import FeatureLayout
+    from mmm.motion.skeleton import SKELETONS
+
+    root = Path(args.root)
+    num_joints = SKELETONS[args.skeleton].num_joints
+    mean, std, report = compute_stats(root, num_joints)
+    print(f"{root}: statistics over {report.kept_clips} files")
+    if report.skipped:
+        print(report.summary())
+    layout = FeatureLayout(num_joints)
+    names = ("root yaw vel", "root xz vel", "root height", "positions", "rotations", "velocities", "contacts")
+    if args.evaluator_style:
+        scaled = evaluator_style_std(std, num_joints, args.feat_bias)
+        print(
+            f"evaluator-style: the root and foot-contact Std divided by {args.feat_bias:g} "
+            "(what the released MMM normalizes with)"
+        )
+        print(f"{'group':14s} {'mean(avg)':>10s} {'std':>10s} {'scaled std':>10s}")
+        for name, sl in zip(names, layout.groups()):
+            print(f"{name:14s} {mean[sl].mean():10.4f} {std[sl][0]:10.4f} {scaled[sl][0]:10.4f}")
+        if args.write:
+            folder = root / "evaluator_style"
+            folder.mkdir(exist_ok=True)
+            save_array_atomic(folder / "mean.npy", mean)
+            save_array_atomic(folder / "std.npy", scaled)
+            print(
+                f"wrote {folder / 'mean.npy'} and {folder / 'std.npy'} "
+                f"(stage 1: normalization.statistics=files normalization.dir={folder})"
+            )
+        return
+    have = (root / "Mean.npy").exists() and (root / "Std.npy").exists()
+    fix = f"delete it and write it again with `mmm data stats {root} --write`"
+    old_mean = load_array(root / "Mean.npy", "saved Mean", fix) if have else None
+    old_std = load_array(root / "Std.npy", "saved Std", fix) if have else None
+    saved = f" {'saved std':>10s} {'max|dmean|':>10s}" if have else ""
+    print(f"{'group':14s} {'mean(avg)':>10s} {'std':>10s}" + saved)
+    for name, sl in zip(names, layout.groups()):
+        row = f"{name:14s} {mean[sl].mean():10.4f} {std[sl][0]:10.4f}"
+        if have:
+            row += f" {old_std[sl][0]:10.4f} {np.abs(old_mean[sl] - mean[sl]).max():10.2e}"
+        print(row)
+    if args.write:
+        save_array_atomic(root / "Mean.npy", mean)
+        save_array_atomic(root / "Std.npy", std)
+        print(f"wrote {root / 'Mean.npy'} and {root / 'Std.npy'}")
+
+
+def cmd_data_check(args: argparse.Namespace) -> None:
+    from mmm.data.humanml3d import check_mirror_splits, load_items, load_stats
+    from mmm.motion.skeleton import SKELETONS
+
+    sk = SKELETONS[args.skeleton]
+    min_length = args.min_length or (24 if sk.name == "kit" else 40)
+    root = Path(args.root)
+    load_stats(root, sk.feature_dim)
+    for split in ("train", "val", "test"):
+        _, report = load_items(
+            root,
+            split,
+            feature_dim=sk.feature_dim,
+            fps=sk.fps,
+            min_length=min_length,
+            on_invalid=args.on_invalid,
+        )
+        print(f"{split}: {report.summary()}")
+    leaks = check_mirror_splits(root)
+    print(
+        f"mirrored ids in a different split from their original: {len(leaks)}"
+        + (f" (e.g. {', '.join(leaks[:5])})" if leaks else "")
+    )
+
+
+def cmd_data_preview(args: argparse.Namespace) -> None:
+    from mmm.data.preview import preview_dataset
+
+    if args.count < 1:
+        raise CLIError(f"--count {args.count} is not allowed: 1 or more clips to render")
+    for path in preview_dataset(args.root, args.out, count=args.count, split=args.split):
+        print(f"wrote {path}")
+
+
+def cmd_render(args: argparse.Namespace) -> None:
+    from mmm.render import render_files
+
+    if args.fps is not None and not (math.isfinite(args.fps) and 0 < args.fps <= 1000):
+        raise CLIError(f"--fps {args.fps} is not allowed: frames per second, more than 0 and at most 1000")
+    for path in render_files(args.inputs, args.out, captions=args.caption or None, fps=args.fps):
+        print(f"wrote {path}")

@@ -1,0 +1,243 @@
+"""Generation commands: generate, edit, generate-long (the options they share: options.py)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from mmm.cli.common import CLIError, load_npy
+from mmm.cli.options import (
+    add_generation_options,
+    check_generation_args,
+    check_texts,
+    load_model,
+    meta,
+    sampling_config,
+)
+from mmm.generation.edits import EDIT_KINDS, UPPER_BODY
+
+# How `mmm edit` spells the fields of an edit request in its messages.
+EDIT_OPTIONS = {
+    "text": "--text",
+    "keep": "--keep",
+    "lower_mask": "--lower-mask",
+    "lower_keep": "--lower-keep",
+    "place": "--place",
+    "length": "--length",
+}
+
+
+def add_generate(sub) -> None:
+    gen = sub.add_parser("generate", help="text to motion")
+    gen.add_argument("--text", required=True)
+    gen.add_argument(
+        "--length",
+        type=int,
+        default=None,
+        help="frames (40-196 at 20 fps); estimated from the text when left out",
+    )
+    gen.add_argument("--num-samples", type=int, default=1)
+    gen.add_argument(
+        "--trace", action="store_true", help="also plot the decoding (confidence and mask per iteration)"
+    )
+    add_generation_options(gen)
+    gen.set_defaults(func=cmd_generate)
+
+
+def add_edit(sub) -> None:
+    edit = sub.add_parser(
+        "edit", help="edit a motion: keep some frames and generate the rest, or give it a new upper body"
+    )
+    edit.add_argument("kind", choices=list(EDIT_KINDS))
+    edit.add_argument("--source", required=True, help="features (T, 263) or joints (T, 22, 3) .npy")
+    edit.add_argument(
+        "--keep",
+        default=None,
+        help="source frames to keep: START:END[,START:END] (inbetween, outpaint, complete)",
+    )
+    edit.add_argument(
+        "--lower-mask",
+        type=float,
+        default=None,
+        help="upper-body: share of the source's lower-body codes hidden from the model "
+        "(0: the lower body constrains fully; default 0.5)",
+    )
+    edit.add_argument(
+        "--lower-keep",
+        default=None,
+        help="upper-body: source frames whose lower-body codes constrain the upper body, START:END[,...]",
+    )
+    edit.add_argument("--text", default=None, help="what the generated part shows (none: without text)")
+    edit.add_argument("--length", type=int, default=None, help="output frames (default: the source's)")
+    edit.add_argument(
+        "--place", type=int, default=0, help="output frame where the source starts (a multiple of 4)"
+    )
+    edit.add_argument("--num-samples", type=int, default=1)
+    add_generation_options(edit)
+    edit.set_defaults(func=cmd_edit)
+
+
+def add_generate_long(sub) -> None:
+    long = sub.add_parser("generate-long", help="one long motion from several prompts or a paragraph")
+    long.add_argument("--text", action="append", help="one per segment, in order")
+    long.add_argument("--paragraph", default=None, help="split into prompts by a deterministic splitter")
+    long.add_argument(
+        "--lengths",
+        default=None,
+        help="frames per segment: one value for all, or one per prompt (comma-separated)",
+    )
+    long.add_argument(
+        "--transition-codes", type=int, default=2, help="codes generated between neighbouring segments"
+    )
+    add_generation_options(long)
+    long.set_defaults(func=cmd_generate_long)
+
+
+def cmd_generate(args: argparse.Namespace) -> None:
+    # imported here: keeps `mmm --help` fast
+    from mmm.generation.outputs import write_samples
+
+    check_generation_args(args)
+    check_texts([args.text])
+    model = load_model(args)
+    if args.length is not None:
+        model.check_frames(args.length, "--length")
+    texts = [args.text] * args.num_samples
+    lengths = [args.length] * args.num_samples if args.length else None
+    out = model.generate(texts, lengths, sampling_config(args), args.seed, trace=bool(args.trace))
+    samples = [
+        {
+            "features": f,
+            "joints": j,
+            "caption": args.text,
+            "meta": meta(
+                args,
+                model,
+                out,
+                "generate",
+                {
+                    "prompt": args.text,
+                    "length_frames": int(f.shape[0]),
+                    "sample": k,
+                    "iterations": out.iterations[k],
+                },
+            ),
+        }
+        for k, (f, j) in enumerate(zip(out.features, out.joints))
+    ]
+    folders = write_samples(args.out, samples, model.skeleton, overwrite=args.overwrite)
+    if args.trace:
+        from mmm.generation.trace import plot_trace
+
+        trace = plot_trace(out.trace, Path(args.out) / "decoding_trace.png", sample=0, title=args.text)
+        print(f"wrote {trace}")
+    for folder in folders:
+        print(f"wrote {folder}")
+    print(f"{len(folders)} samples in {out.seconds['total']:.2f} s ({out.forward_passes} transformer passes)")
+
+
+def cmd_edit(args: argparse.Namespace) -> None:
+    from mmm.generation.edits import EditRequest
+    from mmm.generation.outputs import write_samples
+    from mmm.motion.features import joints_to_features
+
+    check_generation_args(args)
+    request = EditRequest.parse(
+        args.kind,
+        text=args.text,
+        keep=args.keep,
+        lower_mask=args.lower_mask,
+        lower_keep=args.lower_keep,
+        length=args.length,
+        place=args.place,
+        names=EDIT_OPTIONS,
+    )
+    source = load_npy(args.source)
+    if source.ndim == 3 and source.shape[1:] in ((22, 3), (21, 3)):
+        source = joints_to_features(source.astype(np.float32))
+    elif not (source.ndim == 2 and source.shape[1] in (263, 251)):
+        raise CLIError(
+            f"{args.source}: shape {source.shape}, expected features (T, 263) or joints (T, 22, 3)"
+        )
+    if not np.isfinite(source).all():
+        raise CLIError(f"{args.source}: contains NaN/Inf values")
+    model = load_model(args)
+    out = request.run(model, source.astype(np.float32), sampling_config(args), args.seed, args.num_samples)
+    caption = f"{args.kind}: {args.text or '(no text)'}"
+    extra = {"source": str(args.source)}
+    if args.kind == UPPER_BODY:
+        extra |= {
+            "prompt": args.text,
+            "lower_mask": request.lower_mask,
+            "lower_keep_frames": request.lower_keep,
+        }
+        kept = [row.astype(int).tolist() for row in out.kept_codes]
+        captions = [f"{caption} (lower body shown: {sum(row)}/{len(row)} codes)" for row in kept]
+    else:
+        extra |= {"keep_frames": request.keep, "place": args.place, "prompt": args.text}
+        kept = [out.kept_codes.astype(int).tolist()] * len(out.features)
+        captions = [caption] * len(out.features)
+    samples = [
+        {
+            "features": f,
+            "joints": j,
+            "caption": captions[k],
+            "meta": meta(
+                args,
+                model,
+                out,
+                args.kind,
+                {**extra, "kept_codes": kept[k], "length_frames": int(f.shape[0]), "sample": k},
+            ),
+        }
+        for k, (f, j) in enumerate(zip(out.features, out.joints))
+    ]
+    for folder in write_samples(args.out, samples, model.skeleton, overwrite=args.overwrite):
+        print(f"wrote {folder}")
+
+
+def cmd_generate_long(args: argparse.Namespace) -> None:
+    from mmm.generation.outputs import write_samples
+    from mmm.generation.prompts import split_paragraph
+
+    check_generation_args(args)
+    if args.paragraph is not None and not args.paragraph.strip():
+        raise CLIError(
+            "--paragraph is empty: describe the motions in order, "
+            "e.g. --paragraph 'A person walks forward, then jumps.'"
+        )
+    if bool(args.text) == bool(args.paragraph):
+        raise CLIError("give the prompts either as --text ... --text ... or as one --paragraph '...'")
+    texts = args.text or split_paragraph(args.paragraph)
+    check_texts(texts)
+    try:
+        lengths = [int(x) for x in args.lengths.split(",")] if args.lengths else None
+    except ValueError:
+        raise CLIError(
+            f"--lengths {args.lengths!r}: write frames per segment as whole numbers, one for all "
+            "or one per prompt, e.g. 80,120"
+        ) from None
+    if lengths is not None and len(lengths) not in (1, len(texts)):
+        raise CLIError(f"--lengths has {len(lengths)} values for {len(texts)} prompts")
+    if lengths is not None and len(lengths) == 1:
+        lengths = lengths * len(texts)
+    model = load_model(args)
+    for n in lengths or []:
+        model.check_frames(n, "segment length")
+    out = model.generate_long(texts, lengths, sampling_config(args), args.seed, args.transition_codes)
+    frames = int(out.features[0].shape[0])
+    info = meta(
+        args,
+        model,
+        out,
+        "generate-long",
+        {"prompts": texts, "segments_frames": out.segments, "length_frames": frames},
+    )
+    caption = " / ".join(texts)
+    sample = {"features": out.features[0], "joints": out.joints[0], "caption": caption, "meta": info}
+    for folder in write_samples(args.out, [sample], model.skeleton, overwrite=args.overwrite):
+        print(f"wrote {folder}")
+    seconds = out.seconds["total"]
+    print(f"{len(texts)} prompts, {frames} frames ({frames / model.fps:.1f} s) in {seconds:.2f} s")

@@ -1,0 +1,171 @@
+"""The options generate, edit and generate-long share, and what they do with them: load the model,
+check the sampling settings, build the SamplingConfig, describe a sample in its meta.json.
+
+The sampling flags are SamplingConfig's fields (generation/sampler.py: a field's metadata gives
+its flag, help text and choices), added to a parser only when it parses or prints its help
+(sampler.py imports torch). Each flag's default is None, "not given": SamplingConfig's own
+default applies then, or the edit kind's (upper-body edits sample with guidance 4).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from mmm.cli.common import DEFAULT_TRACKING_URI, CLIError
+from mmm.generation.edits import UPPER_BODY
+from mmm.kinds import KINDS
+
+# The command-line option of the range-checked values that are not sampling settings
+# (SamplingValueError.field -> option); those of the sampling settings come from sampling_options().
+OPTION_OF_FIELD = {"seed": "--seed", "num_samples": "--num-samples"}
+_TYPES = {"int": int, "float": float, "str": str}
+
+
+def sampling_options() -> list[tuple]:
+    """(field, flag) of each SamplingConfig field that is a command-line option."""
+    from dataclasses import fields
+
+    # imported here: keeps `mmm --help` fast (sampler.py imports torch)
+    from mmm.generation.sampler import SamplingConfig
+
+    out = []
+    for f in fields(SamplingConfig):
+        flag = f.metadata["flag"] if "flag" in f.metadata else "--" + f.name.replace("_", "-")
+        if flag is not None:
+            out.append((f, flag))
+    return out
+
+
+def _dest(flag: str) -> str:
+    return flag.lstrip("-").replace("-", "_")
+
+
+def add_sampling_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("sampling")
+    for f, flag in sampling_options():
+        annotation = f.type if isinstance(f.type, str) else f.type.__name__  # "float | None": float
+        choices = f.metadata.get("choices")
+        g.add_argument(
+            flag,
+            type=_TYPES[annotation.split(" | ")[0]],
+            default=None,
+            choices=list(choices) if choices else None,
+            help=f.metadata.get("help"),
+        )
+
+
+def option_error(e) -> CLIError:
+    """A SamplingValueError in the command line's words: the option, the value, the allowed range."""
+    options = {**OPTION_OF_FIELD, **{f.name: flag for f, flag in sampling_options()}}
+    return CLIError(f"{options.get(e.field, e.field)} {e.value} is not allowed: {e.allowed}")
+
+
+def add_generation_options(p) -> None:
+    p.add_argument("--out", required=True, help="output folder: one sub-folder per sample")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--model",
+        default=None,
+        help="stage-2 checkpoint, MLflow run id or models:/NAME@ALIAS "
+        "(default: the champion, else the newest stage-2 result; for upper-body: mmm-upperbody's "
+        "champion, else the newest part-aware result)",
+    )
+    p.add_argument("--tracking-uri", default=DEFAULT_TRACKING_URI)
+    p.add_argument(
+        "--length-model",
+        default=None,
+        help="length estimator used when no length is given (default: the newest `make train-length` result)",
+    )
+    # Files a checkpoint records are read only from outputs/ (or its MLflow run): these name them otherwise.
+    p.add_argument(
+        "--stage1",
+        default=None,
+        help="the stage-1 model the --model was trained with "
+        "(checkpoint, run id or models:/...), when the file its checkpoint records lies "
+        "outside outputs/",
+    )
+    p.add_argument(
+        "--clip-weights",
+        default=None,
+        help="the CLIP weights file a CLIP model was trained "
+        "with, when its recorded path lies outside outputs/",
+    )
+    p.add_argument(
+        "--clip-vocab", default=None, help="the CLIP vocabulary file (bpe_simple_vocab_16e6.txt.gz), likewise"
+    )
+    p.add_argument("--stage2-dir", default=KINDS["stage2"].output_dir, help=argparse.SUPPRESS)
+    p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out folder of earlier samples whole (never a mix of old and new)",
+    )
+    p.defer(add_sampling_options)
+
+
+def sampling_config(args: argparse.Namespace):
+    """The SamplingConfig of the sampling flags given (it checks its own fields)."""
+    from mmm.generation.edits import sampling_defaults
+    from mmm.generation.sampler import SamplingConfig
+
+    given = {f.name: getattr(args, _dest(flag)) for f, flag in sampling_options()}
+    given = {k: v for k, v in given.items() if v is not None}
+    return SamplingConfig(**{**sampling_defaults(getattr(args, "kind", None)), **given})
+
+
+def check_generation_args(args: argparse.Namespace) -> None:
+    """Refuse out-of-range sampling settings, seeds, sample counts and transition lengths before
+    any model is loaded or anything written. The ranges are those of mmm.generation.sampler, which
+    the served bundle checks its requests against too."""
+    from mmm.generation.sampler import SamplingValueError, check_count, check_seed
+
+    try:
+        sampling_config(args)
+        check_seed(args.seed)
+        if getattr(args, "num_samples", None) is not None:
+            check_count(args.num_samples, "num_samples")
+    except SamplingValueError as e:
+        raise option_error(e) from None
+    if getattr(args, "transition_codes", 0) < 0:
+        raise CLIError(
+            f"--transition-codes {args.transition_codes} is not allowed: "
+            "0 or more codes between neighbouring segments"
+        )
+
+
+def check_texts(texts: list[str]) -> None:
+    for t in texts:
+        if not t or not t.strip():
+            raise CLIError("--text is empty: describe the motion, e.g. --text 'a person walks forward'")
+
+
+def load_model(args: argparse.Namespace):
+    from mmm.generation.model import TextToMotion
+
+    text_files = {"weights": args.clip_weights, "vocab": args.clip_vocab}
+    return TextToMotion.load(
+        args.model,
+        tracking_uri=args.tracking_uri,
+        output_dir=args.stage2_dir,
+        device=args.device,
+        length_model=args.length_model,
+        parts=getattr(args, "kind", None) == UPPER_BODY,
+        stage1=args.stage1,
+        text_files={k: v for k, v in text_files.items() if v is not None},
+    )
+
+
+def meta(args, model, out, kind: str, extra: dict) -> dict:
+    from dataclasses import asdict
+
+    seconds = {k: round(v, 4) for k, v in out.seconds.items()}
+    sampling = asdict(sampling_config(args))
+    return {
+        "kind": kind,
+        "seed": args.seed,
+        "model": model.identity,
+        "sampling": sampling,
+        "seconds": seconds,
+        "forward_passes": out.forward_passes,
+        **extra,
+    }

@@ -1,0 +1,154 @@
+"""Training and evaluation commands: train, tokenize, evaluate, ablate, pipeline."""
+
+from __future__ import annotations
+
+import argparse
+
+from mmm.cli.common import CLIError
+from mmm.kinds import KINDS
+
+
+def add_train(sub) -> None:
+    train = sub.add_parser("train", help="train a stage; any config key can be overridden as key=value")
+    train.add_argument(
+        "stage",
+        choices=list(KINDS),
+        help="stage1-parts/stage2-parts: the part-aware model for upper-body editing",
+    )
+    train.add_argument("overrides", nargs="*", help="e.g. trainer.max_steps=500 model=paper data=humanml3d")
+    train.add_argument(
+        "--resume",
+        default=None,
+        help="'last' (newest run of this stage that no other process is writing) or a "
+        "checkpoint path (one outside this stage's run folders is only read: the run goes on "
+        "in a new run folder)",
+    )
+    train.set_defaults(func=cmd_train)
+
+
+def add_tokenize(sub) -> None:
+    tokenize = sub.add_parser(
+        "tokenize",
+        help="tokenize a dataset with a stage-1 model and cache caption embeddings (stage 2's inputs)",
+    )
+    tokenize.add_argument(
+        "overrides", nargs="*", help="stage 2's config keys, e.g. stage1=RUN_ID data=humanml3d"
+    )
+    tokenize.set_defaults(func=cmd_tokenize)
+
+
+def add_evaluate(sub) -> None:
+    evaluate = sub.add_parser(
+        "evaluate",
+        help="the evaluation protocol, reconstruction metrics and prompt adherence, logged to MLflow",
+    )
+    evaluate.add_argument(
+        "overrides",
+        nargs="*",
+        help="e.g. text2motion=RUN_ID protocol.replications=5 evaluator.reference=t2m:/ckpt/t2m",
+    )
+    evaluate.set_defaults(func=cmd_evaluate)
+
+
+def add_ablate(sub) -> None:
+    ablate = sub.add_parser("ablate", help="the supplementary's ablation tables (8-13) as sweeps")
+    ablate.add_argument("kind", choices=["reset", "cross-layers", "schedule", "temperature", "topk", "topp"])
+    ablate.add_argument(
+        "overrides", nargs="*", help="e.g. grids.temperature=[0.5,1.0] protocol.replications=5"
+    )
+    ablate.set_defaults(func=cmd_ablate)
+
+
+def add_pipeline(sub) -> None:
+    pipeline = sub.add_parser(
+        "pipeline", help="stages chained as one MLflow parent run; unchanged steps are skipped"
+    )
+    pipeline.add_argument("name", choices=["full", "stage1", "stage2", "evaluate", "promote", "parts"])
+    pipeline.add_argument(
+        "overrides", nargs="*", help="e.g. overrides.stage1=[trainer.max_steps=500] data=humanml3d"
+    )
+    pipeline.add_argument(
+        "--force",
+        action="append",
+        default=[],
+        help="rerun this step even if its inputs did not change (or 'all')",
+    )
+    pipeline.set_defaults(func=cmd_pipeline)
+
+
+def cmd_train(args: argparse.Namespace) -> None:
+    kind = KINDS[args.stage]
+    # imported here: keeps `mmm --help` fast
+    if kind.name in ("stage1", "stage1-parts"):
+        from mmm.training.stage1 import load_stage1_config, train_stage1
+
+        result = train_stage1(load_stage1_config(args.overrides, parts=kind.part_aware), resume=args.resume)
+    elif kind.name == "length":
+        if args.resume:
+            raise CLIError("--resume is not supported for the length estimator (it trains in seconds)")
+        from mmm.training.length import load_length_config, train_length
+
+        result = train_length(load_length_config(args.overrides))
+    elif kind.name == "evaluator":
+        if args.resume:
+            raise CLIError("--resume is not supported for the evaluator (it trains in a few minutes)")
+        from mmm.training.evaluator import load_evaluator_config, train_evaluator
+
+        result = train_evaluator(load_evaluator_config(args.overrides))
+    else:
+        from mmm.training.stage2 import load_stage2_config, train_stage2
+
+        result = train_stage2(load_stage2_config(args.overrides, parts=kind.part_aware), resume=args.resume)
+    if result.run_id is None and not result.best_checkpoint:
+        return  # a non-zero rank of a distributed run
+    print(f"MLflow run: {result.run_id}")
+    print(f"checkpoints: best {result.best_checkpoint}, last {result.last_checkpoint}")
+    shown = {k: v for k, v in sorted(result.metrics.items()) if k.startswith("val/")}
+    print("validation: " + ", ".join(f"{k}={v:.4g}" for k, v in shown.items()))
+    if getattr(result, "model_version", None):
+        tested = [
+            (k, v)
+            for k, v in sorted(result.metrics.items())
+            if k.startswith("test/r_precision") or k == "test/matching_distance"
+        ]
+        print("test: " + ", ".join(f"{k}={v:.4g}" for k, v in tested))
+        print(f"registered: models:/{result.registered_model}/{result.model_version}")
+
+
+def cmd_tokenize(args: argparse.Namespace) -> None:
+    from mmm.training.stage2 import load_stage2_config, prepare_stage2_data
+
+    datamodule = prepare_stage2_data(load_stage2_config(args.overrides))
+    print(f"tokens: {datamodule.tokens.folder} ({len(datamodule.tokens)} motions)")
+    encoder = datamodule.text_encoder.identity
+    print(f"caption embeddings: {len(datamodule.caption_cache)} captions ({encoder})")
+
+
+def cmd_evaluate(args: argparse.Namespace) -> None:
+    from mmm.evaluation.run import evaluate, load_evaluate_config
+
+    results = evaluate(load_evaluate_config(args.overrides))
+    print(results["table"])
+    if results.get("run_id"):
+        print(f"MLflow run: {results['run_id']} (experiment mmm-evaluation)")
+
+
+def cmd_ablate(args: argparse.Namespace) -> None:
+    from mmm.evaluation.ablation import load_ablation_config, run_ablation
+
+    result = run_ablation(args.kind, load_ablation_config(args.overrides))
+    print(result["table"])
+    for path in result["files"]:
+        print(f"wrote {path}")
+
+
+def cmd_pipeline(args: argparse.Namespace) -> None:
+    from mmm.pipeline.steps import load_pipeline_config, run_pipeline
+
+    config = load_pipeline_config(args.overrides)
+    reports = run_pipeline(args.name, config, force=args.force, overrides=args.overrides)
+    for r in reports:
+        shown = ", ".join(f"{k}={v}" for k, v in r.outputs.items() if k in ("run_id", "version", "alias"))
+        print(f"{r.name:22s} {r.status:8s} {r.seconds:7.1f} s  " + shown)
+        if r.outputs.get("reason"):
+            print(f"{'':22s} {r.outputs['reason']}")

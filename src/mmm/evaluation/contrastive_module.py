@@ -1,0 +1,155 @@
+"""`ContrastiveEvaluatorModule`: training of the contrastive text-motion evaluator
+(mmm.evaluation.contrastive), and its loss.
+
+A symmetric InfoNCE loss over the batch with the evaluator's learnable temperature; pairs whose
+frozen sentence embeddings are nearly identical (cosine >= `false_negative_threshold`) can be left
+out of each other's negatives. The module validates with the loss and text->motion /
+motion->text top-1/top-5 within batches, and keeps plain-dict hyper-parameters, so checkpoints
+load with torch.load(weights_only=True); the network sits under `evaluator.`, what
+`load_contrastive_evaluator(path)` reads back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torchmetrics import MeanMetric
+
+from mmm.config import as_config
+from mmm.evaluation.contrastive import ContrastiveEvaluator, ContrastiveModelConfig, matching_ranks
+from mmm.training.optim import OptimConfig, build_optimizer
+
+
+@dataclass
+class ContrastiveLossConfig:
+    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
+    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
+    false_negative_threshold: float | None = 0.95
+
+
+def false_negative_mask(sentences: torch.Tensor, threshold: float | None) -> torch.Tensor | None:
+    """(B, Ds) frozen sentence embeddings -> (B, B) bool, True where pair (i, j), i != j, is too
+    alike (cosine >= threshold) to serve as a negative; None when no threshold is set."""
+    if threshold is None:
+        return None
+    unit = F.normalize(sentences.float(), dim=-1)
+    alike = unit @ unit.T >= threshold
+    return alike & ~torch.eye(len(unit), dtype=torch.bool, device=unit.device)
+
+
+def info_nce_loss(
+    text: torch.Tensor,
+    motion: torch.Tensor,
+    logit_scale: torch.Tensor | float,
+    exclude: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Symmetric InfoNCE: text i's positive is motion i and vice versa, the other rows negatives.
+
+    text, motion: (B, E), L2-normalized here; logits = scale * cosine (B, B). The loss is the mean
+    of the text->motion cross-entropy (rows) and the motion->text one (columns). `exclude` (B, B)
+    bool removes off-diagonal pairs from the negatives (the diagonal is always kept).
+    """
+    t, m = F.normalize(text.float(), dim=-1), F.normalize(motion.float(), dim=-1)
+    logits = torch.as_tensor(logit_scale, dtype=t.dtype, device=t.device) * (t @ m.T)
+    if exclude is not None:
+        exclude = exclude & ~torch.eye(len(t), dtype=torch.bool, device=t.device)
+        logits = logits.masked_fill(exclude, float("-inf"))
+    target = torch.arange(len(t), device=t.device)
+    return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target))
+
+
+class ContrastiveEvaluatorModule(L.LightningModule):
+    """Trains a ContrastiveEvaluator on {"motion" (B, T, D) normalized, "lengths" (B,), "sentence" (B, Ds)}.
+
+    text_encoder: the frozen encoder whose sentence embeddings it reads ({"name", "identity", ...});
+    data: what it was trained on ({"name", "root", "fingerprint"}). Both go into the checkpoint.
+    Validation batches should hold `retrieval_batch` pairs (32): top-k are within the batch.
+    """
+
+    def __init__(
+        self,
+        feature_dim: int,
+        sentence_dim: int,
+        model: ContrastiveModelConfig | dict | None = None,
+        optim: OptimConfig | dict | None = None,
+        loss: ContrastiveLossConfig | dict | None = None,
+        mean: np.ndarray | torch.Tensor | None = None,
+        std: np.ndarray | torch.Tensor | None = None,
+        text_encoder: dict | None = None,
+        data: dict | None = None,
+    ):
+        super().__init__()
+        model = as_config(ContrastiveModelConfig, model) if model is not None else ContrastiveModelConfig()
+        optim = (
+            as_config(OptimConfig, optim)
+            if optim is not None
+            else OptimConfig(lr=1e-3, weight_decay=1e-2, warmup_steps=0)
+        )
+        loss = as_config(ContrastiveLossConfig, loss) if loss is not None else ContrastiveLossConfig()
+        # Tensors first, and never into the hyper-parameters (plain dicts: weights_only loads).
+        mean = None if mean is None else torch.as_tensor(mean, dtype=torch.float32)
+        std = None if std is None else torch.as_tensor(std, dtype=torch.float32)
+        self.save_hyperparameters(
+            {
+                "feature_dim": int(feature_dim),
+                "sentence_dim": int(sentence_dim),
+                "model": asdict(model),
+                "optim": asdict(optim),
+                "loss": asdict(loss),
+                "text_encoder": dict(text_encoder or {}),
+                "data": dict(data or {}),
+            },
+            logger=False,
+        )
+        self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
+        self.evaluator = ContrastiveEvaluator(feature_dim, sentence_dim, model, mean, std)
+        self.val_metrics = nn.ModuleDict(
+            {name: MeanMetric() for name in ("loss", "t2m_top1", "t2m_top5", "m2t_top1", "m2t_top5")}
+        )
+
+    def _loss(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        ev = self.evaluator
+        motion = ev.motion_features(batch["motion"], batch["lengths"])
+        text = ev.text_features(batch["sentence"])
+        exclude = false_negative_mask(batch["sentence"], self.loss_cfg.false_negative_threshold)
+        return info_nce_loss(text, motion, ev.scale(), exclude), text, motion
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        loss, text, motion = self._loss(batch)
+        t2m, _ = matching_ranks(F.normalize(text.detach(), dim=-1), F.normalize(motion.detach(), dim=-1))
+        self.log_dict(
+            {
+                "train/loss": loss,
+                "train/temperature": 1.0 / self.evaluator.scale().detach(),
+                "train/t2m_top1": (t2m == 0).float().mean(),
+            },
+            on_step=True,
+            on_epoch=False,
+            batch_size=len(t2m),
+        )
+        self.log("loss", loss, prog_bar=True, logger=False, batch_size=len(t2m))
+        return loss
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        loss, text, motion = self._loss(batch)
+        t2m, m2t = matching_ranks(F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
+        self.val_metrics["loss"].update(loss, weight=len(t2m))
+        for k in (1, 5):
+            self.val_metrics[f"t2m_top{k}"].update((t2m < k).float())
+            self.val_metrics[f"m2t_top{k}"].update((m2t < k).float())
+
+    def on_validation_epoch_end(self) -> None:
+        values = {f"val/{name}": metric.compute() for name, metric in self.val_metrics.items()}
+        self.log_dict(values)
+        self.log("val_t2m_top1", values["val/t2m_top1"], prog_bar=True, logger=False)
+        for metric in self.val_metrics.values():
+            metric.reset()
+
+    def configure_optimizers(self):
+        # Weight decay on the weight matrices only: none on biases, norms and the logit scale.
+        return build_optimizer(self.evaluator.parameters(), self.optim_cfg, decay_matrices_only=True)

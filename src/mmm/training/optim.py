@@ -1,0 +1,66 @@
+"""The optimizer and learning-rate schedule of every model this package trains.
+
+AdamW with a linear warm-up over `warmup_steps` optimizer steps, then the rate times `gamma` at
+each of `milestones`; the scheduler steps with the optimizer and Lightning's LearningRateMonitor
+charts it as `train/lr`. Each LightningModule's `configure_optimizers` is one call to
+`build_optimizer`. Only torch and dataclasses here: the model packages import this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable
+
+import torch
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 2e-4
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.99])
+    weight_decay: float = 0.0
+    warmup_steps: int = 1000
+    milestones: list[int] = field(default_factory=lambda: [200_000])  # lr *= gamma at each
+    gamma: float = 0.05
+
+
+def warmup_step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
+    """lr multiplier at optimizer step s: linear warm-up, then x gamma at each milestone."""
+
+    def factor(step: int) -> float:
+        warm = min(1.0, (step + 1) / warmup_steps) if warmup_steps > 0 else 1.0
+        return warm * gamma ** sum(step >= m for m in milestones)
+
+    return factor
+
+
+def build_optimizer(
+    parameters: Iterable[torch.nn.Parameter],
+    cfg: OptimConfig,
+    *,
+    foreach: bool | None = None,
+    decay_matrices_only: bool = False,
+) -> dict:
+    """AdamW over `parameters` with the warm-up/step schedule of `cfg`, as Lightning's
+    `configure_optimizers` returns it: {"optimizer", "lr_scheduler": {scheduler, per step, `train/lr`}}.
+
+    foreach: AdamW's multi-tensor implementation (None: torch's default for the device).
+    decay_matrices_only: weight decay on the trainable weight matrices only (dim >= 2), none on
+    biases, norms and scalars such as a logit scale; otherwise on every parameter.
+    """
+    if decay_matrices_only:
+        trainable = [p for p in parameters if p.requires_grad]
+        parameters = [
+            {"params": [p for p in trainable if p.dim() >= 2], "weight_decay": cfg.weight_decay},
+            {"params": [p for p in trainable if p.dim() < 2], "weight_decay": 0.0},
+        ]
+    optimizer = torch.optim.AdamW(
+        parameters, lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=foreach
+    )
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma)
+    )
+    return {
+        "optimizer": optimizer,
+        "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"},
+    }

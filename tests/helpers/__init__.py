@@ -1,0 +1,192 @@
+"""Small motions and datasets the tests build on disk."""
+
+import math
+
+import numpy as np
+import torch
+
+from mmm.motion.features import reference_std
+from mmm.motion.quaternion import quat_about_y, quat_from_axis_angle
+from mmm.motion.skeleton import T2M_SKELETON, forward_kinematics
+
+D = 263
+
+
+def make_features(T, seed):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(T, D)).astype(np.float32) * 0.1 + seed
+
+
+def write_dataset(root, clips, splits, stats=True):
+    """clips: id -> (T or features array, [caption lines]); splits: name -> ids."""
+    (root / "new_joint_vecs").mkdir(parents=True)
+    (root / "texts").mkdir()
+    arrays = {}
+    for i, (motion_id, (motion, lines)) in enumerate(clips.items()):
+        arr = make_features(motion, i) if isinstance(motion, int) else motion
+        arrays[motion_id] = arr
+        np.save(root / "new_joint_vecs" / f"{motion_id}.npy", arr)
+        (root / "texts" / f"{motion_id}.txt").write_text("\n".join(lines) + "\n")
+    for name, ids in splits.items():
+        (root / f"{name}.txt").write_text("\n".join(ids) + "\n")
+    if stats:
+        mean, std = reference_std(np.concatenate(list(arrays.values())), 22)
+        np.save(root / "Mean.npy", mean.astype(np.float32))
+        np.save(root / "Std.npy", std.astype(np.float32))
+    return arrays
+
+
+def turning_walker(frames=160, turns=1.25):
+    """A rigid T-pose body moving on a circle and turning `turns` full turns: crosses 180 degrees."""
+    t = torch.arange(frames, dtype=torch.float64)
+    heading = 2 * math.pi * turns * t / frames
+    root = torch.stack(
+        (torch.sin(heading) * 1.5, 0.95 + 0.03 * torch.sin(t / 3), 1.5 - torch.cos(heading) * 1.5), dim=-1
+    )
+    quats = torch.zeros(frames, 22, 4, dtype=torch.float64)
+    quats[..., 0] = 1.0
+    quats[:, 0] = quat_about_y(heading)
+    # Swing the arms and legs so rotations and velocities are not trivial.
+    swing = quat_from_axis_angle(
+        torch.tensor([1.0, 0, 0], dtype=torch.float64).expand(frames, 3), 0.5 * torch.sin(t / 4)
+    )
+    for j in (1, 17):
+        quats[:, j] = swing
+    for j in (2, 16):
+        quats[:, j] = swing * torch.tensor([1.0, -1, -1, -1], dtype=torch.float64)
+    return forward_kinematics(quats, root, T2M_SKELETON, chains_from_root=False)
+
+
+def write_walker_dataset(root, num_clips: int = 30):
+    """A small dataset of turning, arm-swinging bodies in the HumanML3D layout (80/10/10 split)."""
+    from mmm.motion.features import joints_to_features
+
+    clips = {}
+    for i in range(num_clips):
+        joints = turning_walker(frames=90 + 3 * i, turns=0.1 + 0.04 * i).numpy()
+        clips[f"{i:06d}"] = (
+            joints_to_features(joints).astype(np.float32),
+            ["a person turns#a/DET person/NOUN turn/VERB#0.0#0.0"],
+        )
+    ids = list(clips)
+    n_train, n_val = int(num_clips * 0.8), int(num_clips * 0.1)
+    write_dataset(
+        root,
+        clips,
+        {"train": ids[:n_train], "val": ids[n_train : n_train + n_val], "test": ids[n_train + n_val :]},
+    )
+    return root
+
+
+def train_tiny_stage1(root, out, *extra):
+    """A 4-step stage-1 run on `root` (MLflow store and outputs under `out`); `extra` overrides
+    come last and win."""
+    from mmm.training.stage1 import load_stage1_config, train_stage1
+
+    return train_stage1(
+        load_stage1_config(
+            [
+                f"data.root={root}",
+                "data.synthesize=null",
+                "data.batch_size=8",
+                "model.tokenizer.width=16",
+                "model.tokenizer.num_codes=32",
+                "trainer.max_steps=4",
+                "trainer.val_check_interval=4",
+                "trainer.enable_progress_bar=false",
+                "callbacks.preview_clips=0",
+                "callbacks.usage_plot=false",
+                f"output_dir={out}/s1",
+                f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
+                f"logger.artifact_root={out}/art",
+                *extra,
+            ]
+        )
+    )
+
+
+def stage2_overrides(root, out, **extra):
+    """Overrides for a tiny, short stage-2 run on `root` with everything written under `out`."""
+    items = {
+        "data.root": root,
+        "data.synthesize": "null",
+        "data.batch_size": 8,
+        "model.transformer.embed_dim": 32,
+        "model.transformer.num_heads": 2,
+        "model.transformer.num_layers": 2,
+        "trainer.max_steps": 6,
+        "trainer.log_every_n_steps": 1,
+        "trainer.val_check_interval": 3,
+        "trainer.enable_progress_bar": "false",
+        "output_dir": f"{out}/s2",
+        "stage1_output_dir": f"{out}/s1",
+        "token_cache_dir": f"{out}/tokens",
+        "text.cache_dir": f"{out}/text",
+        "logger.tracking_uri": f"sqlite:///{out}/mlflow.db",
+        "logger.artifact_root": f"{out}/art",
+    }
+    items.update(extra)
+    return [f"{k}={v}" for k, v in items.items()]
+
+
+# Step overrides that make `mmm pipeline full` take seconds (tiny networks, a few steps each).
+PIPELINE_TINY = {
+    "evaluator": [
+        "model.hidden_dim=16",
+        "model.embed_dim=32",
+        "model.text_hidden_dim=32",
+        "trainer.max_steps=4",
+        "trainer.val_check_interval=4",
+        "retrieval.batch_size=8",
+    ],
+    "stage1": [
+        "model.tokenizer.width=16",
+        "model.tokenizer.num_codes=32",
+        "trainer.max_steps=4",
+        "trainer.val_check_interval=4",
+        "trainer.log_every_n_steps=1",
+        "callbacks.preview_clips=0",
+        "callbacks.usage_plot=false",
+    ],
+    "stage2": [
+        "model.transformer.embed_dim=32",
+        "model.transformer.num_heads=2",
+        "model.transformer.num_layers=2",
+        "trainer.max_steps=4",
+        "trainer.val_check_interval=4",
+        "callbacks.preview_captions=0",
+    ],
+    "length": ["model.hidden_dim=16", "trainer.max_steps=4", "trainer.val_check_interval=4"],
+    "evaluate": [
+        "protocol.batch_size=8",
+        "protocol.replications=2",
+        "protocol.mm_texts=2",
+        "protocol.mm_generations=3",
+        "protocol.mm_times=2",
+        "protocol.diversity_times=10",
+        "protocol.max_batches=null",
+    ],
+    "promote": [
+        "protocol.batch_size=8",
+        "protocol.replications=2",
+        "protocol.mm_texts=2",
+        "protocol.mm_generations=3",
+        "protocol.mm_times=2",
+        "protocol.diversity_times=10",
+        "protocol.max_batches=null",
+    ],
+}
+
+
+def pipeline_args(workdir, tracking_uri: str) -> list[str]:
+    """`mmm pipeline` overrides: a 60-clip synthetic dataset, the store, state and artifacts under
+    `workdir`."""
+    return [
+        f"data.root={workdir}/data",
+        "data.synthesize.num_clips=60",
+        "data.batch_size=8",
+        f"logger.tracking_uri={tracking_uri}",
+        f"logger.artifact_root={workdir}/art",
+        f"state_file={workdir}/state.json",
+        *[f"overrides.{step}=[{','.join(items)}]" for step, items in PIPELINE_TINY.items()],
+    ]

@@ -1,0 +1,119 @@
+"""The package's shape: no import cycle between modules, imports inside functions only where they
+say why (the CLI keeps `mmm --help` fast; optional dependencies stay optional), one home for the
+schedules and the model kinds."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted((SRC / "mmm").rglob("*.py")):
+        name = ".".join(path.relative_to(SRC).with_suffix("").parts).removesuffix(".__init__")
+        out[name] = path
+    return out
+
+
+def _imported(node, modules: dict[str, Path]) -> list[str]:
+    """The package modules an import statement loads."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names if a.name in modules]
+    if node.level or not node.module:
+        return []
+    found = [f"{node.module}.{a.name}" for a in node.names if f"{node.module}.{a.name}" in modules]
+    return found or ([node.module] if node.module in modules else [])
+
+
+def _function_imports(tree: ast.Module):
+    """Import statements inside a function body, with the statement that holds them."""
+    for fn in ast.walk(tree):
+        if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for parent in ast.walk(fn):
+                for child in ast.iter_child_nodes(parent):
+                    if isinstance(child, (ast.Import, ast.ImportFrom)):
+                        yield child, parent
+
+
+def test_no_import_cycle_between_modules():
+    modules = _modules()
+    graph = {name: set() for name in modules}
+    for name, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                graph[name].update(m for m in _imported(node, modules) if m != name)
+    # A cycle is a module that reaches itself.
+    cycles = []
+    for start in graph:
+        seen, stack = set(), list(graph[start])
+        while stack:
+            m = stack.pop()
+            if m == start:
+                cycles.append(start)
+                break
+            if m not in seen:
+                seen.add(m)
+                stack.extend(graph[m])
+    assert cycles == [], f"modules on an import cycle: {cycles}"
+
+
+def test_imports_inside_functions_say_why():
+    """Outside the CLI, an import inside a function carries a comment (on its line, the line above,
+    or the `try` that guards it); inside the CLI each module says it once."""
+    unexplained = []
+    for name, path in _modules().items():
+        lines = path.read_text().splitlines()
+        tree = ast.parse("\n".join(lines))
+        found = list(_function_imports(tree))
+        if name.startswith("mmm.cli"):
+            if found and not any("#" in line and "--help" in line for line in lines):
+                unexplained.append(f"{name}: imports inside commands without the start-up comment")
+            continue
+        for node, parent in found:
+            line, above = lines[node.lineno - 1], lines[node.lineno - 2]
+            guard = lines[parent.lineno - 1] if isinstance(parent, ast.Try) else ""
+            if "#" not in line and not above.strip().startswith("#") and "#" not in guard:
+                unexplained.append(f"{name}:{node.lineno}: {line.strip()}")
+    assert unexplained == []
+
+
+def test_cli_help_does_not_load_torch_or_mlflow():
+    code = (
+        "import sys; from mmm.cli import build_parser; build_parser(); print(sorted(m for m in ('torch', "
+        "'mlflow', 'lightning') if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert out == "[]"
+
+
+def test_model_kind_names_have_one_home():
+    """Experiment, folder and registered names of the model kinds are string constants only in
+    kinds.py (docstrings and messages may mention them)."""
+    from mmm.kinds import KINDS
+
+    names = {v for k in KINDS.values() for v in (k.experiment, k.output_dir, k.registered, k.config) if v}
+    spelled = []
+    for path in sorted((SRC / "mmm").rglob("*.py")):
+        if path.name == "kinds.py" and path.parent.name == "mmm":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and node.value in names:
+                spelled.append(f"{path.relative_to(SRC)}:{node.lineno}: {node.value!r}")
+    assert spelled == []
+
+
+@pytest.mark.parametrize("name", ["uniform", "cosine"])
+def test_training_schedule_names_reach_the_config_check(name):
+    from mmm.transformer.module import CorruptionConfig
+    from mmm.transformer.schedules import TRAINING_SCHEDULES
+
+    assert CorruptionConfig(mask_schedule=name).mask_schedule in TRAINING_SCHEDULES
+    with pytest.raises(ValueError, match="corruption.mask_schedule must be one of uniform, cosine"):
+        CorruptionConfig(mask_schedule="square")
