@@ -261,3 +261,34 @@ def test_synthetic_joints_check_the_table_directly():
     assert check_motion(high, [dict(part, action="jump", params={"count": 2, "mode": "in_place"})]).passed
     assert not check_motion(high, [dict(part, action="jump", params={"count": 3, "mode": "in_place"})]).passed
     assert not check_motion(high, [dict(part, action="jump", params={"count": 2, "mode": "forward"})]).passed
+
+
+def test_order_aware_check_finds_where_the_second_action_begins_and_keeps_the_order():
+    from mmm.data.synthetic.adherence import check_in_order
+
+    rng = np.random.default_rng(5)
+    specs = [
+        PartSpec("squat", {"count": 2}, 72),
+        PartSpec("walk", {"direction": "forward", "speed": "normal"}, 88),
+    ]
+    world, parts = make_motion(specs, rng)
+    joints = canonical(world)
+    assert check_motion(joints, parts).passed
+    # Labelled spans that put the boundary 24 frames early (the second squat falls into the walk):
+    # the strict check fails on them, while the order-aware one, which never reads the boundary,
+    # finds a split that works.
+    shifted = [{**parts[0], "end": 48}, {**parts[1], "start": 48}]
+    assert not check_motion(joints, shifted).passed
+    split = check_in_order(joints, shifted)
+    assert split is not None and len(split) == 1 and 40 <= split[0] <= joints.shape[0] - 40
+    assert check_motion(joints, [{**parts[0], "end": split[0]}, {**parts[1], "start": split[0]}]).passed
+    # The other order is not the caption: walking first, then squatting, is nowhere in this motion.
+    assert check_in_order(joints, parts[::-1]) is None
+    # One action: the whole motion is its piece; an action that does not happen fails.
+    assert check_in_order(joints[:72], parts[:1]) == []
+    assert (
+        check_in_order(joints[:72], [{"action": "jump", "params": {"count": 1}, "start": 0, "end": 72}])
+        is None
+    )
+    # Pieces shorter than min_frames are never tried.
+    assert check_in_order(joints, parts, min_frames=joints.shape[0]) is None

@@ -369,3 +369,19 @@ def test_a_failed_step_is_described_on_the_parent_and_on_its_run(tmp_path):
     assert dataset_contexts(parent) == {"f" * 16: "pipeline"}
     failed = client.search_runs([experiment.experiment_id], "attributes.run_name = '02-second'")[0]
     assert failed.info.status == "FAILED" and "failed after" in failed.data.tags[DESCRIPTION_TAG]
+
+
+@pytest.mark.slow
+def test_adherence_is_charted_during_training_evaluated_and_measured_for_promotion(records):
+    client, steps = records["client"], records["steps"]
+    # Stage 2 on labelled data: one val_adherence point per validation (PIPELINE_TINY: one).
+    stage2 = steps["stage2"].data.tags["output.run_id"]
+    history = client.get_metric_history(stage2, "val_adherence/ordered_rate")
+    assert len(history) == len(client.get_metric_history(stage2, "val/loss")) >= 1
+    assert all(0.0 <= m.value <= 1.0 for m in history)
+    # `mmm evaluate`: strict and order-aware figures, per group.
+    evaluate = client.get_run(steps["evaluate"].data.tags["output.run_id"]).data.metrics
+    assert {"adherence/rate", "adherence/ordered_rate", "adherence/single_strict"} <= set(evaluate)
+    # Promotion measured them too: the version's description lists them, so a criterion may use them.
+    champion = client.get_model_version_by_alias("mmm-text2motion", "champion")
+    assert "`adherence/ordered_rate`" in champion.description

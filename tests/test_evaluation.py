@@ -1,6 +1,7 @@
 """The evaluation protocol, prompt adherence, `mmm evaluate` and the ablation sweeps."""
 
 import csv
+import json
 import math
 
 import numpy as np
@@ -144,6 +145,44 @@ def test_prompt_adherence_separates_an_oracle_from_a_model_that_stands_still(syn
     assert (
         still["per_action"]["stand"][0] == still["per_action"]["stand"][1]
     )  # standing still does satisfy "stand"
+
+
+@pytest.mark.slow
+def test_adherence_reports_strict_and_order_aware_figures_per_group(synthetic_small):
+    items, _ = load_items(synthetic_small, "train", feature_dim=263, fps=20, min_length=40)
+    oracle = prompt_adherence(Replay(items), synthetic_small, items)
+    groups = oracle["groups"]
+    assert set(groups) == {"single", "composition", "counts"} and groups["composition"]["count"] > 5
+    assert groups["single"]["count"] + groups["composition"]["count"] == oracle["count"]
+    assert 0 < groups["counts"]["count"] < oracle["count"] and groups["counts"]["strict"] >= 0.95
+    # The real motions pass both checks (the order-aware one never reads the labelled boundary).
+    assert groups["composition"]["strict"] >= 0.95 and groups["composition"]["ordered"] >= 0.95
+    assert oracle["ordered_rate"] >= 0.95
+    assert set(oracle["per_action_ordered"]) == set(oracle["per_action"])
+    for key, (passed, total) in oracle["per_action_ordered"].items():
+        assert total == oracle["per_action"][key][1] and passed <= total
+
+    class Reversed(Replay):
+        """Each composition played second action first: right actions, wrong order."""
+
+        def generate(self, texts, frames, sampling=None, seed=None, check_lengths=True):
+            from mmm.motion.features import recover_from_ric
+
+            features = []
+            for t, n in zip(texts, frames):
+                item = self.pool[(t, n)].pop(0)
+                label = json.loads((synthetic_small / "labels" / f"{item.motion_id}.json").read_text())
+                parts = item_parts(item, label)
+                f = item.features[:n]
+                if len(parts) == 2:  # swap the pieces (features are relative to the previous frame)
+                    cut = min(parts[0]["end"], n)
+                    f = np.concatenate([f[cut:], f[:cut]])
+                features.append(f)
+            return Generated(list(texts), features, [recover_from_ric(f) for f in features], [], [], 0)
+
+    swapped = prompt_adherence(Reversed(items), synthetic_small, items)
+    assert swapped["groups"]["single"] == groups["single"]
+    assert swapped["groups"]["composition"]["ordered"] < 0.5 * groups["composition"]["ordered"]
 
 
 def test_item_parts_follow_the_span():
@@ -304,3 +343,70 @@ def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
         f"attributes.run_name = 'ablation-{sweep.info.run_id[:8]}'",
     )
     assert sorted(r.data.params["model.transformer.num_cross_layers"] for r in stage2_runs) == ["0", "2"]
+
+
+@pytest.mark.slow
+def test_adherence_curve_logs_fixed_captions_at_each_validation_on_rank_zero(trained, synthetic_small):
+    from types import SimpleNamespace
+
+    from mmm.callbacks.adherence import AdherenceCurve
+    from mmm.generation.model import TextToMotion
+
+    model = TextToMotion.load(str(trained["checkpoint"]), tracking_uri=trained["uri"])
+    items, _ = load_items(synthetic_small, "val", feature_dim=263, fps=20, min_length=40)
+    curve = AdherenceCurve(model.tokenizer, model.text_encoder, synthetic_small, items[:6], seed=3)
+
+    class Recorder:
+        def __init__(self):
+            self.logged = []
+
+        def log_metrics(self, metrics, step):
+            self.logged.append((step, metrics))
+
+    def validate(rank=0, sanity=False, step=8):
+        recorder = Recorder()
+        trainer = SimpleNamespace(
+            is_global_zero=rank == 0, sanity_checking=sanity, loggers=[recorder], global_step=step
+        )
+        module = SimpleNamespace(transformer=model.transformer.train(), device=model.device)
+        curve.on_validation_epoch_end(trainer, module)
+        assert module.transformer.training  # the training mode is given back
+        return recorder.logged
+
+    ((step, metrics),) = validate()
+    assert step == 8 and {"val_adherence/rate", "val_adherence/ordered_rate"} <= set(metrics)
+    assert all(0.0 <= v <= 1.0 for v in metrics.values() if v == v)
+    # The same captions and seed: the next validation of the same weights logs the same figures.
+    assert validate(step=12) == [(12, metrics)]
+    assert validate(rank=1) == [] and validate(sanity=True) == []
+
+
+@pytest.mark.slow
+def test_reconstruction_reports_whether_the_labelled_actions_survive_the_tokenizer(synthetic_small):
+    from types import SimpleNamespace
+
+    import torch
+
+    from mmm.data.humanml3d import load_clips
+    from mmm.evaluation.run import reconstruction_metrics
+    from mmm.motion.skeleton import T2M_SKELETON
+
+    clips, _ = load_clips(synthetic_small, "train", feature_dim=263, min_length=40)
+    mean, std = load_stats(synthetic_small, 263)
+
+    def stub(decode):
+        network = SimpleNamespace(cfg=SimpleNamespace(downsample=4), encode=lambda x: x, decode=decode)
+        return SimpleNamespace(
+            tokenizer=network, mean=torch.from_numpy(mean), std=torch.from_numpy(std), skeleton=T2M_SKELETON
+        )
+
+    exact = reconstruction_metrics(stub(lambda z: z), None, clips, labels=synthetic_small / "labels")
+    assert exact["mpjpe_root_aligned_mm"] < 1e-3 and exact["adherence"]["count"] == exact["clips"]
+    assert exact["adherence"]["rate"] >= 0.95  # a lossless round trip keeps every action
+    # A tokenizer that loses the motion (every frame the first one) keeps only "stand".
+    frozen = reconstruction_metrics(
+        stub(lambda z: z[:, :1].expand_as(z).contiguous()), None, clips, labels=synthetic_small / "labels"
+    )
+    assert frozen["adherence"]["rate"] < 0.5 * exact["adherence"]["rate"]
+    assert set(frozen["adherence"]["per_action"]) == set(exact["adherence"]["per_action"])
+    assert "adherence" not in reconstruction_metrics(stub(lambda z: z), None, clips)  # no labels given

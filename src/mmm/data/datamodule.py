@@ -63,6 +63,28 @@ class DataConfig:
     def feature_dim(self) -> int:
         return self.skeleton_def.feature_dim
 
+    def items(self, split: str, root: str | Path | None = None) -> tuple[list, LoadReport]:
+        """(caption items, report) of `split` under this config's filters (lengths, invalid clips)."""
+        return load_items(
+            root or self.root,
+            split,
+            feature_dim=self.feature_dim,
+            fps=self.fps,
+            min_length=self.min_length,
+            length_limit=self.length_limit,
+            on_invalid=self.on_invalid,
+        )
+
+    def clips(self, split: str, root: str | Path | None = None) -> tuple[list, LoadReport]:
+        """(whole motions, report) of `split` under this config's filters."""
+        return load_clips(
+            root or self.root,
+            split,
+            feature_dim=self.feature_dim,
+            min_length=self.min_length,
+            on_invalid=self.on_invalid,
+        )
+
 
 def _log_report(what: str, report: LoadReport) -> None:
     text = f"{what}: {report.summary()}"
@@ -173,15 +195,7 @@ class TextMotionDataModule(_DatasetFolder):
         for split in ("train", "val", "test"):
             if split == "test" and stage == "fit":
                 continue
-            items, report = load_items(
-                self.root,
-                split,
-                feature_dim=self.cfg.feature_dim,
-                fps=self.cfg.fps,
-                min_length=self.cfg.min_length,
-                length_limit=self.cfg.length_limit,
-                on_invalid=self.cfg.on_invalid,
-            )
+            items, report = self.cfg.items(split, self.root)
             self.reports[split] = report
             _log_report(f"{self.cfg.name} {split} items", report)
             self.datasets[split] = TextMotionDataset(
@@ -230,15 +244,7 @@ class TokenTextDataModule(_DatasetFolder):
         self.data_fingerprint: str | None = None
 
     def _items(self, split: str):
-        items, report = load_items(
-            self.root,
-            split,
-            feature_dim=self.cfg.feature_dim,
-            fps=self.cfg.fps,
-            min_length=self.cfg.min_length,
-            length_limit=self.cfg.length_limit,
-            on_invalid=self.cfg.on_invalid,
-        )
+        items, report = self.cfg.items(split, self.root)
         self.reports[split] = report
         return items, report
 

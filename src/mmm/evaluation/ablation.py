@@ -30,7 +30,7 @@ from omegaconf import DictConfig
 
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
-from mmm.data.humanml3d import load_items, load_stats
+from mmm.data.humanml3d import load_stats
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.generation.model import TextToMotion
@@ -154,15 +154,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     experiment_id = prepare_experiment(
         MlflowClient(tracking_uri), "mmm-ablations", artifact_location(tracking_uri, cfg.logger.artifact_root)
     )
-    items, _ = load_items(
-        cfg.data.root,
-        cfg.split,
-        feature_dim=cfg.data.feature_dim,
-        fps=cfg.data.fps,
-        min_length=cfg.data.min_length,
-        length_limit=cfg.data.length_limit,
-        on_invalid=cfg.data.on_invalid,
-    )
+    items, _ = cfg.data.items(cfg.split, cfg.data.root)
     mean, std = load_stats(cfg.data.root, cfg.data.feature_dim)
     evaluator = load_evaluator(cfg.evaluator, tracking_uri, device=cfg.device)
     out_dir = Path(cfg.output_dir) / kind

@@ -4,7 +4,9 @@ for its tokenizer, and prompt adherence on a labelled dataset; logged to MLflow 
 One MLflow run per evaluation (experiment mmm-evaluation), named `evaluate-<data>-<time>` unless
 `logger.run_name` is set, open while the evaluation works (its duration is the evaluation's; FAILED
 when it raises). Metrics: `generated/<metric>` and `real/<metric>` (the mean over replications),
-`recon/fid`, `recon/mpjpe_root_aligned_mm`, `recon/mpjpe_global_mm`, `adherence/rate`; the
+`recon/fid`, `recon/mpjpe_root_aligned_mm`, `recon/mpjpe_global_mm`, `recon/adherence_rate` (labelled
+clips whose actions survive the tokenizer's round trip), `adherence/rate` (strict),
+`adherence/ordered_rate` and per group `adherence/{single,composition,counts}_{strict,ordered}`; the
 intervals (1.96·std/sqrt(n)) are in the table and evaluation.json, not charted. The run's
 description holds the table with links to the model's run and registered version; artifacts
 `evaluation.md` (the table) and `evaluation.json`; tags: the model's and evaluator's identities,
@@ -17,6 +19,7 @@ import json
 import logging
 import math
 import time
+from collections import defaultdict
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -29,8 +32,9 @@ from omegaconf import DictConfig
 
 from mmm.config import compose, to_object
 from mmm.data.datamodule import DataConfig
-from mmm.data.humanml3d import load_clips, load_items, load_stats
-from mmm.evaluation.adherence import prompt_adherence
+from mmm.data.humanml3d import load_stats
+from mmm.data.synthetic.adherence import check_motion
+from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
@@ -81,22 +85,30 @@ def load_evaluate_config(overrides: list[str] = ()) -> DictConfig:
 
 
 @torch.no_grad()
-def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], batch: int = 32) -> dict:
+def reconstruction_metrics(
+    tokenizer, evaluator, clips: dict[str, np.ndarray], batch: int = 32, labels: Path | None = None
+) -> dict:
     """Stage-1 reconstruction of whole clips (cut to a multiple of 4, at most 196 frames): FID of
     the reconstructions against the clips (when an evaluator is given), and MPJPE in mm
-    (root-aligned and global)."""
+    (root-aligned and global). With `labels` (a labels/ folder), also whether each clip's actions
+    are still there after the round trip: "adherence" {"rate", "per_action": {actions: (passed,
+    total)}} of the reconstructions, checked like generated motions (strict, on the labelled spans)."""
     unit = tokenizer.tokenizer.cfg.downsample
     mean, std = tokenizer.mean, tokenizer.std
-    by_length: dict[int, list[np.ndarray]] = {}
-    for features in clips.values():
+    by_length: dict[int, list[tuple[str, np.ndarray]]] = {}
+    for motion_id, features in clips.items():
         n = min(features.shape[0], 196) // unit * unit
         if n >= unit:
-            by_length.setdefault(n, []).append(features[:n])
+            by_length.setdefault(n, []).append((motion_id, features[:n]))
     real_emb, rec_emb, errors, errors_global, frames = [], [], 0.0, 0.0, 0
+    kept: dict[str, list[int]] = defaultdict(lambda: [0, 0])
     scale = tokenizer.skeleton.unit_scale * 1000.0
     for n, group in sorted(by_length.items()):
         for i in range(0, len(group), batch):
-            x = torch.from_numpy(np.stack(group[i : i + batch]).astype(np.float32)).to(mean.device)
+            ids = [motion_id for motion_id, _ in group[i : i + batch]]
+            x = torch.from_numpy(np.stack([f for _, f in group[i : i + batch]]).astype(np.float32)).to(
+                mean.device
+            )
             rec = tokenizer.tokenizer.decode(tokenizer.tokenizer.encode((x - mean) / std)) * std + mean
             lengths = torch.full((len(x),), n)
             if evaluator is not None:
@@ -107,6 +119,15 @@ def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], b
             errors += float(local.sum()) * scale
             errors_global += float((j_real - j_rec).norm(dim=-1).mean(-1).sum()) * scale
             frames += local.numel()
+            if labels is not None:
+                for motion_id, joints in zip(ids, j_rec.numpy()):
+                    path = labels / f"{motion_id}.json"
+                    if path.exists():
+                        parts = parts_in_span(json.loads(path.read_text())["parts"], 0, n)
+                        if parts:
+                            counts = kept["+".join(p["action"] for p in parts)]
+                            counts[0] += check_motion(joints, parts).passed
+                            counts[1] += 1
     result = {
         "mpjpe_root_aligned_mm": errors / frames,
         "mpjpe_global_mm": errors_global / frames,
@@ -114,6 +135,13 @@ def reconstruction_metrics(tokenizer, evaluator, clips: dict[str, np.ndarray], b
     }
     if evaluator is not None:
         result["fid"] = fid(torch.cat(real_emb), torch.cat(rec_emb))
+    if kept:
+        total = sum(t for _, t in kept.values())
+        result["adherence"] = {
+            "rate": sum(k for k, _ in kept.values()) / total,
+            "count": total,
+            "per_action": {k: tuple(v) for k, v in sorted(kept.items())},
+        }
     return result
 
 
@@ -149,15 +177,7 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
         else None
     )
     root = Path(cfg.data.root)
-    items, _ = load_items(
-        root,
-        cfg.split,
-        feature_dim=cfg.data.feature_dim,
-        fps=cfg.data.fps,
-        min_length=cfg.data.min_length,
-        length_limit=cfg.data.length_limit,
-        on_invalid=cfg.data.on_invalid,
-    )
+    items, _ = cfg.data.items(cfg.split, root)
     results: dict = {
         "text2motion_model": model.identity,
         "evaluator": getattr(evaluator, "identity", None),
@@ -190,36 +210,46 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             if cfg.tokenizer is None
             else load_tokenizer(cfg.tokenizer, tracking_uri)[0].to(cfg.device)
         )
-        clips, _ = load_clips(
-            root,
-            cfg.split,
-            feature_dim=cfg.data.feature_dim,
-            min_length=cfg.data.min_length,
-            on_invalid=cfg.data.on_invalid,
-        )
-        recon = reconstruction_metrics(tokenizer, evaluator, clips)
+        clips, _ = cfg.data.clips(cfg.split, root)
+        labels = root / "labels" if (root / "labels").is_dir() else None
+        recon = reconstruction_metrics(tokenizer, evaluator, clips, labels=labels)
         results["reconstruction"] = recon
-        metrics.update({f"recon/{k}": float(v) for k, v in recon.items() if k != "clips"})
+        metrics.update({f"recon/{k}": float(v) for k, v in recon.items() if k not in ("clips", "adherence")})
         fid_text = f"FID {recon['fid']:.4f}, " if "fid" in recon else ""
+        kept = recon.get("adherence")
+        if kept:
+            metrics["recon/adherence_rate"] = kept["rate"]
         tables.append(
             f"**Reconstruction ({recon['clips']} {cfg.split} clips)**: {fid_text}MPJPE "
             f"{recon['mpjpe_root_aligned_mm']:.1f} mm (root-aligned), "
             f"{recon['mpjpe_global_mm']:.1f} mm (global)"
+            + (f"; the labelled actions still there after the round trip: {kept['rate']:.3f}" if kept else "")
         )
     if "adherence" in cfg.what and (root / "labels").is_dir():
         adherence = prompt_adherence(
             model, root, items, cfg.protocol.sampling, cfg.protocol.seed, max_items=cfg.adherence_max_items
         )
         results["adherence"] = adherence
-        metrics["adherence/rate"] = adherence["rate"]
+        metrics.update(adherence_metrics(adherence))
+        groups = ", ".join(
+            f"{name} {g['strict']:.3f} strict / {g['ordered']:.3f} in order ({g['count']})"
+            for name, g in adherence["groups"].items()
+        )
         lines = [
-            f"**Prompt adherence**: {adherence['rate']:.3f} of {adherence['count']} {cfg.split} captions "
-            f"({adherence['skipped']} without a checkable label)",
+            f"**Prompt adherence**: {adherence['rate']:.3f} strict (each action inside its labelled span), "
+            f"{adherence['ordered_rate']:.3f} order-aware (the actions in the caption's order, wherever they "
+            f"meet) of {adherence['count']} {cfg.split} captions ({adherence['skipped']} without a checkable "
+            f"label); {groups}",
             "",
-            "| actions | satisfied | of |",
-            "|---|---|---|",
+            "| actions | strict | in order | of | kept by the tokenizer (clips) |",
+            "|---|---|---|---|---|",
         ]
-        lines += [f"| {k} | {a} | {b} |" for k, (a, b) in adherence["per_action"].items()]
+        ordered = adherence["per_action_ordered"]
+        kept = results.get("reconstruction", {}).get("adherence", {}).get("per_action", {})
+        lines += [
+            f"| {k} | {a} | {ordered[k][0]} | {b} | {f'{kept[k][0]} of {kept[k][1]}' if k in kept else '-'} |"
+            for k, (a, b) in adherence["per_action"].items()
+        ]
         tables.append("\n".join(lines))
     table = "\n\n".join(tables)
     out_dir = Path(cfg.output_dir)

@@ -4,8 +4,10 @@ run, register it as a new version, and move `champion` to it only when it wins (
 Candidates default to the newest finished run of the kind's experiment. Metrics are measured here,
 on the configured data (its fingerprint is recorded) with the champion evaluator (or the newest
 one): tokenizer: reconstruction MPJPE and FID on the split; text2motion: the protocol (reduced
-by conf/promote.yaml); evaluator: its own test retrieval numbers from training; upperbody (the
-part-aware model): upper-body editing adherence on labelled data (no evaluator needed). The
+by conf/promote.yaml) and, on labelled data, prompt adherence (`adherence/*`: strict and
+order-aware, per group; a criterion may name them); evaluator: its own test retrieval numbers
+from training; upperbody (the part-aware model): upper-body editing adherence on labelled data
+(no evaluator needed). The
 version is tagged with the criteria's metrics (and their intervals) and described in markdown:
 what it is, the criteria with its and the champion's values, the verdict and why, every measured
 number, and links to the model's run and the previous champion.
@@ -25,7 +27,8 @@ from omegaconf import DictConfig
 from mmm.atomic import sha256_file
 from mmm.config import ConfigError, compose, to_object
 from mmm.data.datamodule import DataConfig
-from mmm.data.humanml3d import load_clips, load_items, load_stats
+from mmm.data.humanml3d import load_stats
+from mmm.evaluation.adherence import adherence_metrics, prompt_adherence
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion
 from mmm.evaluation.run import reconstruction_metrics
@@ -108,6 +111,9 @@ class PromoteConfig:
     criteria: Criteria = field(default_factory=Criteria)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     upper_body: UpperBodyCheck = field(default_factory=UpperBodyCheck)
+    # text2motion on labelled data: prompt adherence (adherence/*, usable as criteria) beside the protocol
+    adherence: bool = True
+    adherence_max_items: int | None = None
     data: DataConfig = field(default_factory=DataConfig)
     logger: TrackingConfig = field(default_factory=TrackingConfig)
 
@@ -280,13 +286,7 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     if kind == "tokenizer":
         tokenizer = load_tokenizer_checkpoint(checkpoint).to(cfg.device)
         evaluator = _evaluator(cfg, uri, required=any(c.metric == "recon/fid" for c in criteria))
-        clips, _ = load_clips(
-            root,
-            cfg.split,
-            feature_dim=cfg.data.feature_dim,
-            min_length=cfg.data.min_length,
-            on_invalid=cfg.data.on_invalid,
-        )
+        clips, _ = cfg.data.clips(cfg.split, root)
         recon = reconstruction_metrics(tokenizer, evaluator, clips)
         metrics = {f"recon/{k}": v for k, v in recon.items() if k != "clips"}
         metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
@@ -398,21 +398,24 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
             )
 
         evaluator = _evaluator(cfg, uri, required=True)
-        items, _ = load_items(
-            root,
-            cfg.split,
-            feature_dim=cfg.data.feature_dim,
-            fps=cfg.data.fps,
-            min_length=cfg.data.min_length,
-            length_limit=cfg.data.length_limit,
-            on_invalid=cfg.data.on_invalid,
-        )
+        items, _ = cfg.data.items(cfg.split, root)
         mean, std = load_stats(root, cfg.data.feature_dim)
         result = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol, progress=False)
         metrics, intervals = {}, {}
         for which in ("generated", "real"):
             for m, (value, ci) in result[which].items():
                 metrics[f"{which}/{m}"], intervals[f"{which}/{m}"] = value, ci
+        adherence = None
+        if cfg.adherence and (root / "labels").is_dir():  # labelled data: what the captions ask is checkable
+            adherence = prompt_adherence(
+                model,
+                root,
+                items,
+                cfg.protocol.sampling,
+                cfg.protocol.seed,
+                max_items=cfg.adherence_max_items,
+            )
+            metrics.update(adherence_metrics(adherence))
         evaluator_identity, name, description = (
             evaluator.identity,
             TEXT2MOTION,
@@ -437,6 +440,8 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
             f"`{evaluator.identity}`: {p.replications} "
             f"replications over {batches} of {p.batch_size}"
         )
+        if adherence is not None:
+            measured += f"; prompt adherence (`adherence/*`) of {adherence['count']} labelled captions"
     metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
     info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint)
     # The bundle holds copies of both checkpoints (logged with the model); their digests say which files they

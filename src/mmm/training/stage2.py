@@ -15,6 +15,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
+from mmm.callbacks.adherence import AdherenceCurve
 from mmm.callbacks.checkpoints import CheckpointConfig
 from mmm.callbacks.previews import GenerationPreview
 from mmm.config import compose, to_object
@@ -44,9 +45,11 @@ class Stage2Callbacks:
     checkpoint: CheckpointConfig = field(
         default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
     )
-    preview_captions: int = (
-        3  # GenerationPreview: validation captions generated and rendered at each validation (0: none)
-    )
+    # GenerationPreview: validation captions generated and rendered at each validation (0: none)
+    preview_captions: int = 3
+    # AdherenceCurve: labelled validation captions generated and checked at each validation, logged
+    # as val_adherence/* (0: none; only on a dataset with labels/, whole-body models)
+    adherence_captions: int = 64
 
 
 @dataclass
@@ -160,6 +163,17 @@ def stage1_tags(source) -> dict:
     }
 
 
+def adherence_items(cfg: Stage2Config) -> list:
+    """The fixed validation items of the adherence curve: `callbacks.adherence_captions` of the
+    val split, evenly spread over it (none without labels/)."""
+    wanted = cfg.callbacks.adherence_captions
+    if wanted <= 0 or not (Path(cfg.data.root) / "labels").is_dir():
+        return []
+    items, _ = cfg.data.items("val")
+    stride = max(1, len(items) // wanted)
+    return items[::stride][:wanted]
+
+
 def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
     cfg: Stage2Config = to_object(cfg_node)
     L.seed_everything(cfg.seed, workers=True)
@@ -188,6 +202,9 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
         if cfg.callbacks.preview_captions > 0
         else []
     )
+    curve_items = adherence_items(cfg) if not cfg.part_aware else []
+    if curve_items:
+        callbacks.append(AdherenceCurve(tokenizer, text_encoder, cfg.data.root, curve_items, cfg.seed))
     lineage = (
         stage1_lineage(source, resolve_tracking_uri(cfg.logger.tracking_uri)) if cfg.logger.enabled else {}
     )

@@ -172,6 +172,48 @@ def check_motion(
     return result
 
 
+def check_in_order(
+    joints,
+    parts: list[dict],
+    min_frames: int = 40,
+    step: int = 4,
+    fps: float = FPS,
+    standing: float | None = None,
+) -> list[int] | None:
+    """The order-aware check of a composition: the frames where parts 2..k begin, for the first
+    split of the motion into consecutive pieces (one per labelled part, in the label's order, each
+    at least `min_frames` long) on which every part's action passes; None when no split does.
+
+    A caption such as "walks, then jumps" says the order of its actions, not the frame where the
+    second begins, so `check_motion` on the labelled spans is stricter than the caption. Splits are
+    tried every `step` frames (the tokenizer's unit). One part: [] when it passes on the whole motion.
+    """
+    if hasattr(joints, "detach"):
+        joints = joints.detach().cpu().numpy()
+    joints = np.asarray(joints, dtype=np.float64)
+    total = joints.shape[0]
+
+    def search(first: int, index: int) -> list[int] | None:
+        rest = len(parts) - index
+        if rest == 1:
+            piece = {**parts[index], "start": 0, "end": total - first}
+            return [] if total - first >= min_frames and _passes(joints[first:], piece) else None
+        for cut in range(first + min_frames, total - (rest - 1) * min_frames + 1, step):
+            piece = {**parts[index], "start": 0, "end": cut - first}
+            if _passes(joints[first:cut], piece):
+                later = search(cut, index + 1)
+                if later is not None:
+                    return [cut, *later]
+        return None
+
+    def _passes(piece_joints, part) -> bool:
+        return check_motion(piece_joints, [part], fps=fps, standing=standing).passed
+
+    if not parts:
+        return None
+    return search(0, 0)
+
+
 def check_dataset(root, split: str = "test") -> tuple[float, dict[str, float]]:
     """Fraction of the split's clips whose joints satisfy all their labels, and per action the
     fraction of labelled parts that pass. Reads `<root>/<split>.txt`, `labels/` and `new_joints/`."""
