@@ -9,6 +9,7 @@ from mlflow.tracking import MlflowClient
 from mmm.generation.length import LengthEstimator, LengthModelConfig, length_metrics, load_length_estimator
 from mmm.generation.length_module import LengthEstimatorModule
 from mmm.training.optim import OptimConfig
+from tests.helpers import train_tiny_stage1
 
 
 def small(dropout=0.0, **kw):
@@ -147,27 +148,7 @@ def test_module_learns_a_known_length_and_checkpoint_loads_weights_only(tmp_path
 
 
 def _train_stage1(root, out):
-    from mmm.training.stage1 import load_stage1_config, train_stage1
-
-    return train_stage1(
-        load_stage1_config(
-            [
-                f"data.root={root}",
-                "data.synthesize=null",
-                "data.batch_size=8",
-                "model.tokenizer.width=16",
-                "model.tokenizer.num_codes=32",
-                "trainer.max_steps=4",
-                "trainer.val_check_interval=4",
-                "trainer.enable_progress_bar=false",
-                "callbacks.preview_clips=0",
-                "callbacks.usage_plot=false",
-                f"output_dir={out}/s1",
-                f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
-                f"logger.artifact_root={out}/art",
-            ]
-        )
-    )
+    return train_tiny_stage1(root, out)
 
 
 @pytest.mark.slow

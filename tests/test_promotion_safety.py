@@ -19,7 +19,7 @@ from mlflow.tracking import MlflowClient
 
 from mmm.config import ConfigError
 from mmm.registry.versions import Criterion, promote_version, register_version, version_tags
-from tests.helpers import stage2_overrides, train_tiny_stage1
+from tests.helpers import stage2_overrides, tiny_stage1_config, train_tiny_stage1
 
 
 def sha256(path) -> str:
@@ -28,26 +28,7 @@ def sha256(path) -> str:
 
 def stage1_config(root, out, *extra):
     """The overrides of helpers.train_tiny_stage1 (same store and output folder under `out`), plus `extra`."""
-    from mmm.training.stage1 import load_stage1_config
-
-    return load_stage1_config(
-        [
-            f"data.root={root}",
-            "data.synthesize=null",
-            "data.batch_size=8",
-            "model.tokenizer.width=16",
-            "model.tokenizer.num_codes=32",
-            "trainer.max_steps=4",
-            "trainer.val_check_interval=4",
-            "trainer.enable_progress_bar=false",
-            "callbacks.preview_clips=0",
-            "callbacks.usage_plot=false",
-            f"output_dir={out}/s1",
-            f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
-            f"logger.artifact_root={out}/art",
-            *extra,
-        ]
-    )
+    return tiny_stage1_config(root, out, *extra)
 
 
 @pytest.fixture(scope="module")
