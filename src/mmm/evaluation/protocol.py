@@ -10,12 +10,17 @@ the generated motions and for the real ones (the reference row).
 
 An evaluator is anything with `embed_texts(captions: list[Caption]) -> (B, E)` and
 `embed_motions(features (B, T, D) un-normalized, lengths (B,)) -> (B, E)`.
+
+How a batch of motions is produced is a parameter (`produce`, a `Producer`): by default the model
+generates each from its caption; the editing benchmarks (evaluation/editing.py) instead keep part
+of the real motion and generate the rest, and are scored by the same replications.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +35,11 @@ from mmm.generation.sampler import SamplingConfig
 log = logging.getLogger(__name__)
 
 METRICS = ("top1", "top2", "top3", "fid", "matching_score", "diversity", "multimodality")
+
+# produce(texts, lengths, real, seed) -> the generated motions of a batch: texts (B,) captions,
+# lengths (B,) frames, real (B, T, D) the un-normalized real crops (the mean pose past each length), seed an
+# int; returns (B, T', D) features or B arrays (T_i, D), un-normalized, each at least its length.
+Producer = Callable[[list[str], list[int], torch.Tensor, int], "np.ndarray | list[np.ndarray]"]
 
 
 @dataclass
@@ -75,11 +85,22 @@ def evaluate_text_to_motion(
     std: np.ndarray,
     cfg: ProtocolConfig,
     progress: bool = True,
+    produce: Producer | None = None,
+    multimodality: bool = True,
 ) -> dict:
     """Replicated protocol for a TextToMotion `model`; returns {"generated": {metric: (mean, ci)},
-    "real": {...}, "replications": [...per replication dicts...]}."""
+    "real": {...}, "replications": [...per replication dicts...]}.
+
+    produce: how each batch's motions are made (see `Producer`); default: `model.generate` from the
+    captions at the real lengths. multimodality=False skips MultiModality (reported as nan): an
+    edit of one real motion has no set of generations per text to compare."""
     if len(items) < cfg.batch_size:
         raise ValueError(f"the split has {len(items)} items, fewer than one batch of {cfg.batch_size}")
+    if produce is None:
+
+        def produce(texts, lengths, real, seed):
+            return model.generate(texts, lengths, cfg.sampling, seed=seed, check_lengths=False).features
+
     rows = []
     for rep in tqdm(range(cfg.replications), desc="evaluation replications", disable=not progress):
         seed = cfg.seed * 1000 + rep
@@ -92,19 +113,15 @@ def evaluate_text_to_motion(
             captions = [_caption_of(item, b["caption"]) for item, b in pairs]
             lengths = torch.tensor([b["length"] for b in batch])
             features = torch.stack([torch.as_tensor(b["motion"].numpy() * std + mean) for b in _pad(batch)])
-            out = model.generate(
-                [c.text for c in captions],
-                lengths.tolist(),
-                cfg.sampling,
-                seed=seed * 7919 + len(texts),
-                check_lengths=False,
+            out = produce(
+                [c.text for c in captions], lengths.tolist(), features.float(), seed * 7919 + len(texts)
             )
-            generated = torch.from_numpy(_stack(out.features, features.shape[1]))
+            generated = torch.from_numpy(_stack(list(out), features.shape[1]))
             texts.append(evaluator.embed_texts(captions).cpu())
             real.append(evaluator.embed_motions(features.float(), lengths).cpu())
             gen.append(evaluator.embed_motions(generated.float(), lengths).cpu())
         rows.append(_score(texts, real, gen, cfg, seed))
-    mm = _multimodality(model, evaluator, items, cfg, progress)
+    mm = _multimodality(model, evaluator, items, cfg, progress) if multimodality else (float("nan"), 0.0)
     result = {"generated": {}, "real": {}, "replications": rows}
     for which in ("generated", "real"):
         for metric in ("top1", "top2", "top3", "fid", "matching_score", "diversity"):
@@ -125,8 +142,10 @@ def _pad(batch: list[dict]) -> list[dict]:
 
 
 def _stack(features: list[np.ndarray], T: int) -> np.ndarray:
+    """(B, T, D): each motion cut or zero-padded to T frames."""
     out = np.zeros((len(features), T, features[0].shape[1]), np.float32)
     for i, f in enumerate(features):
+        f = np.asarray(f)[:T]
         out[i, : f.shape[0]] = f
     return out
 

@@ -11,6 +11,12 @@ intervals (1.96·std/sqrt(n)) are in the table and evaluation.json, not charted.
 description holds the table with links to the model's run and registered version; artifacts
 `evaluation.md` (the table) and `evaluation.json`; tags: the model's and evaluator's identities,
 the data fingerprint (also the run's dataset input) and the git commit.
+
+`task=` picks what is evaluated: `text2motion` (the default: all of the above) or one of the
+paper's editing benchmarks, inbetween|outpaint|prefix|suffix|upper-body|long (editing.py; the
+`editing:` settings), run named `evaluate-<task>-<data>-<time>`, metrics `edit/<task>/<metric>`
+(the upper-body lower-mask sweep also as `edit/upper-body/sweep/<metric>` by step = mask in
+percent), its tables in evaluation.md/json and the sweep's plot as an artifact.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from mmm.data.datamodule import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
+from mmm.evaluation.editing import TASKS, EditingConfig, check_task_model, evaluate_editing
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
@@ -68,6 +75,7 @@ class EvaluatorChoice:
 @dataclass
 class EvaluateConfig:
     text2motion: str | None = None  # stage-2 model: path, run id, models:/NAME@ALIAS; newest when null
+    task: str = "text2motion"  # text2motion | inbetween | outpaint | prefix | suffix | upper-body | long
     tokenizer: str | None = None  # for reconstruction metrics; default: the text2motion model's own
     evaluator: EvaluatorChoice = field(default_factory=EvaluatorChoice)
     split: str = "test"
@@ -76,6 +84,7 @@ class EvaluateConfig:
     output_dir: str = "outputs/evaluation"
     device: str = "cpu"
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    editing: EditingConfig = field(default_factory=EditingConfig)
     data: DataConfig = field(default_factory=DataConfig)
     logger: TrackingConfig = field(default_factory=TrackingConfig)
 
@@ -149,6 +158,9 @@ def evaluate(cfg_node: DictConfig) -> dict:
     """Evaluate (see the module's docstring); returns the results with `table`, `metrics` (what is
     charted), `intervals` (metric -> interval) and `run_id` (when logged)."""
     cfg: EvaluateConfig = to_object(cfg_node)
+    if cfg.task not in TASKS:
+        raise ValueError(f"task={cfg.task!r} is not a task; choose from {'|'.join(TASKS)}")
+    cfg.editing.validate()
     unknown = set(cfg.what) - {"text2motion", "reconstruction", "adherence"}
     if unknown:
         raise ValueError(
@@ -168,12 +180,18 @@ def evaluate(cfg_node: DictConfig) -> dict:
 
 
 def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | None") -> dict:
-    model = TextToMotion.load(cfg.text2motion, tracking_uri, device=cfg.device)
+    editing = cfg.task != "text2motion"
+    # parts=True: with no model named, upper-body edits default to the part-aware champion.
+    model = TextToMotion.load(
+        cfg.text2motion, tracking_uri, device=cfg.device, parts=cfg.task == "upper-body"
+    )
+    if editing:
+        check_task_model(cfg.task, model)  # before the evaluator and data: the model is the usual mistake
     evaluator = (
         load_evaluator(
             cfg.evaluator.reference, tracking_uri, cfg.device, cfg.evaluator.glove_dir, cfg.evaluator.norm_dir
         )
-        if {"text2motion", "reconstruction"} & set(cfg.what)
+        if editing or {"text2motion", "reconstruction"} & set(cfg.what)
         else None
     )
     root = Path(cfg.data.root)
@@ -186,6 +204,8 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
     }
     if run is not None:
         run.started(results, root)
+    if editing:
+        return _evaluate_editing(cfg, model, evaluator, items, root, results)
     metrics: dict[str, float] = {}
     intervals: dict[str, float] = {}
     tables = []
@@ -262,22 +282,58 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
     return results
 
 
+def _evaluate_editing(cfg: EvaluateConfig, model, evaluator, items, root: Path, results: dict) -> dict:
+    """One editing task (editing.py); `what` only says whether the labelled checks run (adherence)."""
+    mean, std = load_stats(root, cfg.data.feature_dim)
+    out_dir = Path(cfg.output_dir)
+    task = evaluate_editing(
+        cfg.task,
+        model,
+        evaluator,
+        items,
+        mean,
+        std,
+        cfg.protocol,
+        cfg.editing,
+        root,
+        out_dir,
+        adherence="adherence" in cfg.what,
+        max_items=cfg.adherence_max_items,
+        title=f"{cfg.data.name} {cfg.split}, evaluator {evaluator.identity}",
+        split=cfg.split,
+    )
+    results[cfg.task] = task["results"]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "evaluation.md").write_text(task["table"] + "\n")
+    (out_dir / "evaluation.json").write_text(json.dumps(results, indent=2, default=str))
+    results.update(
+        table=task["table"],
+        metrics=task["metrics"],
+        intervals=task["intervals"],
+        series=task["series"],
+        artifacts=task["artifacts"],
+    )
+    return results
+
+
 class _EvaluationRun:
     """The evaluation's MLflow run, created before the work starts (through the client: no
     process-wide active run) and ended with it."""
 
     def __init__(self, cfg: EvaluateConfig, tracking_uri: str):
         self.cfg, self.client = cfg, MlflowClient(tracking_uri)
+        task = "" if cfg.task == "text2motion" else f"{cfg.task}-"  # today's name for the default task
         experiment_id = prepare_experiment(
             self.client, cfg.logger.experiment, artifact_location(tracking_uri, cfg.logger.artifact_root)
         )
         run = self.client.create_run(
             experiment_id,
-            run_name=cfg.logger.run_name or f"evaluate-{cfg.data.name}-{timestamp()}",
+            run_name=cfg.logger.run_name or f"evaluate-{task}{cfg.data.name}-{timestamp()}",
             tags={"mmm.stage": "evaluation", "split": cfg.split, **source_tags("mmm evaluate")},
         )
         self.run_id = run.info.run_id
         params = {
+            "task": cfg.task,
             "replications": cfg.protocol.replications,
             "what": ",".join(cfg.what),
             "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500],
@@ -307,10 +363,18 @@ class _EvaluationRun:
     def finish(self, results: dict, out_dir: Path) -> None:
         now = int(time.time() * 1000)
         metrics = [Metric(k, float(v), now, 0) for k, v in results["metrics"].items()]
+        metrics += [
+            Metric(k, float(v), now, step)
+            for k, points in results.get("series", {}).items()
+            for step, v in points
+            if math.isfinite(v)
+        ]
         for i in range(0, len(metrics), 500):
             self.client.log_batch(self.run_id, metrics=metrics[i : i + 500])
         self.client.log_artifact(self.run_id, str(out_dir / "evaluation.md"))
         self.client.log_artifact(self.run_id, str(out_dir / "evaluation.json"))
+        for path in results.get("artifacts", []):
+            self.client.log_artifact(self.run_id, str(path))
         self.client.set_tag(self.run_id, DESCRIPTION_TAG, self.description(results))
         self.client.set_terminated(self.run_id, "FINISHED")
         results["run_id"] = self.run_id

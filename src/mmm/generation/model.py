@@ -56,9 +56,9 @@ class Generated:
     forward_passes: int  # passes of the whole batch
     seconds: dict[str, float] = field(default_factory=dict)
     segments: list[tuple[int, int]] | None = None  # long sequences: frame range of each prompt
-    kept_codes: np.ndarray | None = (
-        None  # edits: (L,) True where the source's code was kept; upper body: (samples, L) lower codes shown
-    )
+    # edits: (L,) True where the source's code was kept (edit_batch: (B, max L)); upper body: (samples, L)
+    # the lower-body codes shown
+    kept_codes: np.ndarray | None = None
     trace: object | None = None  # DecodeTrace when asked for
 
 
@@ -346,6 +346,21 @@ class TextToMotion:
         return self.tokenizer.tokenizer.encode(self.normalize(features[:usable])[None])[0].cpu().numpy()
 
     @torch.no_grad()
+    def encode_motions(self, features: list[np.ndarray]) -> list[np.ndarray]:
+        """Codes (T_i // 4,) of each un-normalized (T_i, D); one encoder call per distinct usable
+        length (padding would leak into the last codes through the convolutions); the codes
+        `encode_motion` gives each alone."""
+        groups: dict[int, list[int]] = defaultdict(list)
+        for i, f in enumerate(features):
+            groups[f.shape[0] // self.unit * self.unit].append(i)
+        out: list[np.ndarray | None] = [None] * len(features)
+        for usable, members in groups.items():
+            batch = self.normalize(np.stack([features[i][:usable] for i in members]))
+            for i, c in zip(members, self.tokenizer.tokenizer.encode(batch).cpu().numpy()):
+                out[i] = c
+        return out
+
+    @torch.no_grad()
     def decode(self, codes: list[np.ndarray]) -> list[np.ndarray]:
         """Un-normalized features (4L, D) of each code sequence; one decoder call per distinct
         length (padding would leak into the last frames through the convolutions)."""
@@ -434,6 +449,88 @@ class TextToMotion:
             mask[a // self.unit : math.ceil(b / self.unit)] = True
         return mask
 
+    def _check_source(self, source: np.ndarray, place: int) -> None:
+        if source.ndim != 2 or source.shape[1] != self.feature_dim:
+            raise ValueError(f"source features have shape {source.shape}, expected (T, {self.feature_dim})")
+        if place < 0 or place % self.unit:
+            raise ValueError(f"place {place} must be 0 or more and a multiple of {self.unit} frames")
+
+    def _edit_row(
+        self,
+        source: np.ndarray,
+        source_codes: np.ndarray,
+        keep_frames: list[tuple[int, int]],
+        frames: int | None,
+        place: int,
+        check_lengths: bool,
+    ) -> tuple[int, np.ndarray, np.ndarray]:
+        """One edit's plan from its source (T, D), checked by `_check_source`, and the source's codes
+        (T // 4,): the output length (frames), the codes to keep (L,) and where (L,) bool.
+        ValueError when the request cannot be done (the messages `edit` has always given)."""
+        frames = frames or source_codes.shape[0] * self.unit
+        if check_lengths:
+            self.check_frames(frames, "output length")
+        elif not 1 <= frames <= self.max_frames:
+            raise ValueError(f"output length {frames} frames is outside 1..{self.max_frames}")
+        L = int(frames_to_codes(frames, self.unit))
+        offset = place // self.unit
+        for a, b in keep_frames:
+            if b > source.shape[0]:
+                raise ValueError(f"keep range {a}:{b} goes past the source's {source.shape[0]} frames")
+        source_keep = self.keep_mask(len(source_codes), keep_frames)
+        if source_keep.nonzero()[0].max(initial=-1) + offset >= L:
+            raise ValueError(
+                f"the kept source frames do not fit in {frames} output frames with the source placed at "
+                f"frame {place}"
+            )
+        keep_tokens = np.zeros(L, dtype=np.int64)
+        keep_mask = np.zeros(L, dtype=bool)
+        span = min(len(source_codes), L - offset)
+        keep_tokens[offset : offset + span] = source_codes[:span]
+        keep_mask[offset : offset + span] = source_keep[:span]
+        if keep_mask.all():
+            raise ValueError(
+                "every code is kept: nothing to generate; keep less of the source or make the output longer"
+            )
+        return frames, keep_tokens, keep_mask
+
+    def _sample_edits(
+        self,
+        rows: list[tuple[int, np.ndarray, np.ndarray]],
+        texts: list[str | None],
+        sampling: SamplingConfig,
+        seed: int | None,
+        started: float,
+    ) -> Generated:
+        """One sample_tokens call for every planned edit (`_edit_row`), then one decode per length."""
+        B, L = len(rows), max(len(mask) for _, _, mask in rows)
+        keep_tokens = torch.zeros(B, L, dtype=torch.long)
+        keep_mask = torch.zeros(B, L, dtype=torch.bool)
+        for i, (_, tokens, mask) in enumerate(rows):
+            keep_tokens[i, : len(tokens)] = torch.from_numpy(tokens)
+            keep_mask[i, : len(mask)] = torch.from_numpy(mask)
+        emb = self.encode_text(texts)
+        generator = torch.Generator(device=self.device).manual_seed(seed) if seed is not None else None
+        seconds = {"text": time.perf_counter() - started}
+        t0 = time.perf_counter()
+        no_text = torch.tensor([t is None for t in texts], dtype=torch.bool)
+        lengths = torch.tensor([len(mask) for _, _, mask in rows], dtype=torch.long, device=self.device)
+        result = sample_tokens(
+            self.transformer,
+            emb,
+            lengths,
+            sampling,
+            keep_tokens=keep_tokens.to(self.device),
+            keep_mask=keep_mask.to(self.device),
+            no_text=no_text.to(self.device),
+            generator=generator,
+        )
+        self._sync()
+        seconds["sample"] = time.perf_counter() - t0
+        out = self._finish(texts, result, [frames for frames, _, _ in rows], seconds, started)
+        out.kept_codes = keep_mask.numpy()
+        return out
+
     @torch.no_grad()
     def edit(
         self,
@@ -451,60 +548,74 @@ class TextToMotion:
         source: un-normalized features (T, D). The output is `frames` long (default: the source's
         length) with the source starting at frame `place` (a multiple of 4): in-betweening keeps
         a prefix and a suffix, outpainting keeps a middle and grows before/after, completion keeps
-        a prefix; text None decodes without text.
+        a prefix; text None decodes without text. `kept_codes` of the result: (L,) the codes kept.
         """
         self._whole_body_only("temporal editing")
-        sampling = sampling or SamplingConfig()
         started = time.perf_counter()
-        if source.ndim != 2 or source.shape[1] != self.feature_dim:
-            raise ValueError(f"source features have shape {source.shape}, expected (T, {self.feature_dim})")
-        if place < 0 or place % self.unit:
-            raise ValueError(f"place {place} must be 0 or more and a multiple of {self.unit} frames")
-        source_codes = self.encode_motion(source)
-        frames = frames or source_codes.shape[0] * self.unit
-        self.check_frames(frames, "output length")
-        L = int(frames_to_codes(frames, self.unit))
-        offset = place // self.unit
-        for a, b in keep_frames:
-            if b > source.shape[0]:
-                raise ValueError(f"keep range {a}:{b} goes past the source's {source.shape[0]} frames")
-        source_keep = self.keep_mask(len(source_codes), keep_frames)
-        if source_keep.nonzero()[0].max(initial=-1) + offset >= L:
-            raise ValueError(
-                f"the kept source frames do not fit in {frames} output frames with the source placed at "
-                f"frame {place}"
-            )
-        keep_tokens = torch.zeros(num_samples, L, dtype=torch.long)
-        keep_mask = torch.zeros(num_samples, L, dtype=torch.bool)
-        span = min(len(source_codes), L - offset)
-        keep_tokens[:, offset : offset + span] = torch.from_numpy(source_codes[:span].astype(np.int64))
-        keep_mask[:, offset : offset + span] = torch.from_numpy(source_keep[:span])
-        if bool(keep_mask.all()):
-            raise ValueError(
-                "every code is kept: nothing to generate; keep less of the source or make the output longer"
-            )
-        texts = [text] * num_samples
-        emb = self.encode_text(texts)
-        generator = torch.Generator(device=self.device).manual_seed(seed) if seed is not None else None
-        seconds = {"text": time.perf_counter() - started}
-        t0 = time.perf_counter()
-        no_text = torch.full((num_samples,), text is None, dtype=torch.bool)
-        lengths = torch.full((num_samples,), L, dtype=torch.long, device=self.device)
-        result = sample_tokens(
-            self.transformer,
-            emb,
-            lengths,
-            sampling,
-            keep_tokens=keep_tokens.to(self.device),
-            keep_mask=keep_mask.to(self.device),
-            no_text=no_text.to(self.device),
-            generator=generator,
+        self._check_source(source, place)
+        row = self._edit_row(
+            source, self.encode_motion(source), keep_frames, frames, place, check_lengths=True
         )
-        self._sync()
-        seconds["sample"] = time.perf_counter() - t0
-        out = self._finish(texts, result, [frames] * num_samples, seconds, started)
-        out.kept_codes = keep_mask[0].numpy()
+        out = self._sample_edits(
+            [row] * num_samples, [text] * num_samples, sampling or SamplingConfig(), seed, started
+        )
+        out.kept_codes = out.kept_codes[0]
         return out
+
+    @torch.no_grad()
+    def edit_batch(
+        self,
+        sources: list[np.ndarray],
+        keep_frames: list[list[tuple[int, int]]],
+        texts: list[str | None],
+        sampling: SamplingConfig | None = None,
+        seed: int | None = None,
+        *,
+        frames: list[int | None] | None = None,
+        places: list[int] | None = None,
+        check_lengths: bool = True,
+    ) -> Generated:
+        """One edit per source, all in ONE sampling call (keep codes and lengths per row), then one
+        decode per distinct length.
+
+        sources: un-normalized features (T_i, D) each, lengths may differ; keep_frames: the kept
+        source frame ranges [a, b) of each; texts: each edit's text (None: without text); frames,
+        places: each output's length and the source's first frame in it, as in `edit` (default:
+        the source's length cut to a multiple of 4, and 0). check_lengths=False admits outputs
+        below the usual minimum length (the evaluation protocol's crops). `kept_codes` of the
+        result: (B, max L) True where a source code was kept (False past a row's length). The
+        same seed gives the same edits; a row's draws depend on the batch it is in (one
+        generator for the batch), except at temperature 0.
+        """
+        self._whole_body_only("temporal editing")
+        started = time.perf_counter()
+        count = len(sources)
+        frames = [None] * count if frames is None else list(frames)
+        places = [0] * count if places is None else list(places)
+        for name, values in (
+            ("keep-range lists", keep_frames),
+            ("texts", texts),
+            ("lengths", frames),
+            ("places", places),
+        ):
+            if len(values) != count:
+                raise ValueError(f"{count} sources but {len(values)} {name}; give one per source")
+        if not count:
+            raise ValueError("no sources to edit; give at least one")
+        sources = [np.asarray(source) for source in sources]
+        for i, (source, place) in enumerate(zip(sources, places)):
+            try:
+                self._check_source(source, place)
+            except ValueError as error:
+                raise ValueError(f"source {i}: {error}") from None
+        rows = []
+        codes = self.encode_motions(sources)  # batched: one encoder call per length, not per source
+        for i, (source, c, keep, n, place) in enumerate(zip(sources, codes, keep_frames, frames, places)):
+            try:
+                rows.append(self._edit_row(source, c, keep, n, place, check_lengths))
+            except ValueError as error:
+                raise ValueError(f"source {i}: {error}") from None
+        return self._sample_edits(rows, list(texts), sampling or SamplingConfig(), seed, started)
 
     def edit_upper_body(
         self,
@@ -528,13 +639,15 @@ class TextToMotion:
         seed: int | None = None,
         transition_codes: int = 2,
         context_codes: int = 6,
+        check_lengths: bool = True,
     ) -> Generated:
         """One motion through all prompts: segments in one batch, then every transition between
         neighbours (`transition_codes` new codes between `context_codes` of each side, without
-        text) in one single-iteration pass, then one decode of the concatenation."""
+        text) in one single-iteration pass, then one decode of the concatenation.
+        check_lengths=False admits segments below the usual minimum length (as `generate`)."""
         sampling = sampling or SamplingConfig()
         started = time.perf_counter()
-        segments = self.generate(texts, frames, sampling, seed)
+        segments = self.generate(texts, frames, sampling, seed, check_lengths=check_lengths)
         seconds = {"segments": time.perf_counter() - started}
         codes = segments.codes
         t0 = time.perf_counter()
