@@ -47,7 +47,6 @@ import json
 import math
 import time
 from collections import defaultdict
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -295,19 +294,6 @@ class Smoothness:
         }
 
 
-@contextmanager
-def _short_sources_admitted(model):
-    """Let upper-body edits take the protocol's crops below the usual minimum length (a crop is
-    one 4-frame unit shorter than its clip a third of the time), as generation does with
-    check_lengths=False; `edit_upper_body` has no such switch."""
-    saved = model.min_frames
-    model.min_frames = model.unit
-    try:
-        yield
-    finally:
-        model.min_frames = saved
-
-
 # -- producers: how each protocol batch's motions are made ----------------------------------------
 class TemporalEdits:
     """The protocol's producer for a temporal task: one batched edit of the batch's real crops."""
@@ -338,14 +324,18 @@ class UpperBodyEdits:
         self, texts: list[str], lengths: list[int], real: torch.Tensor, seed: int
     ) -> list[np.ndarray]:
         out = []
-        with _short_sources_admitted(self.model):
-            for i, (text, n) in enumerate(zip(texts, lengths)):
-                source = real[i, :n].numpy()
-                edited = self.model.edit_upper_body(
-                    source, text, lower_mask=self.lower_mask, sampling=self.sampling, seed=seed + i
-                ).features[0]
-                self.exactness.add(source, edited)
-                out.append(edited)
+        for i, (text, n) in enumerate(zip(texts, lengths)):
+            source = real[i, :n].numpy()
+            edited = self.model.edit_upper_body(
+                source,
+                text,
+                lower_mask=self.lower_mask,
+                sampling=self.sampling,
+                seed=seed + i,
+                check_lengths=False,  # the protocol's crops may be one unit below the minimum
+            ).features[0]
+            self.exactness.add(source, edited)
+            out.append(edited)
         return out
 
 

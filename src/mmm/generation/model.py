@@ -626,9 +626,12 @@ class TextToMotion:
         sampling: SamplingConfig | None = None,
         seed: int | None = None,
         num_samples: int = 1,
+        check_lengths: bool = True,
     ) -> Generated:
         """A new upper body from `text` on the source's lower body (part-aware models; see upper_body.py)."""
-        return edit_upper_body(self, source, text, lower_mask, lower_keep, sampling, seed, num_samples)
+        return edit_upper_body(
+            self, source, text, lower_mask, lower_keep, sampling, seed, num_samples, check_lengths
+        )
 
     @torch.no_grad()
     def generate_long(

@@ -59,6 +59,7 @@ def edit_upper_body(
     sampling: SamplingConfig | None = None,
     seed: int | None = None,
     num_samples: int = 1,
+    check_lengths: bool = True,
 ):
     """New upper body for `source` (un-normalized features (T, 263)) from `text`, keeping its
     lower body. `model` is a TextToMotion whose tokenizer and transformer are part-aware.
@@ -66,7 +67,8 @@ def edit_upper_body(
     lower_mask: the share of lower-body codes hidden from the transformer (0: the whole lower
     body constrains the upper body, 1: only the text does); lower_keep: frame ranges [a, b) whose
     lower-body codes are shown, the rest hidden. At most one of the two; neither means 0.
-    sampling: default SamplingConfig(guidance_scale=UPPER_BODY_GUIDANCE).
+    sampling: default SamplingConfig(guidance_scale=UPPER_BODY_GUIDANCE). check_lengths=False
+    admits sources shorter than the model's minimum (the evaluation protocol's crops), as `generate`.
     Returns Generated (features (T', 263), joints, codes (L, 2) [lower, upper]; T' = T cut to a
     multiple of 4) with `kept_codes` (samples, L): the lower-body codes each sample was shown.
     """
@@ -86,7 +88,10 @@ def edit_upper_body(
     if source.ndim != 2 or source.shape[1] != model.feature_dim:
         raise ValueError(f"source features have shape {source.shape}, expected (T, {model.feature_dim})")
     frames = source.shape[0] // model.unit * model.unit
-    model.check_frames(frames, "source length")
+    if check_lengths:
+        model.check_frames(frames, "source length")
+    elif not model.unit <= frames <= model.max_frames:
+        raise ValueError(f"source length {frames} frames is outside {model.unit}..{model.max_frames}")
     if not text or not text.strip():
         raise ValueError("upper-body editing needs a text saying what the upper body does")
     sampling = sampling or SamplingConfig(guidance_scale=UPPER_BODY_GUIDANCE)
