@@ -9,7 +9,9 @@ Prints and writes (JSON):
   captions against new phrasings, for single actions and compositions;
 - text_probe: whether the caption's sentence embedding tells a jump's or squat's count and a
   walk's speed (a linear probe fitted on the training captions, and nearest neighbour by cosine);
-- walk_codes: how much the code histograms of slow, normal and fast training walks overlap.
+- walk_codes: how much the code histograms of slow, normal and fast training walks overlap;
+- round_trip: order-aware adherence of the test motions after the tokenizer's encode and decode,
+  per action, compositions and counts: the ceiling a transformer over these codes can reach.
 The README's "What the `make demo` model follows, and why not the rest" quotes these figures.
 """
 
@@ -32,8 +34,9 @@ from mmm.tracking import resolve_tracking_uri
 MIN_PART_FRAMES = 40  # as prompt_adherence's order-aware check
 
 
-def labelled_items(root: Path, split: str, model) -> list[tuple[str, int, list[dict]]]:
-    """(first caption, frames, label parts in the item's frames) of the split's labelled items."""
+def labelled_items(root: Path, split: str, model, features: bool = False) -> list[tuple]:
+    """(first caption, frames, label parts in the item's frames[, the item's features (frames, D)])
+    of the split's labelled items."""
     items, _ = DataConfig(root=str(root)).items(split, root)
     out = []
     for item in items:
@@ -41,8 +44,13 @@ def labelled_items(root: Path, split: str, model) -> list[tuple[str, int, list[d
         parts = item_parts(item, json.loads(path.read_text())) if path.exists() else []
         frames = min(item.length, model.max_frames) // model.unit * model.unit
         if parts and frames >= model.unit:
-            out.append((item.captions[0].text, frames, [{**p, "end": min(p["end"], frames)} for p in parts]))
+            row = (item.captions[0].text, frames, [{**p, "end": min(p["end"], frames)} for p in parts])
+            out.append(row + ((item.features[:frames],) if features else ()))
     return out
+
+
+def in_order(joints: np.ndarray, parts: list[dict], frames: int) -> bool:
+    return check_in_order(joints, parts, min_frames=min(MIN_PART_FRAMES, frames // len(parts))) is not None
 
 
 def generated_checks(model, checks, seed: int = 0, batch: int = 32):
@@ -53,9 +61,25 @@ def generated_checks(model, checks, seed: int = 0, batch: int = 32):
         out = model.generate([c[0] for c in chunk], [c[1] for c in chunk], seed=seed + b, check_lengths=False)
         for joints, (text, frames, parts) in zip(out.joints, chunk):
             joints = np.asarray(joints)
-            ordered = check_in_order(joints, parts, min_frames=min(MIN_PART_FRAMES, frames // len(parts)))
-            rows.append((text, parts, check_motion(joints, parts), ordered is not None))
+            rows.append((text, parts, check_motion(joints, parts), in_order(joints, parts, frames)))
     return rows
+
+
+def round_trip(model, items) -> dict:
+    """Order-aware adherence of each item's motion after the tokenizer's encode and decode."""
+    counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+    for b in range(0, len(items), 64):
+        chunk = items[b : b + 64]
+        decoded = model.decode(model.encode_motions([row[3] for row in chunk]))
+        for features, (_, frames, parts, _) in zip(decoded, chunk):
+            passed = in_order(model.to_joints(features), parts, frames)
+            groups = ["all", parts[0]["action"] if len(parts) == 1 else "composition"]
+            groups += ["single"] * (len(parts) == 1)
+            groups += ["counts"] * any(int(p.get("params", {}).get("count", 1)) > 1 for p in parts)
+            for g in groups:
+                counts[g][0] += passed
+                counts[g][1] += 1
+    return {k: {"followed": a, "of": n, "rate": a / n} for k, (a, n) in sorted(counts.items())}
 
 
 def failures(rows) -> dict:
@@ -177,6 +201,7 @@ def main() -> None:
         "phrasing": phrasing(rows, training_captions),
         "text_probe": text_probe(model, train, test),
         "walk_codes": walk_codes(model, root),
+        "round_trip": round_trip(model, labelled_items(root, args.split, model, features=True)),
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -162,7 +162,7 @@ def test_resume_refuses_another_batch_size_or_learning_rate_and_writes_nothing(s
     assert {p.name: sha256(p) for p in last.parent.iterdir()} == before
 
 
-def test_a_changed_world_size_is_refused_unless_the_epoch_restarts():
+def test_a_changed_global_batch_is_refused_unless_the_epoch_restarts_and_the_same_one_resumes():
     from mmm.callbacks.checkpoints import RunState
 
     def checkpoint():
@@ -172,18 +172,25 @@ def test_a_changed_world_size_is_refused_unless_the_epoch_restarts():
         }
 
     module = SimpleNamespace(hparams={})
-    with pytest.raises(ValueError, match="world_size 1 in the checkpoint, 2 now"):
+    with pytest.raises(ValueError, match=r"global batch \(world_size 1 in the checkpoint, 2 now\)"):
         RunState(batch_size=8).check_resume(SimpleNamespace(world_size=2), module, checkpoint())
+    with pytest.raises(
+        ValueError, match="batch_size 8 in the checkpoint, 2 now; world_size 1 in the checkpoint, 2"
+    ):
+        RunState(batch_size=2).check_resume(SimpleNamespace(world_size=2), module, checkpoint())
     restarted = checkpoint()
     RunState(batch_size=8, restart_epoch=True).on_load_checkpoint(
         SimpleNamespace(world_size=2), module, restarted
     )
     assert restarted["loops"]["fit_loop"]["state_dict"]["combined_loader"] == [{"epoch": 3, "batches": 0}]
-    same = checkpoint()
-    RunState(batch_size=8).check_resume(
-        SimpleNamespace(world_size=1), module, same
-    )  # nothing changed: accepted as is
-    assert same == checkpoint()
+    for batch_size, world_size in (
+        (8, 1),
+        (4, 2),
+        (2, 4),
+    ):  # the same global batch: the position carries over
+        same = checkpoint()
+        RunState(batch_size=batch_size).check_resume(SimpleNamespace(world_size=world_size), module, same)
+        assert same == checkpoint()
 
 
 @pytest.mark.slow

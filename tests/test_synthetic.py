@@ -353,3 +353,62 @@ def test_statistics_resemble_real_humanml3d(dataset, reference_dir):
         assert 0.4 < ratio < 3.0, (name, ratio)
     # Forward root velocity is positive on average (people mostly walk forwards), as in the real data.
     assert mean[2] > 0 and real_mean[2] > 0
+
+
+@pytest.mark.slow
+def test_extra_train_paraphrases_leave_motions_and_held_out_splits_as_the_default(dataset, tmp_path):
+    root, _ = dataset
+    more = tmp_path / "more"
+    summary = gen.generate_dataset(more, num_clips=NUM_CLIPS, seed=SEED, progress=False, train_paraphrases=8)
+    assert summary["train_paraphrases"] == 8
+    assert json.loads((more / "synthesis.json").read_text()) == {
+        "num_clips": NUM_CLIPS,
+        "seed": SEED,
+        "train_paraphrases": 8,
+    }
+    train = set(ids_of(root, "train"))
+    whole_counts = []
+    for motion_id in ids_of(root):
+        for sub in ("new_joint_vecs", "new_joints"):
+            assert (more / sub / f"{motion_id}.npy").read_bytes() == (
+                root / sub / f"{motion_id}.npy"
+            ).read_bytes()
+        old = (root / "texts" / f"{motion_id}.txt").read_text().splitlines()
+        new = (more / "texts" / f"{motion_id}.txt").read_text().splitlines()
+        if motion_id not in train:
+            assert new == old, motion_id  # val and test captions are the default's
+            continue
+        assert new[: len(old)] == old, motion_id  # the clip's own lines first, unchanged
+        added = new[len(old) :]
+        assert all(line.endswith("#0.0#0.0") for line in added), "extra lines describe the whole clip"
+        whole = [line for line in new if line.endswith("#0.0#0.0")]
+        assert len(set(whole)) == len(whole), f"{motion_id}: a paraphrase repeats"
+        whole_counts.append(len(whole))
+        label = json.loads((more / "labels" / f"{motion_id}.json").read_text())
+        assert len(label["parts"]) >= 1
+    # Templates may run out for a simple clip ("stands still"); the summary counts the shortfall.
+    assert max(whole_counts) == 8
+    assert summary["paraphrases_short"] == sum(8 - n for n in whole_counts) // 2  # mirrors too
+    # The mirror's extra lines are the mirrored extra lines.
+    mid = next(i for i in sorted(train) if not i.startswith("M"))
+    lines = (more / "texts" / f"{mid}.txt").read_text().splitlines()
+    mirrored = (more / "texts" / f"M{mid}.txt").read_text().splitlines()
+    assert mirrored == [mirror_caption_line(line) for line in lines]
+
+
+def test_a_synthetic_folder_made_with_other_settings_is_refused(tmp_path):
+    gen.generate_dataset(tmp_path / "ds", num_clips=3, seed=0, progress=False)
+    gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # the same settings: accepted
+    from mmm.data.datamodule import DataConfig, SynthConfig, TokenizerDataModule
+
+    asked = SynthConfig(num_clips=3, seed=0, train_paraphrases=12)
+    with pytest.raises(ValueError, match="train_paraphrases 3 \\(asked 12\\)"):  # training refuses it too
+        TokenizerDataModule(DataConfig(root=str(tmp_path / "ds"), synthesize=asked)).prepare_data()
+    with pytest.raises(
+        ValueError, match=r"ds: synthetic dataset made with train_paraphrases 3 \(asked 12\).*another"
+    ):
+        gen.check_synthesis(tmp_path / "ds", 3, 0, 12)
+    with pytest.raises(ValueError, match=r"num_clips 3 \(asked 1500\), seed 0 \(asked 1\)"):
+        gen.check_synthesis(tmp_path / "ds", 1500, 1, 3)
+    with pytest.raises(ValueError, match="train_paraphrases must be >= 3"):
+        gen.generate_dataset(tmp_path / "x", num_clips=3, seed=0, progress=False, train_paraphrases=2)

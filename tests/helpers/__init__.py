@@ -78,29 +78,32 @@ def write_walker_dataset(root, num_clips: int = 30):
     return root
 
 
-def tiny_stage1_config(root, out, *extra):
-    """The config of a 4-step stage-1 run on `root` (MLflow store and outputs under `out`);
+def tiny_stage1_overrides(root, out, *extra) -> list[str]:
+    """The overrides of a 4-step stage-1 run on `root` (MLflow store and outputs under `out`);
     `extra` overrides come last and win."""
+    return [
+        f"data.root={root}",
+        "data.synthesize=null",
+        "data.batch_size=8",
+        "model.tokenizer.width=16",
+        "model.tokenizer.num_codes=32",
+        "trainer.max_steps=4",
+        "trainer.val_check_interval=4",
+        "trainer.enable_progress_bar=false",
+        "callbacks.preview_clips=0",
+        "callbacks.usage_plot=false",
+        f"output_dir={out}/s1",
+        f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
+        f"logger.artifact_root={out}/art",
+        *extra,
+    ]
+
+
+def tiny_stage1_config(root, out, *extra):
+    """The config of tiny_stage1_overrides."""
     from mmm.training.stage1 import load_stage1_config
 
-    return load_stage1_config(
-        [
-            f"data.root={root}",
-            "data.synthesize=null",
-            "data.batch_size=8",
-            "model.tokenizer.width=16",
-            "model.tokenizer.num_codes=32",
-            "trainer.max_steps=4",
-            "trainer.val_check_interval=4",
-            "trainer.enable_progress_bar=false",
-            "callbacks.preview_clips=0",
-            "callbacks.usage_plot=false",
-            f"output_dir={out}/s1",
-            f"logger.tracking_uri=sqlite:///{out}/mlflow.db",
-            f"logger.artifact_root={out}/art",
-            *extra,
-        ]
-    )
+    return load_stage1_config(tiny_stage1_overrides(root, out, *extra))
 
 
 def train_tiny_stage1(root, out, *extra):

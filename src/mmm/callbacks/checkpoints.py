@@ -54,9 +54,10 @@ class RunState(L.Callback):
     """Keeps in every checkpoint what Lightning does not: the MLflow run id (a resumed run goes on
     logging to the same run), the random generators' states (it goes on drawing the same
     numbers) and the data position's meaning (batch size, world size), in types that load with
-    weights_only=True. On resume it refuses what would silently change the run: another batch
-    size or world size (unless `restart_epoch`), or optimizer settings the restored optimizer
-    state would override."""
+    weights_only=True. On resume it refuses what would silently change the run: another global
+    batch (batch size x world size; unless `restart_epoch`), or optimizer settings the restored
+    optimizer state would override. The same global batch split over another number of processes
+    resumes exactly where it stopped."""
 
     def __init__(self, batch_size: int | None = None, restart_epoch: bool = False):
         self.batch_size, self.restart_epoch = batch_size, restart_epoch
@@ -126,13 +127,23 @@ class RunState(L.Callback):
         ]
         if not changed:
             return
+        if None not in (saved.get("batch_size"), saved.get("world_size"), self.batch_size):
+            if saved["batch_size"] * saved["world_size"] == self.batch_size * trainer.world_size:
+                # Rank r takes every world-th index of the epoch's permutation, so after k steps of a
+                # global batch G the ranks together have used its first k*G indices whatever the
+                # split: the position carries over and every later step sees the same samples.
+                log.info(
+                    "resuming with %s: the same global batch (%d), so the same samples at every step",
+                    "; ".join(changed),
+                    self.batch_size * trainer.world_size,
+                )
+                return
         if not self.restart_epoch:
             raise ValueError(
-                f"cannot resume mid-epoch with a changed {' and '.join(c.split(' ')[0] for c in changed)} "
-                f"({'; '.join(changed)}): the "
-                "position in the epoch would point at other batches; resume with the same data.batch_size "
-                "and devices/num_nodes, or "
-                "add trainer.resume_restart_epoch=true to start the interrupted epoch over"
+                f"cannot resume mid-epoch with a changed global batch ({'; '.join(changed)}): the "
+                "position in the epoch would point at other batches; resume with data.batch_size x "
+                "devices x num_nodes as in the checkpoint (e.g. twice the batch size on half the "
+                "processes), or add trainer.resume_restart_epoch=true to start the interrupted epoch over"
             )
         fit_state = checkpoint.get("loops", {}).get("fit_loop", {}).get("state_dict", {})
         for loader_state in fit_state.get("combined_loader", []):

@@ -30,6 +30,12 @@ def add_data(sub) -> None:
     synth.add_argument("--out", required=True)
     synth.add_argument("--num-clips", type=int, default=1500)
     synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument(
+        "--train-paraphrases",
+        type=int,
+        default=3,
+        help="whole-clip captions per training clip (3, every clip's own, or more: extra paraphrases)",
+    )
     synth.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     synth.set_defaults(func=cmd_data_synth)
 
@@ -107,7 +113,15 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         check_seed(args.seed)
     except SamplingValueError as e:
         raise option_error(e) from None
-    summary = generate_dataset(args.out, num_clips=args.num_clips, seed=args.seed, overwrite=args.overwrite)
+    if args.train_paraphrases < 3:
+        raise CLIError(f"--train-paraphrases {args.train_paraphrases}: every clip has three; give 3 or more")
+    summary = generate_dataset(
+        args.out,
+        num_clips=args.num_clips,
+        seed=args.seed,
+        overwrite=args.overwrite,
+        train_paraphrases=args.train_paraphrases,
+    )
     print(summary)
 
 

@@ -99,8 +99,10 @@ def cmd_train(args: argparse.Namespace) -> None:
         from mmm.training.stage2 import load_stage2_config, train_stage2
 
         result = train_stage2(load_stage2_config(args.overrides, parts=kind.part_aware), resume=args.resume)
-    if result.run_id is None and not result.best_checkpoint:
-        return  # a non-zero rank of a distributed run
+    from lightning.pytorch.utilities import rank_zero_only
+
+    if rank_zero_only.rank != 0 or (result.run_id is None and not result.best_checkpoint):
+        return  # a non-zero rank of a distributed run: rank 0 reports
     print(f"MLflow run: {result.run_id}")
     print(f"checkpoints: best {result.best_checkpoint}, last {result.last_checkpoint}")
     shown = {k: v for k, v in sorted(result.metrics.items()) if k.startswith("val/")}

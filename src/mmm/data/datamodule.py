@@ -21,7 +21,7 @@ from mmm.data.datasets import (
 from mmm.data.humanml3d import DataError, LoadReport, load_clips, load_items, load_stats
 from mmm.data.normalization import tokenizer_statistics
 from mmm.data.resumable import ResumableDataLoader
-from mmm.data.synthetic.generate import generate_dataset
+from mmm.data.synthetic.generate import check_synthesis, generate_dataset
 from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
 from mmm.fingerprint import dataset_fingerprint
 from mmm.motion.skeleton import SKELETONS, Skeleton
@@ -35,6 +35,7 @@ class SynthConfig:
 
     num_clips: int = 1500
     seed: int = 0
+    train_paraphrases: int = 3  # whole-clip captions per training clip (3 = every clip's own)
 
 
 @dataclass
@@ -107,9 +108,12 @@ class _DatasetFolder(L.LightningDataModule):
 
     def prepare_data(self) -> None:
         # Runs on one process per node only; the datasets are built in setup() on every rank.
+        synth = self.cfg.synthesize
         if self.root.exists():
+            if synth is not None:
+                check_synthesis(self.root, synth.num_clips, synth.seed, synth.train_paraphrases)
             return
-        if self.cfg.synthesize is None:
+        if synth is None:
             raise DataError(
                 self.root,
                 "dataset folder does not exist",
@@ -117,10 +121,12 @@ class _DatasetFolder(L.LightningDataModule):
             )
 
         rank_zero_info(
-            f"{self.root} is missing: generating the synthetic dataset ({self.cfg.synthesize.num_clips} "
-            f"clips, seed {self.cfg.synthesize.seed})"
+            f"{self.root} is missing: generating the synthetic dataset ({synth.num_clips} clips, seed "
+            f"{synth.seed}, {synth.train_paraphrases} captions per training clip)"
         )
-        generate_dataset(self.root, num_clips=self.cfg.synthesize.num_clips, seed=self.cfg.synthesize.seed)
+        generate_dataset(
+            self.root, num_clips=synth.num_clips, seed=synth.seed, train_paraphrases=synth.train_paraphrases
+        )
 
     def _stats(self) -> None:
         if self.mean is None:

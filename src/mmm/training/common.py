@@ -66,6 +66,11 @@ def build_logger(
 ) -> MLFlowLogger | None:
     if not cfg.enabled:
         return None
+    if rank_zero_only.rank != 0:
+        # Only rank 0 logs, and merely opening the store is not free: a fresh SQLite store is
+        # created and migrated on first use, which two processes started at once (torchrun, one
+        # per node) race on. Other ranks train without a logger (trainer.loggers == []).
+        return None
     return MLFlowLogger(
         experiment_name=cfg.experiment,
         run_name=cfg.run_name or run_name,

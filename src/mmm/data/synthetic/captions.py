@@ -145,15 +145,12 @@ def caption_line(marked: str, start: int | None = None, end: int | None = None) 
     return f"{text}#{tokens}#{span}"
 
 
-def clip_captions(
-    rng: np.random.Generator, parts: list[dict], stands_up: list[bool] | None = None
+def _whole_clip_lines(
+    rng: np.random.Generator, parts: list[dict], stands_up: list[bool], count: int, seen: set[str], tries: int
 ) -> list[str]:
-    """Three paraphrased whole-clip caption lines, plus for a composite one or two lines per part
-    with its own #start#end (seconds). parts: label parts (action, params, start, end frames);
-    stands_up: per part, whether a sit part ends standing up again."""
-    stands_up = stands_up or [False] * len(parts)
-    lines, seen = [], set()
-    for _ in range(30):
+    """Up to `count` new paraphrases of the whole clip (not in `seen`, which grows), in `tries` draws."""
+    lines: list[str] = []
+    for _ in range(tries):
         subj, pron = pick(rng, SUBJECTS)
         vps = [_fill(_vp(rng, p["action"], p["params"], up), pron) for p, up in zip(parts, stands_up)]
         body = vps[0] if len(vps) == 1 else pick(rng, _CONNECTORS).format(a=vps[0], b=vps[1])
@@ -161,8 +158,19 @@ def clip_captions(
         if line not in seen:
             seen.add(line)
             lines.append(line)
-        if len(lines) == 3:
+        if len(lines) == count:
             break
+    return lines
+
+
+def clip_captions(
+    rng: np.random.Generator, parts: list[dict], stands_up: list[bool] | None = None
+) -> list[str]:
+    """Three paraphrased whole-clip caption lines, plus for a composite one or two lines per part
+    with its own #start#end (seconds). parts: label parts (action, params, start, end frames);
+    stands_up: per part, whether a sit part ends standing up again."""
+    stands_up = stands_up or [False] * len(parts)
+    lines = _whole_clip_lines(rng, parts, stands_up, 3, set(), tries=30)
     if len(parts) > 1:
         for p, up in zip(parts, stands_up):
             for _ in range(1 + int(rng.integers(2))):
@@ -170,6 +178,14 @@ def clip_captions(
                 vp = _fill(_vp(rng, p["action"], p["params"], up), pron)
                 lines.append(caption_line(f"{subj} {vp}", p["start"], p["end"]))
     return lines
+
+
+def extra_paraphrases(
+    rng: np.random.Generator, parts: list[dict], stands_up: list[bool], count: int, existing: list[str]
+) -> list[str]:
+    """Up to `count` more whole-clip paraphrases, none equal to a line of `existing`; fewer when
+    the templates of these actions have no more (a single "runs once" has only so many)."""
+    return _whole_clip_lines(rng, parts, stands_up, count, set(existing), tries=10 * count)
 
 
 _SWAP = {
@@ -211,6 +227,7 @@ __all__ = [
     "TAGS",
     "caption_line",
     "clip_captions",
+    "extra_paraphrases",
     "mirror_caption_line",
     "mirror_params",
     "seconds",

@@ -5,10 +5,15 @@
     <out>/texts/<id>.txt           caption lines `caption#tokens#start#end`
     <out>/labels/<id>.json         {"fps": 20, "num_frames": T, "parts": [{action, params, start, end}]}
     <out>/train.txt val.txt test.txt train_val.txt all.txt, Mean.npy, Std.npy
+    <out>/synthesis.json           {"num_clips", "seed", "train_paraphrases"}: what made it
 
 Ids are 000000, 000001, ... and M<id> for the left/right mirrored copy (same split). Clip i is
 drawn from its own random stream seeded by (seed, i), so a dataset is a pure function of
-(num_clips, seed): the same arguments give byte-identical files.
+(num_clips, seed, train_paraphrases): the same arguments give byte-identical files.
+
+Every clip has three whole-clip paraphrases; `train_paraphrases` > 3 gives the training split's
+clips more, drawn from a second stream seeded by (seed, i, 1) and appended after the clip's own
+lines, so the motions, the val and test splits and the first lines stay those of the default.
 """
 
 from __future__ import annotations
@@ -25,11 +30,12 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from mmm.data.arrays import DataError
 from mmm.data.synthetic.actions import PartSpec, make_pose
 from mmm.data.synthetic.adherence import check_motion
 from mmm.data.synthetic.animations import Infeasible
 from mmm.data.synthetic.body import pose_to_joints
-from mmm.data.synthetic.captions import clip_captions, mirror_caption_line, mirror_params
+from mmm.data.synthetic.captions import clip_captions, extra_paraphrases, mirror_caption_line, mirror_params
 from mmm.data.synthetic.constants import FPS
 from mmm.data.synthetic.table import ACTIONS
 from mmm.motion.features import FeatureLayout, joints_to_features, recover_from_ric, reference_std
@@ -38,6 +44,7 @@ from mmm.motion.skeleton import T2M_SKELETON
 MAX_ROWS = 196
 MIN_ROWS = 40
 COMPOSITE_FRACTION = 1 / 3
+SYNTHESIS_FILE = "synthesis.json"
 CHUNK = 32  # clips whose first tries share one forward-kinematics call
 SPLITS = {"val": 0.05, "test": 0.15}  # the rest is train
 _ACTIONS = tuple(ACTIONS)
@@ -94,6 +101,7 @@ class Clip:
     m_captions: list[str]
     m_label: dict
     attempts: int
+    stands_up: list[bool]  # per label part: whether a sit part ends standing up again
 
 
 _LAYOUT = FeatureLayout(T2M_SKELETON.num_joints)
@@ -169,6 +177,7 @@ def _finish(rng: np.random.Generator, specs, world: np.ndarray, parts, attempts:
         [mirror_caption_line(c) for c in captions],
         m_label,
         attempts=attempts,
+        stands_up=stands_up,
     )
 
 
@@ -257,6 +266,27 @@ class _Moments:
         return mean, std
 
 
+def check_synthesis(root, num_clips: int, seed: int, train_paraphrases: int) -> None:
+    """Refuse a synthetic dataset folder generated with other settings than the config asks for
+    (a folder without synthesis.json predates it, or is not synthetic: nothing to compare)."""
+    path = Path(root) / SYNTHESIS_FILE
+    if not path.exists():
+        return
+    try:
+        made = json.loads(path.read_text())
+    except ValueError as e:
+        raise DataError(path, f"unreadable ({e})", "delete the dataset folder to regenerate it") from None
+    asked = {"num_clips": int(num_clips), "seed": int(seed), "train_paraphrases": int(train_paraphrases)}
+    differ = {k: (made.get(k), v) for k, v in asked.items() if made.get(k) != v}
+    if differ:
+        what = ", ".join(f"{k} {m} (asked {a})" for k, (m, a) in differ.items())
+        raise DataError(
+            root,
+            f"synthetic dataset made with {what}",
+            "point data.root at another folder for these settings, or delete this one to regenerate it",
+        )
+
+
 def _prepare_out(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder; choose another output folder")
@@ -267,8 +297,26 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
         )
 
 
+def _add_paraphrases(clip: Clip, seed: int, index: int, whole: int) -> int:
+    """Append whole-clip paraphrases to clip (and its mirror) until it has `whole`; returns how
+    many it was short of that (the templates ran out)."""
+    existing = clip.captions[:3]
+    want = whole - len(existing)
+    more = extra_paraphrases(
+        np.random.default_rng([int(seed), int(index), 1]), clip.label["parts"], clip.stands_up, want, existing
+    )
+    clip.captions = clip.captions + more
+    clip.m_captions = clip.m_captions + [mirror_caption_line(c) for c in more]
+    return want - len(more)
+
+
 def generate_dataset(
-    out_dir, num_clips: int = 1500, seed: int = 0, progress: bool = True, overwrite: bool = False
+    out_dir,
+    num_clips: int = 1500,
+    seed: int = 0,
+    progress: bool = True,
+    overwrite: bool = False,
+    train_paraphrases: int = 3,
 ) -> dict:
     """Generate `num_clips` clips plus their mirrors into out_dir; returns a summary.
 
@@ -277,6 +325,8 @@ def generate_dataset(
     """
     if int(num_clips) < 1:
         raise ValueError(f"num_clips must be >= 1, got {num_clips}")
+    if int(train_paraphrases) < 3:
+        raise ValueError(f"train_paraphrases must be >= 3 (every clip has three), got {train_paraphrases}")
     out = Path(out_dir)
     _prepare_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -291,7 +341,8 @@ def generate_dataset(
             (tmp / sub).mkdir(parents=True)
         moments = _Moments(T2M_SKELETON.feature_dim)
         actions: Counter = Counter()
-        composites = attempts = frames = 0
+        composites = attempts = frames = short = 0
+        train = set(split_ids(int(num_clips), seed)["train"])
         bar = tqdm(total=int(num_clips), desc="synthesizing clips", unit="clip", disable=not progress)
         for i, clip in (
             (i, c)
@@ -303,6 +354,8 @@ def generate_dataset(
         ):
             bar.update(1)
             cid = f"{i:06d}"
+            if train_paraphrases > 3 and cid in train:
+                short += _add_paraphrases(clip, seed, i, int(train_paraphrases))
             for motion_id, feats, joints, captions, label in (
                 (cid, clip.features, clip.joints, clip.captions, clip.label),
                 ("M" + cid, clip.m_features, clip.m_joints, clip.m_captions, clip.m_label),
@@ -326,6 +379,8 @@ def generate_dataset(
         with_mirrors["all"] = sorted(with_mirrors["train_val"] + with_mirrors["test"])
         for name, ids in with_mirrors.items():
             (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in ids))
+        made = {"num_clips": int(num_clips), "seed": int(seed), "train_paraphrases": int(train_paraphrases)}
+        (tmp / SYNTHESIS_FILE).write_text(json.dumps(made) + "\n")
         _prepare_out(out, overwrite)
         if out.exists():
             trash = out.parent / f".{out.name}.old-{os.getpid()}"
@@ -348,12 +403,15 @@ def generate_dataset(
         "actions": dict(sorted(actions.items())),
         "splits": {k: len(v) for k, v in with_mirrors.items() if k in ("train", "val", "test")},
         "retries": attempts,
+        "train_paraphrases": int(train_paraphrases),
+        "paraphrases_short": short,
         "seconds": round(time.perf_counter() - start, 2),
     }
 
 
 __all__ = [
     "Clip",
+    "check_synthesis",
     "duration_range",
     "generate_clip",
     "generate_dataset",
