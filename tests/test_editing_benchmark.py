@@ -233,23 +233,13 @@ def test_mmm_evaluate_runs_an_editing_task_and_refuses_the_wrong_model(trained, 
 
 
 @pytest.fixture(scope="module")
-def parts_model(walker_dataset, tmp_path_factory):
-    """A tiny part-aware model (stage 1 and stage 2 for a few steps) on the walker dataset."""
+def parts_model(parts_trained):
+    """The shared tiny part-aware model, loaded."""
     from mmm.generation.model import TextToMotion
-    from mmm.training.stage2 import load_stage2_config, train_stage2
-    from tests.helpers import stage2_overrides, train_tiny_stage1
 
-    out = tmp_path_factory.mktemp("parts")
-    stage1 = train_tiny_stage1(
-        walker_dataset, out, "model.tokenizer.part_aware=true", "logger.experiment=mmm-stage1-parts"
+    return TextToMotion.from_files(
+        parts_trained["stage2"].best_checkpoint, parts_trained["stage1"].best_checkpoint
     )
-    overrides = stage2_overrides(
-        walker_dataset,
-        out,
-        **{"stage1": f"runs:/{stage1.run_id}", "trainer.max_steps": 2, "trainer.val_check_interval": 2},
-    )
-    stage2 = train_stage2(load_stage2_config(overrides, parts=True))
-    return TextToMotion.from_files(stage2.best_checkpoint, stage1.best_checkpoint)
 
 
 @pytest.mark.slow

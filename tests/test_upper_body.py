@@ -165,34 +165,9 @@ def test_decoding_with_a_condition_is_deterministic_and_depends_on_it():
 
 
 # -- a trained (briefly) part-aware model ---------------------------------------------------------
-@pytest.fixture(scope="module")
-def parts_model(walker_dataset, tmp_path_factory):
-    from mmm.training.stage2 import load_stage2_config, train_stage2
-
-    out = tmp_path_factory.mktemp("parts")
-    stage1 = train_tiny_stage1(
-        walker_dataset, out, "model.tokenizer.part_aware=true", "logger.experiment=mmm-stage1-parts"
-    )
-    # The stage-1 model given as its run (recorded so; loading resolves it in the store, not by a path
-    # outside outputs/).
-    overrides = stage2_overrides(
-        walker_dataset,
-        out,
-        **{
-            "stage1": f"runs:/{stage1.run_id}",
-            "trainer.max_steps": 4,
-            "trainer.val_check_interval": 4,
-            "output_dir": f"{out}/s2p",
-        },
-    )
-    result = train_stage2(load_stage2_config(overrides, parts=True))
-    return {
-        "out": out,
-        "stage1": stage1,
-        "stage2": result,
-        "uri": f"sqlite:///{out}/mlflow.db",
-        "walker": walker_dataset,
-    }
+@pytest.fixture
+def parts_model(parts_trained):
+    return parts_trained
 
 
 @pytest.mark.slow
