@@ -1,7 +1,8 @@
 """Training speed and peak memory of both stages at the tiny and paper sizes.
 
     python benchmarks/train_speed.py [--stages 1 2] [--sizes tiny paper] [--batch1 64] [--batch2 64]
-                                     [--steps 10] [--out outputs/bench/train_speed.json]
+                                     [--steps 10] [--precisions 32-true bf16-mixed]
+                                     [--out outputs/bench/train_speed.json]
 
 Each (stage, size) runs in its own process (clean peak-memory figures): a full training step
 (forward, loss, backward, AdamW; for stage 1 also the EMA codebook update; for stage 2 the
@@ -9,6 +10,10 @@ training corruption) on random inputs of the real shapes, after warm-up, with th
 synchronized; the median step time is reported with device, dtype, batch and parameter count.
 Peak memory: max RSS of the process on CPU, max allocated on CUDA. On CPU the paper sizes use a
 smaller batch (--paper-cpu-batch) so a step takes seconds, not minutes; the batch is recorded.
+Precisions as Lightning names them (`trainer.precision`): 32-true, and bf16-mixed (the forward
+and loss under bfloat16 autocast, float32 weights and optimizer, as Lightning runs it). Several
+precisions are timed in one process, their steps interleaved, so that a busy machine slows them
+alike and their ratio (`speedup_vs_32-true`) holds; peak memory is then the process's, for all.
 """
 
 from __future__ import annotations
@@ -87,14 +92,20 @@ def _stage2(size: str, batch: int, device: str):
         "word_mask": torch.ones(batch, 16, dtype=torch.bool, device=device),
     }
 
-    def loss():
+    def loss():  # what training_step computes, without the logging
         c = corrupt(tokens, lengths, K, module.corruption_cfg)
-        return module.loss(module.forward_batch(batch_dict, c), batch_dict, c)[0]
+        drop = torch.rand(batch, device=device) < module.corruption_cfg.cond_drop
+        logits = module.transformer(
+            c.inputs, batch_dict["sentence"], batch_dict["words"], batch_dict["word_mask"], drop, None
+        )
+        return module.loss(logits, tokens, c)[0]
 
     return module, loss, {"tokens": M, "codes": K}
 
 
-def measure(stage: int, size: str, batch: int, steps: int, warmup: int, device: str) -> dict:
+def measure(stage: int, size: str, batch: int, steps: int, warmup: int, device: str, precisions) -> list:
+    import contextlib
+
     import torch
 
     module, loss_fn, extra = (_stage1 if stage == 1 else _stage2)(size, batch, device)
@@ -104,39 +115,57 @@ def measure(stage: int, size: str, batch: int, steps: int, warmup: int, device: 
         if device.startswith("cuda"):
             torch.cuda.synchronize()
 
-    times = []
+    def autocast(precision: str):
+        if precision == "bf16-mixed":
+            return torch.autocast(device.split(":")[0], dtype=torch.bfloat16)
+        if precision != "32-true":
+            raise SystemExit(f"--precisions {precision!r}: use 32-true or bf16-mixed")
+        return contextlib.nullcontext()
+
+    times: dict[str, list[float]] = {p: [] for p in precisions}
     for i in range(warmup + steps):
-        sync()
-        t0 = time.perf_counter()
-        loss = loss_fn()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        sync()
-        if i >= warmup:
-            times.append(time.perf_counter() - t0)
-    median = statistics.median(times)
+        for precision in precisions:
+            sync()
+            t0 = time.perf_counter()
+            with autocast(precision):
+                loss = loss_fn()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            sync()
+            if i >= warmup:
+                times[precision].append(time.perf_counter() - t0)
     peak = (
         torch.cuda.max_memory_allocated() / 2**20
         if device.startswith("cuda")
         else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     )
-    return {
-        "stage": stage,
-        "size": size,
-        "device": _device_name(device),
-        "dtype": "float32",
-        "batch": batch,
-        "params_M": round(sum(p.numel() for p in module.parameters()) / 1e6, 2),
-        **extra,
-        "median_step_s": round(median, 4),
-        "iters_per_s": round(1 / median, 3),
-        "samples_per_s": round(batch / median, 1),
-        "peak_memory_MiB": round(peak, 1),
-        "steps_timed": steps,
-        "warmup": warmup,
-        "torch": torch.__version__,
-    }
+    base = statistics.median(times[precisions[0]])
+    rows = []
+    for precision in precisions:
+        median = statistics.median(times[precision])
+        rows.append(
+            {
+                "stage": stage,
+                "size": size,
+                "device": _device_name(device),
+                "dtype": "float32" if precision == "32-true" else "bfloat16 autocast, float32 weights",
+                "precision": precision,
+                "batch": batch,
+                "params_M": round(sum(p.numel() for p in module.parameters()) / 1e6, 2),
+                **extra,
+                "median_step_s": round(median, 4),
+                "spread_s": [round(min(times[precision]), 4), round(max(times[precision]), 4)],
+                "iters_per_s": round(1 / median, 3),
+                "samples_per_s": round(batch / median, 1),
+                f"speedup_vs_{precisions[0]}": round(base / median, 3),
+                "peak_memory_MiB": round(peak, 1),
+                "steps_timed": steps,
+                "warmup": warmup,
+                "torch": torch.__version__,
+            }
+        )
+    return rows
 
 
 def main() -> None:
@@ -151,6 +180,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--device", default=None)
+    parser.add_argument("--precisions", nargs="+", default=["32-true"])
     parser.add_argument("--out", default="outputs/bench/train_speed.json")
     parser.add_argument(
         "--one", nargs=3, default=None, help=argparse.SUPPRESS
@@ -161,7 +191,7 @@ def main() -> None:
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     if args.one:
         stage, size, batch = int(args.one[0]), args.one[1], int(args.one[2])
-        print(json.dumps(measure(stage, size, batch, args.steps, args.warmup, device)))
+        print(json.dumps(measure(stage, size, batch, args.steps, args.warmup, device, args.precisions)))
         return
     results = []
     for stage in args.stages:
@@ -182,17 +212,19 @@ def main() -> None:
                 str(args.warmup),
                 "--device",
                 device,
+                "--precisions",
+                *args.precisions,
             ]
             out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=REPO)
-            r = json.loads(out.stdout.strip().splitlines()[-1])
-            results.append(r)
-            print(
-                f"stage {stage} {size:6s} {r['params_M']:7.2f}M params  batch {r['batch']:3d}  "
-                f"{r['iters_per_s']:8.3f} it/s  "
-                f"{r['samples_per_s']:8.1f} samples/s  peak {r['peak_memory_MiB']:.0f} MiB  ({r['device']}, "
-                f"{r['dtype']})",
-                flush=True,
-            )
+            for r in json.loads(out.stdout.strip().splitlines()[-1]):
+                results.append(r)
+                print(
+                    f"stage {stage} {size:6s} {r['params_M']:7.2f}M params  batch {r['batch']:3d}  "
+                    f"{r['precision']:10s} {r['iters_per_s']:8.3f} it/s  {r['samples_per_s']:8.1f} samples/s "
+                    f"x{r[f'speedup_vs_{args.precisions[0]}']:.2f}  peak {r['peak_memory_MiB']:.0f} MiB  "
+                    f"({r['device']})",
+                    flush=True,
+                )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))
     print(f"wrote {args.out}")
