@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
+.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-precision bench-precision-model bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
@@ -83,7 +83,14 @@ bench-train: $(STAMP) ## training speed and peak memory of both stages (outputs/
 bench-generate: $(STAMP) ## time per sentence against length, AITS and a 10.9-minute motion (outputs/bench/generation_speed.json)
 	$(BIN)/python benchmarks/generation_speed.py $(ARGS)
 
-bench: bench-train bench-generate ## all speed measurements (training and generation), JSON and plots in outputs/bench/
+bench-precision: $(STAMP) ## fp32/bf16/int8 inference speed at the paper size against the float32 path before issue 16, and faithfulness (outputs/bench/inference_precision.json)
+	$(BIN)/python benchmarks/inference_precision.py $(ARGS)
+
+bench-precision-model: $(STAMP) ## faithfulness of fp32/bf16/int8 on the champion model (logit agreement, identical codes)
+	$(BIN)/python benchmarks/inference_precision.py --faithfulness-only --model models:/mmm-text2motion@champion \
+	    --out outputs/bench/inference_precision_champion.json $(ARGS)
+
+bench: bench-train bench-generate bench-precision ## all speed measurements (training and generation), JSON and plots in outputs/bench/
 
 stress: $(STAMP) ## concurrency and crash test (not in make test): 50 generate calls on a cold cache, racing promotions, a training SIGKILLed during saves
 	$(BIN)/python benchmarks/stress.py $(ARGS)

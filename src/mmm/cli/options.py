@@ -101,6 +101,22 @@ def add_generation_options(p) -> None:
         help="replace an existing --out folder of earlier samples whole (never a mix of old and new)",
     )
     p.defer(add_sampling_options)
+    p.defer(add_precision_option)
+
+
+def add_precision_option(p: argparse.ArgumentParser) -> None:
+    # imported here: keeps `mmm --help` fast (precision.py imports torch)
+    from mmm.generation.precision import DEFAULT_PRECISION, PRECISIONS
+
+    p.add_argument(
+        "--precision",
+        default=None,
+        choices=list(PRECISIONS),
+        help="arithmetic of the transformer's decoding passes: fp32, bf16 (autocast) or int8 (dynamic "
+        "int8 linear layers, CPU) (default: "
+        + ", ".join(f"{precision} on {device}" for device, precision in DEFAULT_PRECISION.items())
+        + ")",
+    )
 
 
 def sampling_config(args: argparse.Namespace):
@@ -152,6 +168,7 @@ def load_model(args: argparse.Namespace):
         parts=getattr(args, "kind", None) == UPPER_BODY,
         stage1=args.stage1,
         text_files={k: v for k, v in text_files.items() if v is not None},
+        precision=getattr(args, "precision", None),
     )
 
 
@@ -165,6 +182,7 @@ def meta(args, model, out, kind: str, extra: dict) -> dict:
         "seed": args.seed,
         "model": model.identity,
         "sampling": sampling,
+        "precision": model.precision,
         "seconds": seconds,
         "forward_passes": out.forward_passes,
         **extra,

@@ -83,6 +83,7 @@ class EvaluateConfig:
     adherence_max_items: int | None = None
     output_dir: str = "outputs/evaluation"
     device: str = "cpu"
+    precision: str | None = None  # fp32 | bf16 | int8 decoding passes; null: the device's default
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     editing: EditingConfig = field(default_factory=EditingConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -183,7 +184,11 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
     editing = cfg.task != "text2motion"
     # parts=True: with no model named, upper-body edits default to the part-aware champion.
     model = TextToMotion.load(
-        cfg.text2motion, tracking_uri, device=cfg.device, parts=cfg.task == "upper-body"
+        cfg.text2motion,
+        tracking_uri,
+        device=cfg.device,
+        parts=cfg.task == "upper-body",
+        precision=cfg.precision,
     )
     if editing:
         check_task_model(cfg.task, model)  # before the evaluator and data: the model is the usual mistake
@@ -198,6 +203,7 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
     items, _ = cfg.data.items(cfg.split, root)
     results: dict = {
         "text2motion_model": model.identity,
+        "precision": model.precision,
         "evaluator": getattr(evaluator, "identity", None),
         "split": cfg.split,
         "data_fingerprint": dataset_fingerprint(root),
@@ -336,6 +342,7 @@ class _EvaluationRun:
             "task": cfg.task,
             "replications": cfg.protocol.replications,
             "what": ",".join(cfg.what),
+            "precision": cfg.precision or "default",
             "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500],
         }
         for key, value in params.items():

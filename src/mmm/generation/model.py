@@ -33,6 +33,7 @@ from mmm.checkpoints import (
 )
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.length import load_length_estimator
+from mmm.generation.precision import check_precision, default_precision, inference_copy
 from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
 from mmm.generation.upper_body import edit_upper_body
 from mmm.kinds import LENGTH, STAGE2, STAGE2_PARTS
@@ -72,6 +73,7 @@ class TextToMotion:
         length_estimator=None,
         device: str | torch.device = "cpu",
         length_source: tuple | None = None,
+        precision: str | None = None,
     ):
         self.device = torch.device(device)
         self._length_source = length_source  # (reference, tracking uri): loaded on first use
@@ -86,6 +88,36 @@ class TextToMotion:
         self.fps = self.skeleton.fps
         self.max_frames = (transformer.cfg.max_tokens - 1) * self.unit
         self.min_frames = 24 if self.skeleton.name == "kit" else 40
+        self._inference = None
+        self.precision = precision
+
+    # -- inference precision (mmm.generation.precision) -----------------------------------------
+    @property
+    def precision(self) -> str:
+        """fp32 | bf16 | int8: the arithmetic of the transformer's decoding passes. Setting it
+        (None: this device's default) rebuilds the inference copy on next use; `transformer`
+        itself always keeps the float32 weights (what checkpoints and bundles hold)."""
+        return self._precision
+
+    @precision.setter
+    def precision(self, value: str | None) -> None:
+        value = default_precision(self.device) if value is None else check_precision(value)
+        if value == "int8" and self.device.type != "cpu":
+            raise ValueError(
+                f"precision int8 runs on CPU (torch._int_mm with per-token activation scales); on "
+                f"{self.device.type} use bf16 or fp32"
+            )
+        if value != getattr(self, "_precision", None):
+            self._precision, self._inference = value, None
+
+    @property
+    def inference_transformer(self):
+        """The module the decoding passes run: the transformer at `precision` (built once)."""
+        if self._precision == "fp32":
+            return self.transformer
+        if self._inference is None or self._inference[0] is not self.transformer:
+            self._inference = (self.transformer, inference_copy(self.transformer, self._precision))
+        return self._inference[1]
 
     # -- loading --------------------------------------------------------------------------------
     @classmethod
@@ -99,6 +131,7 @@ class TextToMotion:
         parts: bool = False,
         stage1: str | None = None,
         text_files: dict[str, str] | None = None,
+        precision: str | None = None,
     ) -> "TextToMotion":
         """From a stage-2 checkpoint path, runs:/ID, models:/NAME@ALIAS; by default the champion
         (models:/mmm-text2motion@champion) when one was promoted, else the newest stage-2 run.
@@ -111,7 +144,11 @@ class TextToMotion:
         models:/ reference), when what the checkpoint records cannot be used (see `from_files`).
         text_files: the text encoder's files ({"weights": PATH, "vocab": PATH} for CLIP), likewise.
         A registered version's files come with it, and its recorded fingerprints are checked.
+        precision: fp32 | bf16 | int8 for the decoding passes (None: the device's default;
+        mmm.generation.precision).
         """
+        if precision is not None:
+            check_precision(precision)
         tracking_uri = resolve_tracking_uri(tracking_uri)
         tokenizer_checkpoint = None
         if stage1 is not None:
@@ -127,6 +164,7 @@ class TextToMotion:
                 length_source=(length_model, tracking_uri),
                 text_files=text_files,
                 expected_identity=expected,
+                precision=precision,
             )
             model.identity.update(
                 {"reference": reference, "run_id": version.run_id, "version": version.version}
@@ -146,6 +184,7 @@ class TextToMotion:
             tracking_uri=tracking_uri,
             length_source=(length_model, tracking_uri),
             text_files=text_files,
+            precision=precision,
         )
         model.identity.update({"reference": resolved, "run_id": run_id})
         return model
@@ -160,6 +199,7 @@ class TextToMotion:
         length_source: tuple | None = None,
         text_files: dict[str, str] | None = None,
         expected_identity: dict | None = None,
+        precision: str | None = None,
     ) -> "TextToMotion":
         """From a stage-2 checkpoint file, with the stage-1 model and text encoder it was trained with.
 
@@ -269,7 +309,16 @@ class TextToMotion:
             "text_encoder": text["identity"],
             "transformer": ckpt.get(FINGERPRINT_KEY) or expected_identity.get("transformer"),
         }
-        return cls(tokenizer, module.transformer, encoder, info, None, device, length_source=length_source)
+        return cls(
+            tokenizer,
+            module.transformer,
+            encoder,
+            info,
+            None,
+            device,
+            length_source=length_source,
+            precision=precision,
+        )
 
     # -- pieces ---------------------------------------------------------------------------------
     @property
@@ -362,8 +411,21 @@ class TextToMotion:
 
     @torch.no_grad()
     def decode(self, codes: list[np.ndarray]) -> list[np.ndarray]:
-        """Un-normalized features (4L, D) of each code sequence; one decoder call per distinct
-        length (padding would leak into the last frames through the convolutions)."""
+        """Un-normalized features (4L, D) of each code sequence: one decoder call for the whole
+        mixed-length batch (the decoder zeroes what lies past each row's end after every layer,
+        so nothing leaks from the padding); a tokenizer without that (part-aware) gets one call
+        per distinct length."""
+        tokenizer = self.tokenizer.tokenizer
+        if hasattr(tokenizer, "decode_lengths") and codes and all(np.ndim(c) == 1 for c in codes):
+            lengths = [len(c) for c in codes]
+            batch = np.zeros((len(codes), max(lengths)), dtype=np.int64)
+            for i, c in enumerate(codes):
+                batch[i, : len(c)] = c
+            x = tokenizer.decode_lengths(
+                torch.as_tensor(batch, device=self.device), torch.tensor(lengths, device=self.device)
+            )
+            x = (x * self.tokenizer.std + self.tokenizer.mean).cpu().numpy()
+            return [x[i, : n * self.unit] for i, n in enumerate(lengths)]
         groups: dict[int, list[int]] = defaultdict(list)
         for i, c in enumerate(codes):
             groups[len(c)].append(i)
@@ -431,7 +493,9 @@ class TextToMotion:
         generator = torch.Generator(device=self.device).manual_seed(seed) if seed is not None else None
         t0 = time.perf_counter()
         lengths = frames_to_codes(torch.tensor(frames), self.unit).to(self.device)
-        result = sample_tokens(self.transformer, text, lengths, sampling, generator=generator, trace=trace)
+        result = sample_tokens(
+            self.inference_transformer, text, lengths, sampling, generator=generator, trace=trace
+        )
         self._sync()
         seconds["sample"] = time.perf_counter() - t0
         out = self._finish(texts, result, frames, seconds, started)
@@ -516,7 +580,7 @@ class TextToMotion:
         no_text = torch.tensor([t is None for t in texts], dtype=torch.bool)
         lengths = torch.tensor([len(mask) for _, _, mask in rows], dtype=torch.long, device=self.device)
         result = sample_tokens(
-            self.transformer,
+            self.inference_transformer,
             emb,
             lengths,
             sampling,
@@ -684,7 +748,7 @@ class TextToMotion:
             )
             emb = self.encode_text([None] * n)
             result = sample_tokens(
-                self.transformer,
+                self.inference_transformer,
                 emb,
                 lengths.to(self.device),
                 one_pass,

@@ -235,6 +235,7 @@ def sample_tokens(
     condition: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     trace: bool = False,
+    reference: bool = False,
 ) -> SampleResult:
     """Decode codes for a batch.
 
@@ -242,6 +243,12 @@ def sample_tokens(
     codes per sample (ceil(frames / 4)). keep_tokens/keep_mask (B, >= max L): codes that are given
     and never change (editing). no_text (B,) True: decode without text (the unconditional branch).
     condition (B, >= max L): a part-aware model's lower-body codes (its MASK id where hidden).
+
+    A model with `text_context`/`forward_cached` (MaskedMotionTransformer and its inference
+    copies, mmm.generation.precision) decodes with less work per pass (`_decode_cached`): the
+    words' cross-attention keys/values once per sample, the head only where codes are drawn, no
+    host synchronization inside the loop; the same codes as the plain loop (`reference=True`, or
+    a model with only `forward`) for the same seed in float32.
     """
     if cfg.decoding == "released":
         if no_text is not None and bool(no_text.any()) or condition is not None or trace:
@@ -289,6 +296,10 @@ def sample_tokens(
     guided = cfg.guidance_scale != 1.0
     record = DecodeTrace() if trace else None
     passes = int(iterations.max()) if B else 0
+    if not reference and hasattr(model, "forward_cached"):
+        return _decode_cached(
+            model, text, tokens, cond, free, iterations, code_lengths, no_text, cfg, generator, record
+        )
     for step in range(passes):
         active = step < iterations
         idx = active.nonzero().squeeze(1)
@@ -337,6 +348,123 @@ def sample_tokens(
             conf_full = torch.full((B, M), float("nan"), device=device)
             conf_full[idx] = torch.where(masked, confidence, torch.full_like(confidence, float("nan")))
             record.active.append(active.cpu())
+            record.confidence.append(conf_full.cpu())
+            record.masked.append((tokens == mask_id).cpu())
+            record.tokens.append(tokens.cpu())
+    return SampleResult(tokens, code_lengths, iterations, passes, record)
+
+
+def _remaining_masked(
+    iterations: torch.Tensor, free: torch.Tensor, gamma, passes: int
+) -> tuple[torch.Tensor, list[list[int]]]:
+    """(passes, B) the positions each sample keeps masked after each pass, 0 where it does not
+    run, with the reference loop's arithmetic (float32 progress, the schedule in float64, float32
+    product), on the host before the loop; and the rows that run in each pass."""
+    iterations, free = iterations.cpu(), free.cpu()
+    B = len(iterations)
+    remain = torch.zeros(passes, B, dtype=torch.long)
+    active: list[list[int]] = []
+    for step in range(passes):
+        idx = (step < iterations).nonzero().squeeze(1)
+        t = (step + 1) / iterations[idx].float()
+        remain[step, idx] = (
+            torch.ceil(torch.tensor([gamma(float(x)) for x in t]) * free[idx].float() - 1e-6)
+            .long()
+            .clamp(min=0)
+        )
+        active.append(idx.tolist())
+    return remain, active
+
+
+def _decode_cached(
+    model, text, tokens, cond, free, iterations, code_lengths, no_text, cfg: SamplingConfig, generator, record
+) -> SampleResult:
+    """The decoding loop of `sample_tokens` with less work per pass, the same codes.
+
+    Everything that depends on the data only through counts (which rows run, how many positions
+    stay masked) is planned on the host before the loop; the loop itself only queues device work.
+    The draw is multinomial's own (argmax of p / q, q ~ Exp(1) over every position of the rows that
+    run), so the generator is consumed exactly as the reference loop consumes it."""
+    device = tokens.device
+    B, M = tokens.shape
+    K, mask_id = model.num_codes, model.mask_id
+    passes = int(iterations.max()) if B else 0
+    gamma = DECODING_SCHEDULES[cfg.schedule]
+    remain_all, active = _remaining_masked(iterations, free, gamma, passes)
+    # Positions masked at the start of each pass, per sample: the free ones, then what the previous
+    # pass left masked.
+    masked_before = torch.cat((free.cpu()[None], remain_all[:-1]), dim=0) if passes else remain_all
+    guided = cfg.guidance_scale != 1.0
+    if guided:
+        context = model.text_context(
+            torch.cat((text.sentence, text.sentence)),
+            torch.cat((text.words, text.words)),
+            torch.cat((text.word_mask, text.word_mask)),
+            torch.cat((no_text, torch.ones_like(no_text))),
+        )
+    else:
+        context = model.text_context(text.sentence, text.words, text.word_mask, no_text)
+    remain_all = remain_all.to(device)
+    plans = []
+    for step in range(passes):  # the host plan: rows, their index tensors, masked counts
+        rows = active[step]
+        everyone = len(rows) == B
+        idx = None if everyone else torch.tensor(rows, dtype=torch.long, device=device)
+        if step and plans[-1][1] == rows:
+            idx, sub_context = plans[-1][2], plans[-1][3]
+        elif guided:
+            sub_context = context.select(None if everyone else torch.cat((idx, idx + B)))
+        else:
+            sub_context = context.select(idx)
+        plans.append((step, rows, idx, sub_context, int(masked_before[step, rows].sum())))
+    no_text_rows = no_text.repeat_interleave(M)
+    for step, rows, idx, sub_context, count in plans:
+        b = len(rows)
+        sub = tokens if idx is None else tokens.index_select(0, idx)
+        sub_condition = None if cond is None else (cond if idx is None else cond.index_select(0, idx))
+        masked = sub == mask_id
+        # The masked positions in row-major order (a stable sort puts them first): no host sync.
+        head_rows = torch.argsort((~masked).flatten().to(torch.uint8), stable=True)[:count]
+        if guided:
+            both = model.forward_cached(
+                torch.cat((sub, sub)),
+                sub_context,
+                None if sub_condition is None else torch.cat((sub_condition, sub_condition)),
+                torch.cat((head_rows, head_rows + b * M)),
+            )
+            with_text, without_text = both.chunk(2)
+            dropped = (no_text_rows if idx is None else no_text.index_select(0, idx).repeat_interleave(M))[
+                head_rows
+            ]
+            logits = torch.where(
+                dropped[:, None], with_text, without_text + cfg.guidance_scale * (with_text - without_text)
+            )
+        else:
+            logits = model.forward_cached(sub, sub_context, sub_condition, head_rows)
+        logits = filter_logits(logits, cfg.top_k, cfg.top_p)
+        if cfg.temperature <= 0:
+            sampled = logits.argmax(-1)
+            probs = logits.softmax(-1)
+        else:
+            probs = (logits / cfg.temperature).softmax(-1)
+            # torch.multinomial(probs, 1) draws argmax(p / q), q ~ Exp(1) for every row given: the
+            # same noise over all b * M positions, read where codes are drawn.
+            noise = torch.empty(b * M, K, device=device).exponential_(1, generator=generator)
+            sampled = (probs / noise.index_select(0, head_rows)).argmax(-1)
+        drawn = probs.gather(-1, sampled.unsqueeze(-1)).squeeze(-1)
+        confidence = (
+            torch.full((b * M,), float("inf"), device=device).index_copy(0, head_rows, drawn).view(b, M)
+        )
+        decoded = sub.flatten().index_copy(0, head_rows, sampled).view(b, M)
+        remain = remain_all[step] if idx is None else remain_all[step].index_select(0, idx)
+        rank = confidence.argsort(dim=1).argsort(dim=1)
+        decoded = torch.where(rank < remain[:, None], torch.full_like(decoded, mask_id), decoded)
+        tokens = decoded if idx is None else tokens.index_copy(0, idx, decoded)
+        if record is not None:
+            conf_full = torch.full((B, M), float("nan"), device=device)
+            conf_rows = torch.where(masked, confidence, torch.full_like(confidence, float("nan")))
+            conf_full[rows] = conf_rows
+            record.active.append((step < iterations).cpu())
             record.confidence.append(conf_full.cpu())
             record.masked.append((tokens == mask_id).cpu())
             record.tokens.append(tokens.cpu())

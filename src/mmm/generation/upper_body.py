@@ -117,7 +117,7 @@ def edit_upper_body(
     lengths = torch.full((num_samples,), L, dtype=torch.long, device=model.device)
     device_generator = torch.Generator(device=model.device).manual_seed(seed) if seed is not None else None
     result = sample_tokens(
-        model.transformer,
+        model.inference_transformer,
         emb,
         lengths,
         sampling,

@@ -44,6 +44,7 @@ from mmm.checkpoints import load_checkpoint
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.edits import UPPER_BODY, EditRequest, sampling_defaults
 from mmm.generation.model import TextToMotion
+from mmm.generation.precision import check_precision
 from mmm.generation.sampler import MAX_SAMPLES, SamplingConfig, SamplingValueError, check_count, check_seed
 from mmm.generation.upper_body import DEFAULT_LOWER_MASK
 from mmm.resolve import TOKENIZER, TRANSFORMER
@@ -85,7 +86,12 @@ def _param_type(value) -> str:
     return "string" if isinstance(value, str) else "long" if isinstance(value, int) else "double"
 
 
-PARAM_SCHEMA = ParamSchema([ParamSpec(k, _param_type(v), v) for k, v in SAMPLING_PARAMS.items()])
+# Inference params beside the sampling ones: precision "" keeps the one the model was loaded with
+# (model_config {"precision": ...}, else the device's default); fp32 | bf16 | int8 switch to that.
+INFERENCE_PARAMS = {"precision": ""}
+PARAM_SCHEMA = ParamSchema(
+    [ParamSpec(k, _param_type(v), v) for k, v in {**SAMPLING_PARAMS, **INFERENCE_PARAMS}.items()]
+)
 SIGNATURE = ModelSignature(inputs=INPUT_SCHEMA, params=PARAM_SCHEMA)
 INPUT_EXAMPLE = pd.DataFrame({"text": ["a person walks forward"], "length": [DEFAULT_FRAMES], "seed": [0]})
 # The part-aware bundle edits the upper body of a given motion.
@@ -100,8 +106,8 @@ PARTS_SCHEMA = Schema(
 # MLflow fills absent params from the signature's defaults: the edit's own (guidance 4) there.
 PARTS_PARAM_SCHEMA = ParamSchema(
     [
-        ParamSpec(k, _param_type(SAMPLING_PARAMS[k]), v)
-        for k, v in {**SAMPLING_PARAMS, **sampling_defaults(UPPER_BODY)}.items()
+        ParamSpec(k, _param_type({**SAMPLING_PARAMS, **INFERENCE_PARAMS}[k]), v)
+        for k, v in {**SAMPLING_PARAMS, **sampling_defaults(UPPER_BODY), **INFERENCE_PARAMS}.items()
     ]
 )
 PARTS_SIGNATURE = ModelSignature(inputs=PARTS_SCHEMA, params=PARTS_PARAM_SCHEMA)
@@ -125,14 +131,17 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         seed    optional int, default 0: a row's motion depends only on its text, length, seed
                 and the sampling params, never on the other rows of the request.
     Params (optional): max_iterations, temperature, guidance_scale, top_k, top_p (SamplingConfig;
-        top_k/top_p 1.0 = off), decoding ("package", or "released": the authors' decoding loop).
+        top_k/top_p 1.0 = off), decoding ("package", or "released": the authors' decoding loop),
+        precision ("fp32", "bf16" or "int8" (CPU): the arithmetic of the transformer's decoding
+        passes; "" or absent: the model's, model_config {"precision": ...} at load).
     Output: one dict per row, JSON-serializable:
         {"text", "length", "seed", "joints": (T, 22, 3) nested lists, "features": (T, 263) nested lists}
     A part-aware bundle (mmm-upperbody) edits the upper body of a motion instead: each row has
         text (what the upper body does), source (T, 263) features as nested lists, optional
         lower_mask (share of the source's lower-body codes hidden, default 0.5) and seed (guidance
         defaults to 4 there); and the output adds "lower_mask".
-    model_config {"device": "cuda"} loads it on a GPU (default "cpu"); {"max_rows": N} bounds the
+    model_config {"device": "cuda"} loads it on a GPU (default "cpu"); {"precision": "int8"} sets the
+    decoding precision (default: the device's, mmm.generation.precision); {"max_rows": N} bounds the
     rows of one request (default 64; more are refused, HTTP 400 when served). A served model takes
     them from MLFLOW_PYFUNC_INFERENCE_CONFIG='{"max_rows": 16}'.
     """
@@ -146,10 +155,22 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         # from the paths the checkpoint recorded on the training machine.
         text_files = {k[len("text_") :]: v for k, v in context.artifacts.items() if k.startswith("text_")}
         self.model = TextToMotion.from_files(
-            transformer, context.artifacts[TOKENIZER], device=device, text_files=text_files
+            transformer,
+            context.artifacts[TOKENIZER],
+            device=device,
+            text_files=text_files,
+            precision=config.get("precision") or None,
         )
+        self.precision = self.model.precision
 
     def predict(self, context, model_input, params=None):
+        params = dict(params or {})
+        precision = params.pop("precision", None) or getattr(self, "precision", None)
+        if precision:
+            try:
+                self.model.precision = check_precision(str(precision))
+            except ValueError as e:
+                raise InvalidRequest(f"params: {e}") from None
         if self.model.part_aware:
             # the edit's own defaults (guidance 4), as PARTS_PARAM_SCHEMA gives them, for direct calls
             params = {**sampling_defaults(UPPER_BODY), **(params or {})}
@@ -268,9 +289,11 @@ def input_rows(model_input) -> list[dict]:
 def sampling_config(params: dict | None) -> SamplingConfig:
     """SamplingConfig from request params (unknown names refused, 1.0 top_k/top_p = off)."""
     params = dict(params or {})
-    unknown = sorted(set(params) - set(SAMPLING_PARAMS))
+    unknown = sorted(set(params) - set(SAMPLING_PARAMS) - set(INFERENCE_PARAMS))
     if unknown:
-        raise InvalidRequest(f"unknown params {', '.join(unknown)}; accepted: {', '.join(SAMPLING_PARAMS)}")
+        accepted = ", ".join((*SAMPLING_PARAMS, *INFERENCE_PARAMS))
+        raise InvalidRequest(f"unknown params {', '.join(unknown)}; accepted: {accepted}")
+    params.pop("precision", None)
     values = {**SAMPLING_PARAMS, **{k: v for k, v in params.items() if v is not None}}
     for key in ("temperature", "guidance_scale", "top_k", "top_p"):
         try:

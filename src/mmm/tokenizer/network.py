@@ -89,6 +89,28 @@ class Decoder(nn.Module):
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         return self.net(z)
 
+    def forward_lengths(self, z: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """`forward` of a batch of mixed lengths (B, C, T') with (B,) valid steps each: every
+        convolution reads zeros past a row's end (zeroed after each layer), as it reads its own
+        zero padding when the row is decoded alone; so the valid frames are those of decoding each
+        row alone (to float rounding), in one call. Past a row's end: zeros."""
+
+        def keep(x: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+            return x * (torch.arange(x.shape[-1], device=x.device)[None] < n[:, None]).unsqueeze(1).to(
+                x.dtype
+            )
+
+        n = lengths.to(z.device)
+        x = keep(z, n)
+        for layer in self.net:
+            blocks = layer if isinstance(layer, nn.Sequential) else [layer]
+            for block in blocks:
+                x = block(x)
+                if isinstance(block, nn.Upsample):
+                    n = n * int(block.scale_factor)
+                x = keep(x, n)
+        return x
+
 
 @dataclass
 class TokenizerOutput:
@@ -126,6 +148,13 @@ class MotionTokenizer(nn.Module):
     def decode(self, indices: torch.Tensor) -> torch.Tensor:
         """Motion (B, T' * 4, D) of code indices (B, T')."""
         return self.decoder(self.quantizer.lookup(indices)).transpose(1, 2)
+
+    @torch.no_grad()
+    def decode_lengths(self, indices: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """Motion (B, T' * 4, D) of code indices (B, T') padded past each row's `lengths` (B,):
+        one decoder call for a mixed-length batch, each row's frames those `decode` gives it alone
+        (to float rounding); frames past a row's 4 * length are zero."""
+        return self.decoder.forward_lengths(self.quantizer.lookup(indices), lengths).transpose(1, 2)
 
     @property
     def quantizers(self) -> dict[str, EMAQuantizer]:

@@ -36,6 +36,7 @@ guidance) is a learned null sentence and a single learned null word.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -94,9 +95,20 @@ class Attention(nn.Module):
         self.out = nn.Linear(dim, dim)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor) -> torch.Tensor:
+        return self.attend(x, self.keys_values(context), key_mask)
+
+    def keys_values(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keys and values (B, heads, T, E / heads) of the context (B, T, E); inference caches them."""
+        B, T, _ = context.shape
+        k, v = self.kv(context).view(B, T, 2, self.heads, -1).permute(2, 0, 3, 1, 4)
+        return k, v
+
+    def attend(
+        self, x: torch.Tensor, kv: tuple[torch.Tensor, torch.Tensor], key_mask: torch.Tensor
+    ) -> torch.Tensor:
         B, S, E = x.shape
         q = self.q(x).view(B, S, self.heads, -1).transpose(1, 2)
-        k, v = self.kv(context).view(B, context.shape[1], 2, self.heads, -1).permute(2, 0, 3, 1, 4)
+        k, v = kv
         y = F.scaled_dot_product_attention(
             q, k, v, attn_mask=key_mask[:, None, None, :], dropout_p=self.dropout if self.training else 0.0
         )
@@ -147,6 +159,40 @@ class CrossAttentionBlock(nn.Module):
         )
         x = x + self.drop(self.attn(self.ln_x(x), self.ln_words(words), mask))
         return x + self.mlp(self.ln2(x))
+
+    def word_keys_values(self, words: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The keys and values `forward` computes from the words: the same for every decoding pass."""
+        return self.attn.keys_values(self.ln_words(words))
+
+    def forward_cached(
+        self, x: torch.Tensor, kv: tuple[torch.Tensor, torch.Tensor], word_mask: torch.Tensor
+    ) -> torch.Tensor:
+        """`forward` with the words' keys and values from `word_keys_values` (inference only)."""
+        x = x + self.attn.attend(self.ln_x(x), kv, word_mask)
+        return x + self.mlp(self.ln2(x))
+
+
+@dataclass
+class TextContext:
+    """What every decoding pass of a batch reads from its text, computed once per sample
+    (`MaskedMotionTransformer.text_context`): the projected sentence token, each cross layer's
+    keys and values of the words, the visible words and whether the sentence token is visible."""
+
+    sentence: torch.Tensor  # (B, E)
+    word_kv: list[tuple[torch.Tensor, torch.Tensor]]  # per cross layer: (B, heads, Lw, E / heads) each
+    word_mask: torch.Tensor  # (B, Lw) bool
+    see_text: torch.Tensor  # (B,) bool
+
+    def select(self, index: torch.Tensor | None) -> "TextContext":
+        """The rows `index` (None: all)."""
+        if index is None:
+            return self
+        return TextContext(
+            self.sentence[index],
+            [(k[index], v[index]) for k, v in self.word_kv],
+            self.word_mask[index],
+            self.see_text[index],
+        )
 
 
 def embed_ids(
@@ -294,6 +340,87 @@ class MaskedMotionTransformer(nn.Module):
         for layer in self.layers:
             x = layer(x, key_mask)
         return self.head(self.ln_f(x[:, 1:]))
+
+    # -- inference (decoding): the same arithmetic as `forward`, less work per pass -------------
+    def _autocast(self, device: torch.device):
+        """bfloat16 autocast when this is an inference copy made for it (mmm.generation.precision)."""
+        dtype = getattr(self, "inference_autocast", None)
+        if dtype is None:
+            return contextlib.nullcontext()
+        return torch.autocast(device.type, dtype=dtype)
+
+    def text_context(
+        self,
+        sentence: torch.Tensor,
+        words: torch.Tensor,
+        word_mask: torch.Tensor,
+        drop_text: torch.Tensor | None = None,
+    ) -> TextContext:
+        """What `forward` computes from the text alone, once for all the passes of a decoding."""
+        with self._autocast(sentence.device):
+            B = sentence.shape[0]
+            drop = (
+                drop_text
+                if drop_text is not None
+                else torch.zeros(B, dtype=torch.bool, device=sentence.device)
+            )
+            if self.released:
+                see_text = ~drop
+                if drop_text is not None:
+                    sentence = sentence * see_text[:, None].to(sentence.dtype)
+                    words = words * see_text[:, None, None].to(words.dtype)
+                mask = torch.ones(words.shape[:2], dtype=torch.bool, device=words.device)
+                s = self.sentence_proj(sentence)
+                w = self.word_proj(words) if self.cross_layers else None
+            else:
+                see_text = torch.ones_like(drop)
+                s = self.sentence_proj(sentence)
+                w = self.word_proj(words)
+                s = torch.where(drop[:, None], self.null_sentence.expand_as(s), s)
+                null_words = torch.zeros_like(w[:, :1]) + self.null_word
+                w = torch.where(drop[:, None, None], torch.cat((null_words, w[:, 1:]), dim=1), w)
+                first_only = torch.zeros_like(word_mask)
+                first_only[:, 0] = True
+                mask = torch.where(drop[:, None], first_only, word_mask)
+            kv = [layer.word_keys_values(w) for layer in self.cross_layers]
+        return TextContext(s, kv, mask, see_text)
+
+    def forward_cached(
+        self,
+        tokens: torch.Tensor,
+        context: TextContext,
+        condition: torch.Tensor | None = None,
+        head_rows: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Logits of `forward` from a `text_context` (B rows, like tokens): (B, M, K), or (N, K) at
+        the N positions `head_rows` (N,) names (flat indices into B * M) when given, the output
+        head evaluated there only. Float32 logits whatever the precision."""
+        B, M = tokens.shape
+        with self._autocast(tokens.device):
+            x = self.embed_tokens(tokens)
+            if self.released:
+                if self.cross_layers:
+                    x = x + self.positions[:M]
+                    for layer, kv in zip(self.cross_layers, context.word_kv):
+                        x = layer.forward_cached(x, kv, context.word_mask)
+                x = torch.cat((context.sentence.unsqueeze(1).to(x.dtype), x), dim=1) + self.positions[: M + 1]
+                key_mask = torch.cat((context.see_text[:, None], tokens != self.pad_id), dim=1)
+            else:
+                x = x + self.positions[:M]
+                if condition is not None:
+                    x = x + self.condition(condition)
+                for layer, kv in zip(self.cross_layers, context.word_kv):
+                    x = layer.forward_cached(x, kv, context.word_mask)
+                x = torch.cat((context.sentence.unsqueeze(1).to(x.dtype), x), dim=1)
+                key_mask = torch.cat(
+                    (torch.ones_like(tokens[:, :1], dtype=torch.bool), tokens != self.pad_id), dim=1
+                )
+            for layer in self.layers:
+                x = layer(x, key_mask)
+            x = x[:, 1:]
+            if head_rows is not None:
+                x = x.reshape(B * M, -1).index_select(0, head_rows)
+            return self.head(self.ln_f(x)).float()
 
     def _forward_released(
         self,

@@ -1,0 +1,106 @@
+"""Inference precision (issue 16): fp32 | bf16 | int8 decoding passes, never written back."""
+
+import pytest
+import torch
+
+from mmm.cli.app import build_parser
+from mmm.generation.model import TextToMotion
+from mmm.generation.precision import (
+    PRECISIONS,
+    Int8Linear,
+    check_precision,
+    default_precision,
+    inference_copy,
+)
+from mmm.generation.sampler import SamplingConfig, frames_to_codes, sample_tokens
+from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.optim import OptimConfig
+from tests.test_decoding_speedups import K, text, tiny_transformer
+
+
+class FakeText:
+    name, identity, sentence_dim, word_dim, max_words = "fake", "fake-0", 6, 5, 8
+
+    def encode(self, texts):
+        return text(len(texts))
+
+
+@pytest.fixture(scope="module")
+def t2m():
+    torch.manual_seed(0)
+    tok = TokenizerModule(
+        263, TokenizerConfig(width=16, num_codes=K, code_dim=8), OptimConfig(), TokenizerLossConfig()
+    ).eval()
+    transformer = tiny_transformer()
+    transformer.codebook.copy_(tok.tokenizer.codebook[:, :8].detach())
+    return TextToMotion(tok, transformer, FakeText(), {"reference": "test"})
+
+
+def test_unknown_precision_names_the_choices(t2m):
+    with pytest.raises(ValueError, match="precision must be one of fp32, bf16, int8, got 'fp16'"):
+        check_precision("fp16")
+    with pytest.raises(ValueError, match="fp32, bf16, int8"):
+        t2m.precision = "fp16"
+    with pytest.raises(ValueError, match="fp32, bf16, int8"):
+        TextToMotion.load("nowhere.ckpt", precision="half")
+    assert t2m.precision == default_precision("cpu") and PRECISIONS == ("fp32", "bf16", "int8")
+
+
+def test_inference_copies_never_touch_the_trained_weights():
+    model = tiny_transformer()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    copies = {p: inference_copy(model, p) for p in PRECISIONS}
+    assert copies["fp32"] is model
+    assert isinstance(copies["int8"].layers[0].mlp[0], Int8Linear)
+    assert copies["bf16"].layers[0].mlp[0].weight.dtype == torch.bfloat16
+    assert copies["int8"].codebook is model.codebook  # what is not converted is shared, not copied
+    emb = text(2)
+    codes = frames_to_codes(torch.tensor([120, 40]))
+    for p in PRECISIONS:
+        sample_tokens(copies[p], emb, codes, SamplingConfig(), generator=torch.Generator().manual_seed(0))
+    after = model.state_dict()
+    assert after.keys() == before.keys()
+    assert all(torch.equal(before[k], after[k]) and after[k].dtype == before[k].dtype for k in before)
+    assert all(p.dtype == torch.float32 and p.requires_grad for p in model.parameters())
+
+
+def test_int8_linear_is_close_to_the_float_layer():
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(64, 48)
+    x = torch.randn(3, 7, 64)
+    q = Int8Linear(linear)
+    assert q.qweight_t.dtype == torch.int8 and q.qweight_t.shape == (64, 48)
+    reference = linear(x)
+    assert (q(x) - reference).abs().max() < 0.02 * reference.abs().max()
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_every_precision_generates_and_stays_close_to_fp32(t2m, precision):
+    t2m.precision = "fp32"
+    reference = t2m.generate(["a", "b"], frames=[120, 60], seed=3)
+    t2m.precision = precision
+    try:
+        out = t2m.generate(["a", "b"], frames=[120, 60], seed=3)
+        assert t2m.inference_transformer.__class__ is type(t2m.transformer)
+        if precision != "fp32":
+            assert t2m.inference_transformer is not t2m.transformer
+            assert t2m.inference_transformer is t2m.inference_transformer  # built once
+    finally:
+        t2m.precision = "fp32"
+    assert [f.shape for f in out.features] == [(120, 263), (60, 263)]
+    same = sum(int((a == b).sum()) for a, b in zip(out.codes, reference.codes)) / sum(map(len, out.codes))
+    assert same == 1.0 if precision == "fp32" else same > 0.8
+
+
+def test_cli_and_evaluate_take_a_precision():
+    parser = build_parser()
+    for command in (["generate", "--text", "x"], ["generate-long", "--text", "x"]):
+        args = parser.parse_args([*command, "--out", "o", "--precision", "int8"])
+        assert args.precision == "int8"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["generate", "--text", "x", "--out", "o", "--precision", "fp16"])
+    from mmm.evaluation.run import load_evaluate_config
+
+    assert load_evaluate_config(["precision=bf16"]).precision == "bf16"
+    assert load_evaluate_config([]).precision is None
