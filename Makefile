@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-precision bench-precision-model bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
+.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-data bench-precision bench-precision-model bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
@@ -79,6 +79,12 @@ tokenize: $(STAMP) ## tokenize the dataset with a stage-1 model and cache captio
 
 bench-train: $(STAMP) ## training speed and peak memory of both stages (outputs/bench/train_speed.json)
 	$(BIN)/python benchmarks/train_speed.py $(ARGS)
+
+BENCH_DATA_ROOT ?= outputs/bench/data
+BENCH_DATA_CLIPS ?= 15000 40000
+
+bench-data: $(STAMP) ## data at scale: HumanML3D- and Motion-X-sized synthetic sets; loading, Mean/Std, loaders, token and caption caches, cached restart (outputs/bench/data_scale.json); ~20 GiB under BENCH_DATA_ROOT
+	$(BIN)/python benchmarks/data_scale.py --root $(BENCH_DATA_ROOT) --num-clips $(BENCH_DATA_CLIPS) $(ARGS)
 
 bench-generate: $(STAMP) ## time per sentence against length, AITS and a 10.9-minute motion (outputs/bench/generation_speed.json)
 	$(BIN)/python benchmarks/generation_speed.py $(ARGS)

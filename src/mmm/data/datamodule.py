@@ -248,11 +248,22 @@ class TokenTextDataModule(_DatasetFolder):
         self.token_cache_dir, self.max_tokens = token_cache_dir, max_tokens
         self.tokens = None
         self.data_fingerprint: str | None = None
+        self._loaded: dict[str, tuple] = {}
 
     def _items(self, split: str):
-        items, report = self.cfg.items(split, self.root)
+        # prepare_data reads every split for its captions and setup reads train/val again: on one
+        # process that is the same dataset, read once (30k motions: seconds per read).
+        if split not in self._loaded:
+            self._loaded[split] = self.cfg.items(split, self.root)
+        items, report = self._loaded[split]
         self.reports[split] = report
         return items, report
+
+    def __getstate__(self):
+        # ddp_spawn pickles the datamodule after prepare_data: each process reads the items itself.
+        state = self.__dict__.copy()
+        state["_loaded"] = {}
+        return state
 
     def _token_folder(self):
         self.data_fingerprint = self.data_fingerprint or dataset_fingerprint(self.root)

@@ -19,11 +19,15 @@ class MotionWindowDataset(Dataset):
     Indexing enumerates all window positions, so a uniform sampler draws motions in proportion to
     their number of windows (the reference's length-weighted sampling) with no randomness inside
     the dataset: reproducible, and a DistributedSampler splits it cleanly across ranks.
+
+    Windows are normalized when drawn (the same numbers as normalizing whole motions first), so the
+    motions stay as loaded: views of the memory-mapped feature pack, not a second copy in memory.
     """
 
     def __init__(self, motions: list[np.ndarray], mean: np.ndarray, std: np.ndarray, window: int = 64):
         self.window = window
-        self.motions = [normalize(m, mean, std) for m in motions if m.shape[0] >= window]
+        self.mean, self.std = mean, std
+        self.motions = [m for m in motions if m.shape[0] >= window]
         self.num_too_short = len(motions) - len(self.motions)
         if not self.motions:
             raise ValueError(f"no motion is at least {window} frames long (the tokenizer's window)")
@@ -37,7 +41,9 @@ class MotionWindowDataset(Dataset):
         index %= len(self)  # samplers may tag indices with the epoch
         k = int(np.searchsorted(self.starts, index, side="right")) - 1
         offset = index - int(self.starts[k])
-        return torch.from_numpy(self.motions[k][offset : offset + self.window])
+        return torch.from_numpy(
+            normalize(self.motions[k][offset : offset + self.window], self.mean, self.std)
+        )
 
 
 class TextMotionDataset(Dataset):

@@ -10,21 +10,35 @@ of its own when the span's length obeys the same rule (the reference loader's ru
 
 Problems with the data raise `DataError` naming the file and the fix, or, with
 on_invalid="skip", are skipped and counted in a `LoadReport` that the caller logs.
+
+One file per motion is what the format gives, not what the loader keeps: the first load packs
+every new_joint_vecs/*.npy into <root>/.features-pack/<key>/ (one float32 file, memory-mapped,
+and an index), so later loads open one file instead of tens of thousands and keep the features
+in the page cache rather than in each process's own memory (`FeatureStore`). The key covers the
+feature files' names, sizes, mtimes, ctimes and inodes (the dataset fingerprint's rule), so a
+changed, added or removed file makes a new pack; a pack is written under a temporary name and
+renamed into place, so a crash never leaves a half-written one. Where the dataset folder cannot
+be written the files are read one by one, as before.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
+import os
+import shutil
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from mmm.atomic import atomic_write
+from mmm.atomic import atomic_write, file_lock
 from mmm.data.arrays import DataError, load_array
-from mmm.motion.features import reference_std
+from mmm.motion.features import FeatureLayout
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +200,205 @@ def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
     return arr.astype(np.float32, copy=False)
 
 
+PACK_DIR = ".features-pack"
+PACK_FORMAT = 1
+# Files changed less than this many seconds before a pack would be built are not packed yet: a
+# rewrite within the file system's timestamp granularity could keep size, mtime and ctime.
+PACK_SETTLE_S = 2.0
+_unwritable_warned: set[str] = set()
+
+
+def _scan_features(vec_dir: Path, feature_dim: int) -> tuple[str, list[str], float]:
+    """(pack key, sorted motion ids, newest mtime/ctime) of the .npy files in `vec_dir`."""
+    entries = []
+    newest = 0.0
+    with os.scandir(vec_dir) as it:
+        for entry in it:
+            if entry.name.endswith(".npy") and not entry.name.startswith("."):
+                st = entry.stat()
+                entries.append((entry.name, f"{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}:{st.st_ino}"))
+                newest = max(newest, st.st_mtime, st.st_ctime)
+    entries.sort()
+    h = hashlib.sha256(f"mmm-features-pack {PACK_FORMAT} float32 d={feature_dim}\n".encode())
+    for name, key in entries:
+        h.update(f"{name}:{key}\n".encode())
+    return h.hexdigest()[:16], [name[:-4] for name, _ in entries], newest
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def _write_pack(vec_dir: Path, folder: Path, ids: list[str], feature_dim: int) -> None:
+    """Read and check every feature file once; write features.f32 and index.json into a temporary
+    folder beside `folder`, then rename it into place (never a half-written pack)."""
+    tmp = folder.with_name(f".tmp-{folder.name}-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        offsets, packed, errors = [0], [], {}
+        with open(tmp / "features.f32", "wb") as fh:
+            for motion_id in ids:
+                try:
+                    arr = load_motion(vec_dir / f"{motion_id}.npy", feature_dim)
+                except DataError as e:
+                    errors[motion_id] = [e.problem, e.fix]
+                    continue
+                fh.write(np.ascontiguousarray(arr, dtype=np.float32).tobytes())
+                packed.append(motion_id)
+                offsets.append(offsets[-1] + arr.shape[0])
+            fh.flush()
+            os.fsync(fh.fileno())
+        index = {
+            "format": PACK_FORMAT,
+            "feature_dim": feature_dim,
+            "frames": offsets[-1],
+            "ids": packed,
+            "offsets": offsets,
+            "errors": errors,
+        }
+        with open(tmp / "index.json", "w", encoding="utf-8") as fh:
+            json.dump(index, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        try:
+            os.replace(tmp, folder)
+        except OSError:
+            if not (folder / "index.json").exists():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _clean_packs(parent: Path, keep: str) -> None:
+    """Remove packs of other keys (stale) and temporaries whose writer no longer runs."""
+    for entry in parent.iterdir():
+        if entry.name == keep or not entry.is_dir():
+            continue
+        if entry.name.startswith(".tmp-"):
+            try:
+                pid = int(entry.name.rsplit("-", 1)[1])
+            except ValueError:
+                continue
+            if _pid_alive(pid):
+                continue
+        shutil.rmtree(entry, ignore_errors=True)
+
+
+class FeatureStore:
+    """Features (T, D) float32 of a dataset's motions by id: views into the memory-mapped pack
+    (read-only arrays) where one exists or can be built, otherwise `load_motion` per file. Either
+    way an unusable or missing file raises the DataError `load_motion` gives.
+
+        store = FeatureStore(root, 263)
+        features = store.load("000001")
+    """
+
+    def __init__(self, root: str | Path, feature_dim: int, pack: bool = True):
+        self.root, self.feature_dim = Path(root), feature_dim
+        self.vec_dir = self.root / "new_joint_vecs"
+        self.folder: Path | None = None
+        self._features: np.ndarray | None = None
+        self._rows: dict[str, tuple[int, int]] = {}
+        self._errors: dict[str, list[str]] = {}
+        self.built = False  # this store wrote the pack
+        if pack:
+            self._open_or_build()
+
+    @property
+    def packed(self) -> bool:
+        return self.folder is not None
+
+    def _open_or_build(self) -> None:
+        if not self.vec_dir.is_dir():
+            return  # load_motion names the missing files
+        try:
+            key, ids, newest = _scan_features(self.vec_dir, self.feature_dim)
+        except OSError:
+            return
+        if not ids:
+            return
+        folder = self.root / PACK_DIR / key
+        if not (folder / "index.json").exists():
+            if time.time() - newest < PACK_SETTLE_S:
+                return  # just written: read file by file this time
+            try:
+                folder.parent.mkdir(exist_ok=True)
+                with file_lock(folder.parent / ".lock"):
+                    if not (folder / "index.json").exists():
+                        log.info("packing %d feature files of %s into %s", len(ids), self.root, folder)
+                        _write_pack(self.vec_dir, folder, ids, self.feature_dim)
+                        self.built = True
+                    _clean_packs(folder.parent, keep=key)
+            except OSError as e:
+                if str(self.root) not in _unwritable_warned:
+                    _unwritable_warned.add(str(self.root))
+                    log.warning(
+                        "cannot pack the features of %s (%s): reading them file by file", self.root, e
+                    )
+                return
+        try:
+            self._open(folder)
+        except (OSError, ValueError, KeyError) as e:
+            log.warning("unusable feature pack %s (%s): reading the files one by one", folder, e)
+
+    def _open(self, folder: Path) -> None:
+        index = json.loads((folder / "index.json").read_text(encoding="utf-8"))
+        if index["format"] != PACK_FORMAT or index["feature_dim"] != self.feature_dim:
+            raise ValueError("another format or feature size")
+        frames = int(index["frames"])
+        if frames:
+            expected = frames * self.feature_dim * 4
+            size = (folder / "features.f32").stat().st_size
+            if size != expected:
+                raise ValueError(f"features.f32 holds {size} bytes, expected {expected}")
+            mm = np.memmap(
+                folder / "features.f32", dtype=np.float32, mode="r", shape=(frames, self.feature_dim)
+            )
+            self._features = np.asarray(mm)
+        offsets = index["offsets"]
+        self._rows = {m: (offsets[i], offsets[i + 1]) for i, m in enumerate(index["ids"])}
+        self._errors = index["errors"]
+        self.folder = folder
+
+    def path(self, motion_id: str) -> Path:
+        return self.root / "new_joint_vecs" / f"{motion_id}.npy"
+
+    def load(self, motion_id: str) -> np.ndarray:
+        """(T, D) float32 features of `motion_id`; DataError as `load_motion` raises it."""
+        rows = self._rows.get(motion_id)
+        if rows is not None:
+            return self._features[rows[0] : rows[1]]
+        error = self._errors.get(motion_id)
+        if error is not None:
+            raise DataError(self.path(motion_id), error[0], error[1])
+        return load_motion(self.path(motion_id), self.feature_dim)
+
+    def blocks(self, ids: list[str], block_frames: int = 1 << 16):
+        """The features of `ids` that load, concatenated into (<= block_frames-ish, D) blocks, and
+        the DataErrors of those that do not: yields (block or None, [DataError, ...])."""
+        chunk, size, errors = [], 0, []
+        for motion_id in ids:
+            try:
+                arr = self.load(motion_id)
+            except DataError as e:
+                errors.append(e)
+                continue
+            chunk.append(arr)
+            size += arr.shape[0]
+            if size >= block_frames:
+                yield np.concatenate(chunk), errors
+                chunk, size, errors = [], 0, []
+        if chunk or errors:
+            yield (np.concatenate(chunk) if chunk else None), errors
+
+
 def load_stats(root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarray]:
     root = Path(root)
     out = []
@@ -230,18 +443,29 @@ def compute_stats(
             raise DataError(vec_dir, "folder is missing", f"is {root} a dataset in the HumanML3D layout?")
         ids = sorted(p.stem for p in vec_dir.glob("*.npy"))
     report = LoadReport()
-    chunks = []
     feature_dim = 4 + (num_joints - 1) * 9 + num_joints * 3 + 4
-    for motion_id in ids:
-        path = vec_dir / f"{motion_id}.npy"
-        try:
-            chunks.append(load_motion(path, feature_dim))
-            report.kept_clips += 1
-        except DataError as e:
+    store = FeatureStore(root, feature_dim)
+    # Two passes over blocks of frames in float64 (mean, then squared deviations): the numbers of
+    # np.concatenate(...).mean/.std without holding every frame in memory at once.
+    total = np.zeros(feature_dim, dtype=np.float64)
+    frames = 0
+    for block, errors in store.blocks(ids):
+        for e in errors:
             report.skip(e.problem, e.path)
-    if not chunks:
+        if block is not None:
+            total += block.sum(axis=0, dtype=np.float64)
+            frames += block.shape[0]
+    report.kept_clips = len(ids) - sum(report.skipped.values())
+    if not frames:
         raise DataError(vec_dir, "no usable feature files to compute statistics from", report.summary())
-    mean, std = reference_std(np.concatenate(chunks, axis=0).astype(np.float64), num_joints)
+    mean = total / frames
+    squares = np.zeros(feature_dim, dtype=np.float64)
+    for block, _ in store.blocks(ids):
+        if block is not None:
+            squares += np.square(block.astype(np.float64) - mean).sum(axis=0)
+    std = np.sqrt(squares / frames)
+    for group in FeatureLayout(num_joints).groups():
+        std[group] = std[group].mean()
     report.kept_items = report.kept_clips
     return mean.astype(np.float32), std.astype(np.float32), report
 
@@ -272,11 +496,12 @@ def load_items(
         raise ValueError(f"on_invalid must be 'error' or 'skip', got {on_invalid!r}")
     root = Path(root)
     ids = read_split(root, split) if ids is None else ids
+    store = FeatureStore(root, feature_dim)
     report = LoadReport()
     items: list[MotionItem] = []
     for motion_id in ids:
         try:
-            features = load_motion(root / "new_joint_vecs" / f"{motion_id}.npy", feature_dim)
+            features = store.load(motion_id)
             captions = read_captions(root / "texts" / f"{motion_id}.txt")
         except DataError as e:
             if on_invalid == "error":
@@ -338,9 +563,11 @@ def load_clips(
     root = Path(root)
     report = LoadReport()
     clips: dict[str, np.ndarray] = {}
-    for motion_id in read_split(root, split):
+    ids = read_split(root, split)
+    store = FeatureStore(root, feature_dim)
+    for motion_id in ids:
         try:
-            features = load_motion(root / "new_joint_vecs" / f"{motion_id}.npy", feature_dim)
+            features = store.load(motion_id)
         except DataError as e:
             if on_invalid == "error":
                 raise DataError(

@@ -20,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from mmm.data.arrays import load_arrays
-from mmm.data.humanml3d import DataError, load_motion, read_split
+from mmm.data.humanml3d import DataError, FeatureStore, read_split
 
 log = logging.getLogger(__name__)
 
@@ -95,8 +95,9 @@ def tokenize_dataset(
     ids = sorted({i for split in splits if (root / f"{split}.txt").exists() for i in read_split(root, split)})
     by_length: dict[int, list[tuple[str, np.ndarray]]] = defaultdict(list)
     too_short = []
+    store = FeatureStore(root, feature_dim)
     for motion_id in ids:
-        features = load_motion(root / "new_joint_vecs" / f"{motion_id}.npy", feature_dim)
+        features = store.load(motion_id)
         usable = features.shape[0] // down * down
         if usable == 0:
             too_short.append(motion_id)
