@@ -300,7 +300,7 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
 def _add_paraphrases(clip: Clip, seed: int, index: int, whole: int) -> int:
     """Append whole-clip paraphrases to clip (and its mirror) until it has `whole`; returns how
     many it was short of that (the templates ran out)."""
-    existing = clip.captions[:3]
+    existing = [c for c in clip.captions if c.endswith("#0.0#0.0")]  # the whole-clip lines, not the parts'
     want = whole - len(existing)
     more = extra_paraphrases(
         np.random.default_rng([int(seed), int(index), 1]), clip.label["parts"], clip.stands_up, want, existing
