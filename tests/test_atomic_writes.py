@@ -472,7 +472,9 @@ def test_load_context_leaves_no_temporary_folders(tmp_path, monkeypatch):
         TextToMotion,
         "from_files",
         classmethod(
-            lambda cls, *args, **kwargs: loaded.append((args, kwargs)) or SimpleNamespace(part_aware=False)
+            lambda cls, *args, **kwargs: (
+                loaded.append((args, kwargs)) or SimpleNamespace(part_aware=False, precision="fp32")
+            )
         ),
     )
     context = SimpleNamespace(
