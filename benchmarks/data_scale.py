@@ -486,67 +486,12 @@ def ensure_dataset(folder: Path, clips: int, seed: int) -> dict:
 
 
 def step_model_speed(data: Path, stage: int, size: str, batch: int, steps: int = 6, **_) -> dict:
-    """Training step time of one stage at `size` on random inputs of the real shapes, the way
-    benchmarks/train_speed.py measures it (its stage-2 path calls an older module API; this one
-    calls the transformer and the loss directly, as training_step does)."""
-    import statistics
-
-    import torch
-
+    """Training step time of one stage at `size` on random inputs of the real shapes, as
+    benchmarks/train_speed.py measures it (float32)."""
     sys.path.insert(0, str(REPO / "benchmarks"))
-    from train_speed import _stage1
+    from train_speed import measure
 
-    if stage == 1:
-        module, loss_fn, _extra = _stage1(size, batch, "cpu")
-    else:
-        from mmm.config import compose
-        from mmm.training.optim import OptimConfig
-        from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt
-        from mmm.transformer.network import TransformerConfig
-
-        cfg = compose("train_stage2", [f"model={size}"]).model
-        K, C = cfg.tokenizer.num_codes, cfg.tokenizer.code_dim
-        module = MaskedTransformerModule(
-            torch.randn(K, C),
-            TransformerConfig(**cfg.transformer),
-            OptimConfig(),
-            CorruptionConfig(),
-            384,
-            384,
-        ).train()
-        M = cfg.transformer.max_tokens
-        lengths = torch.full((batch,), M - 1)  # the longest motions: the worst case
-        tokens = torch.randint(0, K, (batch, M))
-        tokens[:, M - 1] = K
-        sentence, words = torch.randn(batch, 384), torch.randn(batch, 16, 384)
-        word_mask = torch.ones(batch, 16, dtype=torch.bool)
-
-        def loss_fn():
-            c = corrupt(tokens, lengths, K, module.corruption_cfg)
-            logits = module.transformer(c.inputs, sentence, words, word_mask, None, None)
-            return module.loss(logits, tokens, c)[0]
-
-    optimizer = torch.optim.AdamW([p for p in module.parameters() if p.requires_grad], lr=2e-4, foreach=True)
-    times = []
-    for i in range(2 + steps):
-        t0 = time.perf_counter()
-        loss = loss_fn()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        if i >= 2:
-            times.append(time.perf_counter() - t0)
-    median = statistics.median(times)
-    return {
-        "stage": stage,
-        "size": size,
-        "batch": batch,
-        "device": f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)",
-        "params_M": round(sum(p.numel() for p in module.parameters()) / 1e6, 2),
-        "median_step_s": round(median, 4),
-        "samples_per_s": round(batch / median, 1),
-        "steps_timed": steps,
-    }
+    return measure(stage, size, batch, steps, 2, "cpu", ["32-true"])[0]
 
 
 def model_speeds(path: Path) -> dict:
@@ -556,7 +501,7 @@ def model_speeds(path: Path) -> dict:
     speeds = {
         f"stage{r['stage']}": r["samples_per_s"]
         for r in rows
-        if r.get("size") == "tiny" and r.get("batch") == 64
+        if r.get("size") == "tiny" and r.get("batch") == 64 and r.get("precision", "32-true") == "32-true"
     }
     sources = {k: f"{path}" for k in speeds}
     for stage in (1, 2):

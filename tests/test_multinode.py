@@ -17,7 +17,7 @@ import pytest
 import torch
 from mlflow.tracking import MlflowClient
 
-from tests.helpers import tiny_stage1_config, tiny_stage1_overrides
+from tests.helpers import stage2_overrides, tiny_stage1_config, tiny_stage1_overrides
 
 pytestmark = [pytest.mark.slow, pytest.mark.ddp]
 
@@ -140,22 +140,18 @@ def test_stage1_and_stage2_on_two_nodes_and_resumed_across_process_counts(walker
         tmp_path / "probe2",
         [
             "stage2",
-            f"stage1={straight.best_checkpoint}",
-            f"data.root={walker_dataset}",
-            "data.synthesize=null",
-            "data.batch_size=4",
-            "model.transformer.embed_dim=32",
-            "model.transformer.num_heads=2",
-            "model.transformer.num_layers=2",
-            "trainer.max_steps=4",
-            "trainer.val_check_interval=4",
-            "callbacks.preview_captions=0",
-            "callbacks.adherence_captions=0",
-            f"output_dir={tmp_path}/s2",
-            f"token_cache_dir={tmp_path}/tokens",
-            f"text.cache_dir={tmp_path}/text",
-            f"logger.tracking_uri={uri}",
-            f"logger.artifact_root={tmp_path}/art",
+            *stage2_overrides(
+                walker_dataset,
+                tmp_path,
+                **{
+                    "stage1": straight.best_checkpoint,
+                    "data.batch_size": 4,
+                    "trainer.max_steps": 4,
+                    "trainer.val_check_interval": 4,
+                    "callbacks.preview_captions": 0,
+                    "callbacks.adherence_captions": 0,
+                },
+            ),
         ],
         "mmm-stage2",
     )
