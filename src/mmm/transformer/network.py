@@ -288,6 +288,22 @@ class MaskedMotionTransformer(nn.Module):
         """(B, M) ids -> (B, M, E): codebook vectors for codes, learned vectors for END/PAD/MASK."""
         return embed_ids(tokens, self.codebook, self.special, self.token_proj)
 
+    def project_text(
+        self, sentence: torch.Tensor, words: torch.Tensor, word_mask: torch.Tensor, drop: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(sentence token (B, D), word features (B, Lw, D), word mask (B, Lw)), the rows where
+        drop (B,) is True replaced by the learned null text (one null word, the rest masked)."""
+        s = self.sentence_proj(sentence)
+        w = self.word_proj(words)
+        # Always through torch.where, so the null text takes part in every graph (DDP expects
+        # every parameter to receive a gradient, a zero one included).
+        s = torch.where(drop[:, None], self.null_sentence.expand_as(s), s)
+        null_words = torch.zeros_like(w[:, :1]) + self.null_word
+        w = torch.where(drop[:, None, None], torch.cat((null_words, w[:, 1:]), dim=1), w)
+        first_only = torch.zeros_like(word_mask)
+        first_only[:, 0] = True
+        return s, w, torch.where(drop[:, None], first_only, word_mask)
+
     def forward(
         self,
         tokens: torch.Tensor,
@@ -321,17 +337,8 @@ class MaskedMotionTransformer(nn.Module):
                     f"{tuple(tokens.shape)}"
                 )
             x = x + self.condition(condition)
-        s = self.sentence_proj(sentence)
-        w = self.word_proj(words)
-        # Always through torch.where, so the null text takes part in every graph (DDP expects
-        # every parameter to receive a gradient, a zero one included).
         drop = drop_text if drop_text is not None else torch.zeros(B, dtype=torch.bool, device=tokens.device)
-        s = torch.where(drop[:, None], self.null_sentence.expand_as(s), s)
-        null_words = torch.zeros_like(w[:, :1]) + self.null_word
-        w = torch.where(drop[:, None, None], torch.cat((null_words, w[:, 1:]), dim=1), w)
-        first_only = torch.zeros_like(word_mask)
-        first_only[:, 0] = True
-        word_mask = torch.where(drop[:, None], first_only, word_mask)
+        s, w, word_mask = self.project_text(sentence, words, word_mask, drop)
         for layer in self.cross_layers:
             x = layer(x, w, word_mask)
         x = torch.cat((s.unsqueeze(1), x), dim=1)
@@ -374,14 +381,7 @@ class MaskedMotionTransformer(nn.Module):
                 w = self.word_proj(words) if self.cross_layers else None
             else:
                 see_text = torch.ones_like(drop)
-                s = self.sentence_proj(sentence)
-                w = self.word_proj(words)
-                s = torch.where(drop[:, None], self.null_sentence.expand_as(s), s)
-                null_words = torch.zeros_like(w[:, :1]) + self.null_word
-                w = torch.where(drop[:, None, None], torch.cat((null_words, w[:, 1:]), dim=1), w)
-                first_only = torch.zeros_like(word_mask)
-                first_only[:, 0] = True
-                mask = torch.where(drop[:, None], first_only, word_mask)
+                s, w, mask = self.project_text(sentence, words, word_mask, drop)
             kv = [layer.word_keys_values(w) for layer in self.cross_layers]
         return TextContext(s, kv, mask, see_text)
 
