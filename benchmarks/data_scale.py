@@ -145,12 +145,22 @@ def step_pack(data: Path, clips: int, **_) -> dict:
     from mmm.data import humanml3d as h
 
     shutil.rmtree(data / h.PACK_DIR, ignore_errors=True)
+    shutil.rmtree(data / h.CAPTION_PACK_DIR, ignore_errors=True)
     t0 = time.perf_counter()
     store = h.FeatureStore(data, 263)
     seconds = time.perf_counter() - t0
-    if not store.packed:
+    t0 = time.perf_counter()
+    captions = h.CaptionStore(data)
+    captions_s = time.perf_counter() - t0
+    if not (store.packed and captions.packed):
         raise RuntimeError(f"no pack was built in {data}")
-    return {"seconds": round(seconds, 2), "pack": str(store.folder), "built": store.built}
+    return {
+        "seconds": round(seconds, 2),
+        "captions_s": round(captions_s, 2),
+        "pack": str(store.folder),
+        "caption_pack": str(captions.folder),
+        "built": store.built,
+    }
 
 
 def step_load(data: Path, clips: int, **_) -> dict:
@@ -162,7 +172,8 @@ def step_load(data: Path, clips: int, **_) -> dict:
     ids = sorted({i for s in _splits(data) for i in h.read_split(data, s)})
     t_index = time.perf_counter() - t0
     t0 = time.perf_counter()
-    n_captions = sum(len(h.read_captions(data / "texts" / f"{i}.txt")) for i in ids)
+    caption_store = h.CaptionStore(data)
+    n_captions = sum(len(caption_store.load(i)) for i in ids)
     t_captions = time.perf_counter() - t0
     t0 = time.perf_counter()
     store = h.FeatureStore(data, 263)
@@ -177,7 +188,7 @@ def step_load(data: Path, clips: int, **_) -> dict:
         h.load_clips(data, s, feature_dim=263, min_length=64)
     t_clips = time.perf_counter() - t0
     return {
-        "packed": store.packed,
+        "packed": store.packed and caption_store.packed,
         "motions": len(ids),
         "frames": sum(a.shape[0] for a in arrays),
         "captions": n_captions,
@@ -435,11 +446,10 @@ def run_step(name: str, **kwargs) -> dict:
     return result
 
 
-def du(path: Path, exclude: str | None = None) -> float:
+def du(path: Path, exclude: tuple[str, ...] = ()) -> float:
     total = 0
     for dirpath, dirnames, filenames in os.walk(path):
-        if exclude and exclude in dirnames:
-            dirnames.remove(exclude)
+        dirnames[:] = [d for d in dirnames if d not in exclude]
         for f in filenames:
             try:
                 total += os.lstat(os.path.join(dirpath, f)).st_blocks * 512
@@ -579,8 +589,9 @@ def measure_size(clips: int, args, previous: dict | None = None) -> dict:
             if wanted(f"{stage}_cli_cached"):
                 res[f"{stage}_cli_cached"] = run_step("cli", **common, ckpt=ckpt, stage=stage)
     res["disk_GiB"] = {
-        "dataset": du(data, exclude=".features-pack"),
+        "dataset": du(data, exclude=(".features-pack", ".captions-pack")),
         "feature_pack": du(data / ".features-pack"),
+        "caption_pack": du(data / ".captions-pack"),
         "new_joint_vecs": du(data / "new_joint_vecs"),
         "token_cache": du(Path(res["tokenize"]["folder"])) if "tokenize" in res else None,
         "caption_cache": du(Path(res["captions"]["folder"])) if "captions" in res else None,
@@ -637,6 +648,7 @@ def table(results: list[dict], speed: dict) -> str:
     )
     row("load, file by file (index + captions + arrays)", t_mem("load_files"))
     row("feature pack, built once", t_mem("pack"))
+    row("caption pack, built once", lambda r: f"{r['pack']['captions_s']:.1f} s")
     row("load, packed (index + captions + arrays)", t_mem("load"))
     row(
         "items of train/val/test (stage-2 setup), packed",
@@ -677,11 +689,11 @@ def table(results: list[dict], speed: dict) -> str:
         ),
     )
     row(
-        "disk: dataset / pack / tokens / captions",
+        "disk: dataset / feature pack / caption pack / tokens / caption embeddings",
         lambda r: (
             " / ".join(
-                "-" if r["disk_GiB"][k] is None else f"{r['disk_GiB'][k]:.3g}"
-                for k in ("dataset", "feature_pack", "token_cache", "caption_cache")
+                "-" if r["disk_GiB"].get(k) is None else f"{r['disk_GiB'][k]:.3g}"
+                for k in ("dataset", "feature_pack", "caption_pack", "token_cache", "caption_cache")
             )
             + " GiB"
         ),

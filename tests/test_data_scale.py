@@ -11,7 +11,15 @@ import pytest
 
 from mmm.data import humanml3d as h
 from mmm.data.datasets import MotionWindowDataset, normalize
-from mmm.data.humanml3d import DataError, FeatureStore, compute_stats, load_clips, load_items
+from mmm.data.humanml3d import (
+    Caption,
+    CaptionStore,
+    DataError,
+    FeatureStore,
+    compute_stats,
+    load_clips,
+    load_items,
+)
 from mmm.motion.features import reference_std
 from tests.helpers import D, write_dataset
 
@@ -171,6 +179,58 @@ def test_the_pack_is_one_file_and_an_index(tmp_path, settled):
     index = json.loads((store.folder / "index.json").read_text())
     assert index["ids"] == sorted(arrays) and index["frames"] == sum(len(a) for a in arrays.values())
     assert (store.folder / "features.f32").stat().st_size == index["frames"] * D * 4
+
+
+def _captions_of(items):
+    return {(i.name, c) for i in items for c in i.captions}
+
+
+def test_packed_captions_are_the_captions_of_the_files_and_follow_changes(tmp_path, settled):
+    _dataset(tmp_path)
+    (tmp_path / "texts/000002.txt").write_text(f"{WHOLE}\nnan spans#a/DET#nan#nan\n")
+    unpacked, _ = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
+    store = CaptionStore(tmp_path)
+    assert store.packed and store.folder.parent.name == h.CAPTION_PACK_DIR
+    for motion_id in ("000000", "000001", "000002"):
+        assert store.load(motion_id) == h.read_captions(tmp_path / "texts" / f"{motion_id}.txt")
+    assert store.load("000002")[1] == Caption("nan spans", ("a/DET",), 0.0, 0.0)
+    # load_items packed it on its first call; both calls give the same items and captions.
+    packed, _ = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
+    assert [i.name for i in packed] == [i.name for i in unpacked] and len(packed) == 5
+    assert _captions_of(packed) == _captions_of(unpacked)
+    # An edited caption file: a new pack with the new text, the stale pack removed.
+    old = store.folder.name
+    (tmp_path / "texts/000003.txt").write_text("a person waves#a/DET person/NOUN wave/VERB#0.0#0.0\n")
+    again = CaptionStore(tmp_path)
+    assert again.folder.name != old and not (tmp_path / h.CAPTION_PACK_DIR / old).exists()
+    assert [c.text for c in again.load("000003")] == ["a person waves"]
+
+
+def test_bad_caption_files_in_a_pack_raise_what_file_by_file_reading_raises(tmp_path, settled):
+    _dataset(tmp_path)
+    (tmp_path / "texts/000001.txt").write_text(f"{WHOLE}\nno fields here\n")
+    (tmp_path / "texts/000003.txt").write_text("")
+    (tmp_path / "texts/000002.txt").unlink()
+    store = CaptionStore(tmp_path)
+    assert store.packed
+    for motion_id, message in [
+        ("000001", r"texts/000001\.txt:2: malformed caption line \(1 '#'-separated fields"),
+        ("000003", r"texts/000003\.txt: caption file is empty"),
+        ("000002", r"texts/000002\.txt: caption file is missing"),
+    ]:
+        with pytest.raises(DataError, match=message) as packed:
+            store.load(motion_id)
+        with pytest.raises(DataError) as unpacked:
+            CaptionStore(tmp_path, pack=False).load(motion_id)
+        assert str(packed.value) == str(unpacked.value)
+    items, report = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40, on_invalid="skip")
+    assert sum(report.skipped.values()) == 3 and {i.motion_id for i in items} == {"000000"}
+    # The dataset folder moved: the errors name the files where they are now.
+    moved = tmp_path.parent / f"{tmp_path.name}-moved"
+    tmp_path.rename(moved)
+    with pytest.raises(DataError, match=f"{moved}/texts/000001\\.txt:2: malformed") as info:
+        CaptionStore(moved).load("000001")
+    assert CaptionStore(moved).packed and str(tmp_path) + "/" not in str(info.value)
 
 
 def test_streaming_statistics_match_the_reference_on_all_frames(tmp_path, settled, monkeypatch):

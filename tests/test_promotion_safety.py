@@ -448,6 +448,28 @@ def test_dataset_fingerprint_notices_a_rewrite_that_keeps_size_and_mtime(tmp_pat
     )
 
 
+def test_dataset_fingerprint_is_the_hash_of_its_files_in_order(tmp_path):
+    """The value written out by hand: split files, then each folder's files by name, each line
+    `relative path:sha256 of the bytes`; a second call (from the stat cache) gives the same."""
+    import hashlib
+
+    from mmm.fingerprint import dataset_fingerprint
+    from tests.helpers import write_walker_dataset
+
+    root = write_walker_dataset(tmp_path / "ds", num_clips=6)
+    (root / "labels").mkdir()
+    for name in ("b.json", "a.json", "a0.json"):
+        (root / "labels" / name).write_text(name)
+    expected = hashlib.sha256()
+    names = [n for n in ("train.txt", "val.txt", "test.txt", "Mean.npy", "Std.npy") if (root / n).exists()]
+    for part in ("new_joint_vecs", "texts", "labels"):
+        names += [f"{part}/{n}" for n in sorted(os.listdir(root / part))]
+    for name in names:
+        expected.update(f"{name}:{hashlib.sha256((root / name).read_bytes()).hexdigest()}\n".encode())
+    assert dataset_fingerprint(root, ("labels",)) == expected.hexdigest()[:16]
+    assert dataset_fingerprint(root, ("labels",)) == expected.hexdigest()[:16]  # from the cache
+
+
 def test_step_keys_include_the_resolved_config_and_the_code_version(walker_dataset, tmp_path, monkeypatch):
     from mmm.pipeline import steps
     from mmm.pipeline.runner import Context, step_key

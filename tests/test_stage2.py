@@ -1,5 +1,6 @@
 """Stage 2: the masked transformer, its corruption and loss, token caching, DDP, end-to-end training."""
 
+import json
 import os
 import subprocess
 import sys
@@ -229,6 +230,31 @@ def test_tokens_are_cached_per_tokenizer_and_data(walker_dataset, tmp_path):
     assert np.array_equal(again["000003"], cache["000003"])
     with pytest.raises(KeyError, match="nope: no tokens"):
         cache["nope"]
+
+
+def test_the_token_cache_is_one_array_and_caches_of_the_first_format_still_read(walker_dataset, tmp_path):
+    tok = tiny_tokenizer()
+    folder = tmp_path / "tokens"
+    cache = tokenize_dataset(tok, walker_dataset, folder, progress=False)
+    meta = json.loads((folder / "meta.json").read_text())
+    with np.load(folder / "tokens.npz") as archive:
+        assert sorted(archive.files) == ["codes", "offsets"]
+        codes, offsets = archive["codes"], archive["offsets"]
+    assert meta["format"] == 2 and meta["ids"] == sorted(meta["ids"]) and len(meta["ids"]) == 30
+    assert offsets[0] == 0 and offsets[-1] == len(codes) and len(offsets) == 31
+    for i, motion_id in enumerate(meta["ids"]):
+        assert np.array_equal(cache[motion_id], codes[offsets[i] : offsets[i + 1]])
+        assert cache[motion_id].dtype == np.int64
+    # A cache written before the format existed: one archive entry per motion, no "format".
+    old = tmp_path / "old"
+    old.mkdir()
+    np.savez(old / "tokens.npz", **{m: cache[m].astype(np.int16) for m in meta["ids"]})
+    (old / "meta.json").write_text(json.dumps({"splits": meta["splits"]}))
+    assert all(np.array_equal(TokenCache(old)[m], cache[m]) for m in meta["ids"])
+    # Offsets that do not match the codes: named, with the fix.
+    np.savez(folder / "tokens.npz", codes=codes, offsets=offsets[:-1])
+    with pytest.raises(DataError, match=r"tokens\.npz: inconsistent token cache .*delete the folder"):
+        len(TokenCache(folder))
 
 
 def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):

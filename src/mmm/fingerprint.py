@@ -47,19 +47,22 @@ def dataset_fingerprint(root: str | Path, extra_parts: tuple[str, ...] = ()) -> 
         cache = json.loads(cache_path.read_text())
     except (OSError, ValueError):
         cache = {}
-    files = [root / name for name in _SPLITS if (root / name).exists()]
+    # (relative name, path) in the fingerprint's order: the split files, then each folder's
+    # entries sorted by name. os.scandir and plain strings: 60k files in a fraction of a second.
+    files = [(name, str(root / name)) for name in _SPLITS if (root / name).exists()]
     for part in (*_DATA_PARTS, *extra_parts):
         if (root / part).is_dir():
-            files += sorted((root / part).iterdir())
+            with os.scandir(root / part) as entries:
+                names = sorted((entry.name, entry.path) for entry in entries)
+            files += [(f"{part}/{name}", path) for name, path in names]
     total = hashlib.sha256()
     fresh = {}
-    for path in files:
-        rel = str(path.relative_to(root))
-        st = path.stat()
+    for rel, path in files:
+        st = os.stat(path)
         key = f"{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}:{st.st_ino}"
         digest = cache.get(rel, {}).get(key) if isinstance(cache.get(rel), dict) else None
         if digest is None:
-            digest = hashlib.sha256(path.read_bytes()).hexdigest()
+            digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
         fresh[rel] = {key: digest}
         total.update(f"{rel}:{digest}\n".encode())
     if fresh != cache:

@@ -23,6 +23,7 @@ be written the files are read one by one, as before.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -202,27 +203,34 @@ def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
 
 PACK_DIR = ".features-pack"
 PACK_FORMAT = 1
+CAPTION_PACK_DIR = ".captions-pack"
+CAPTION_PACK_FORMAT = 1
 # Files changed less than this many seconds before a pack would be built are not packed yet: a
 # rewrite within the file system's timestamp granularity could keep size, mtime and ctime.
 PACK_SETTLE_S = 2.0
 _unwritable_warned: set[str] = set()
 
 
-def _scan_features(vec_dir: Path, feature_dim: int) -> tuple[str, list[str], float]:
-    """(pack key, sorted motion ids, newest mtime/ctime) of the .npy files in `vec_dir`."""
+def _scan(folder: Path, suffix: str, salt: str) -> tuple[str, list[str], float]:
+    """(pack key, sorted ids, newest mtime/ctime) of the `suffix` files in `folder`; the key hashes
+    `salt` and every file's name, size, mtime, ctime and inode."""
     entries = []
     newest = 0.0
-    with os.scandir(vec_dir) as it:
+    with os.scandir(folder) as it:
         for entry in it:
-            if entry.name.endswith(".npy") and not entry.name.startswith("."):
+            if entry.name.endswith(suffix) and not entry.name.startswith("."):
                 st = entry.stat()
                 entries.append((entry.name, f"{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}:{st.st_ino}"))
                 newest = max(newest, st.st_mtime, st.st_ctime)
     entries.sort()
-    h = hashlib.sha256(f"mmm-features-pack {PACK_FORMAT} float32 d={feature_dim}\n".encode())
+    h = hashlib.sha256(f"{salt}\n".encode())
     for name, key in entries:
         h.update(f"{name}:{key}\n".encode())
-    return h.hexdigest()[:16], [name[:-4] for name, _ in entries], newest
+    return h.hexdigest()[:16], [name[: -len(suffix)] for name, _ in entries], newest
+
+
+def _scan_features(vec_dir: Path, feature_dim: int) -> tuple[str, list[str], float]:
+    return _scan(vec_dir, ".npy", f"mmm-features-pack {PACK_FORMAT} float32 d={feature_dim}")
 
 
 def _pid_alive(pid: int) -> bool:
@@ -235,13 +243,34 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _write_pack(vec_dir: Path, folder: Path, ids: list[str], feature_dim: int) -> None:
-    """Read and check every feature file once; write features.f32 and index.json into a temporary
-    folder beside `folder`, then rename it into place (never a half-written pack)."""
+def _publish(folder: Path, fill) -> None:
+    """`fill(tmp)` writes a pack into a temporary folder beside `folder`, which is then renamed
+    into place (never a half-written pack; another process's identical pack is kept)."""
     tmp = folder.with_name(f".tmp-{folder.name}-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
+        fill(tmp)
+        try:
+            os.replace(tmp, folder)
+        except OSError:
+            if not (folder / "index.json").exists():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _write_json(path: Path, value) -> None:
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(value, fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _write_pack(vec_dir: Path, folder: Path, ids: list[str], feature_dim: int) -> None:
+    """Read and check every feature file once; publish features.f32 and index.json as `folder`."""
+
+    def fill(tmp: Path) -> None:
         offsets, packed, errors = [0], [], {}
         with open(tmp / "features.f32", "wb") as fh:
             for motion_id in ids:
@@ -263,17 +292,30 @@ def _write_pack(vec_dir: Path, folder: Path, ids: list[str], feature_dim: int) -
             "offsets": offsets,
             "errors": errors,
         }
-        with open(tmp / "index.json", "w", encoding="utf-8") as fh:
-            json.dump(index, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        try:
-            os.replace(tmp, folder)
-        except OSError:
-            if not (folder / "index.json").exists():
-                raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _write_json(tmp / "index.json", index)
+
+    _publish(folder, fill)
+
+
+def _write_caption_pack(text_dir: Path, folder: Path, ids: list[str]) -> None:
+    """Read and parse every caption file once; publish index.json as `folder`: per id its lines as
+    [text, tokens, start, end], or the error `read_captions` raised, its path kept relative
+    (the line number) so the message stays right when the dataset folder moves."""
+
+    def fill(tmp: Path) -> None:
+        captions, errors = {}, {}
+        for motion_id in ids:
+            path = text_dir / f"{motion_id}.txt"
+            try:
+                captions[motion_id] = [
+                    [c.text, " ".join(c.tokens), c.start, c.end] for c in read_captions(path)
+                ]
+            except DataError as e:
+                errors[motion_id] = [e.path[len(str(path)) :], e.problem, e.fix]
+        index = {"format": CAPTION_PACK_FORMAT, "captions": captions, "errors": errors}
+        _write_json(tmp / "index.json", index)
+
+    _publish(folder, fill)
 
 
 def _clean_packs(parent: Path, keep: str) -> None:
@@ -289,6 +331,35 @@ def _clean_packs(parent: Path, keep: str) -> None:
             if _pid_alive(pid):
                 continue
         shutil.rmtree(entry, ignore_errors=True)
+
+
+def _pack(
+    root: Path, pack_dir: str, key: str, newest: float, what: str, files: int, write
+) -> tuple[Path | None, bool]:
+    """(root/pack_dir/key, whether this call wrote it) once that pack exists, writing it with
+    `write(folder)` under a lock when missing; (None, False) when the files changed less than
+    PACK_SETTLE_S ago or the dataset folder cannot be written (warned once per folder): the caller
+    then reads the files one by one."""
+    folder = root / pack_dir / key
+    if (folder / "index.json").exists():
+        return folder, False
+    if time.time() - newest < PACK_SETTLE_S:
+        return None, False  # just written: read file by file this time
+    built = False
+    try:
+        folder.parent.mkdir(exist_ok=True)
+        with file_lock(folder.parent / ".lock"):
+            if not (folder / "index.json").exists():
+                log.info("packing the %s of %s (%d files) into %s", what, root, files, folder)
+                write(folder)
+                built = True
+            _clean_packs(folder.parent, keep=key)
+    except OSError as e:
+        if str(folder.parent) not in _unwritable_warned:
+            _unwritable_warned.add(str(folder.parent))
+            log.warning("cannot pack the %s of %s (%s): reading them file by file", what, root, e)
+        return None, False
+    return folder, built
 
 
 class FeatureStore:
@@ -324,25 +395,17 @@ class FeatureStore:
             return
         if not ids:
             return
-        folder = self.root / PACK_DIR / key
-        if not (folder / "index.json").exists():
-            if time.time() - newest < PACK_SETTLE_S:
-                return  # just written: read file by file this time
-            try:
-                folder.parent.mkdir(exist_ok=True)
-                with file_lock(folder.parent / ".lock"):
-                    if not (folder / "index.json").exists():
-                        log.info("packing %d feature files of %s into %s", len(ids), self.root, folder)
-                        _write_pack(self.vec_dir, folder, ids, self.feature_dim)
-                        self.built = True
-                    _clean_packs(folder.parent, keep=key)
-            except OSError as e:
-                if str(self.root) not in _unwritable_warned:
-                    _unwritable_warned.add(str(self.root))
-                    log.warning(
-                        "cannot pack the features of %s (%s): reading them file by file", self.root, e
-                    )
-                return
+        folder, self.built = _pack(
+            self.root,
+            PACK_DIR,
+            key,
+            newest,
+            "features",
+            len(ids),
+            lambda folder: _write_pack(self.vec_dir, folder, ids, self.feature_dim),
+        )
+        if folder is None:
+            return
         try:
             self._open(folder)
         except (OSError, ValueError, KeyError) as e:
@@ -397,6 +460,80 @@ class FeatureStore:
                 chunk, size, errors = [], 0, []
         if chunk or errors:
             yield (np.concatenate(chunk) if chunk else None), errors
+
+
+@functools.lru_cache(maxsize=2)
+def _read_caption_pack(index_path: str) -> tuple[dict[str, tuple[Caption, ...]], dict[str, list[str]]]:
+    """The parsed captions and the errors of a caption pack; kept for the next load of the same
+    pack in this process (its key changes with any caption file, so it cannot go stale)."""
+    with open(index_path, encoding="utf-8") as fh:
+        index = json.load(fh)
+    if index["format"] != CAPTION_PACK_FORMAT:
+        raise ValueError(f"caption pack format {index['format']}, expected {CAPTION_PACK_FORMAT}")
+    captions = {
+        motion_id: tuple(Caption(text, tuple(tokens.split()), a, b) for text, tokens, a, b in lines)
+        for motion_id, lines in index["captions"].items()
+    }
+    return captions, index["errors"]
+
+
+class CaptionStore:
+    """The captions of a dataset's motions by id, parsed once into <root>/.captions-pack/<key>/
+    (one JSON file instead of one text file per motion; keyed, built and cleaned like the feature
+    pack), otherwise `read_captions` per file. Either way the same captions and the same DataErrors.
+
+        captions = CaptionStore(root).load("000001")
+    """
+
+    def __init__(self, root: str | Path, pack: bool = True):
+        self.root = Path(root)
+        self.text_dir = self.root / "texts"
+        self.folder: Path | None = None
+        self._captions: dict[str, tuple[Caption, ...]] = {}
+        self._errors: dict[str, list[str]] = {}
+        if pack and self.text_dir.is_dir():
+            self._open_or_build()
+
+    @property
+    def packed(self) -> bool:
+        return self.folder is not None
+
+    def _open_or_build(self) -> None:
+        try:
+            key, ids, newest = _scan(self.text_dir, ".txt", f"mmm-captions-pack {CAPTION_PACK_FORMAT}")
+        except OSError:
+            return
+        if not ids:
+            return
+        folder, _ = _pack(
+            self.root,
+            CAPTION_PACK_DIR,
+            key,
+            newest,
+            "captions",
+            len(ids),
+            lambda folder: _write_caption_pack(self.text_dir, folder, ids),
+        )
+        if folder is None:
+            return
+        try:
+            self._captions, self._errors = _read_caption_pack(str(folder / "index.json"))
+            self.folder = folder
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log.warning("unusable caption pack %s (%s): reading the files one by one", folder, e)
+
+    def path(self, motion_id: str) -> Path:
+        return self.text_dir / f"{motion_id}.txt"
+
+    def load(self, motion_id: str) -> list[Caption]:
+        """The captions of `motion_id`; DataError as `read_captions` raises it."""
+        captions = self._captions.get(motion_id)
+        if captions is not None:
+            return list(captions)
+        error = self._errors.get(motion_id)
+        if error is not None:
+            raise DataError(f"{self.path(motion_id)}{error[0]}", error[1], error[2])
+        return read_captions(self.path(motion_id))
 
 
 def load_stats(root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -496,13 +633,13 @@ def load_items(
         raise ValueError(f"on_invalid must be 'error' or 'skip', got {on_invalid!r}")
     root = Path(root)
     ids = read_split(root, split) if ids is None else ids
-    store = FeatureStore(root, feature_dim)
+    store, caption_store = FeatureStore(root, feature_dim), CaptionStore(root)
     report = LoadReport()
     items: list[MotionItem] = []
     for motion_id in ids:
         try:
             features = store.load(motion_id)
-            captions = read_captions(root / "texts" / f"{motion_id}.txt")
+            captions = caption_store.load(motion_id)
         except DataError as e:
             if on_invalid == "error":
                 raise DataError(

@@ -1,9 +1,13 @@
 """Motion tokens of a dataset under one tokenizer, computed once and cached on disk.
 
-<cache_dir>/<tokenizer identity>-<data fingerprint>/tokens.npz (id -> (T // 4,) codes, or
-(T // 4, 2) [lower, upper] codes of a part-aware tokenizer) and
-meta.json. The folder name carries both fingerprints, so another tokenizer or changed data can
-never reuse stale tokens. A caption with a #start#end span selects codes [start // 4, end // 4).
+<cache_dir>/<tokenizer identity>-<data fingerprint>/tokens.npz and meta.json: every motion's
+(T // 4,) codes, or (T // 4, 2) [lower, upper] codes of a part-aware tokenizer, concatenated into
+one `codes` array with `offsets` (motions + 1,); meta.json lists the motion ids in that order
+(`"format": 2`). One array instead of one archive entry per motion: 30k motions open in a
+fraction of a second instead of seconds. Caches of the first format (an entry per motion id, no
+`format` in meta.json) are still read. The folder name carries both fingerprints, so another
+tokenizer or changed data can never reuse stale tokens. A caption with a #start#end span selects
+codes [start // 4, end // 4).
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from mmm.data.arrays import load_arrays
 from mmm.data.humanml3d import DataError, FeatureStore, read_split
 
 log = logging.getLogger(__name__)
+
+TOKEN_CACHE_FORMAT = 2
 
 
 class TokenCache:
@@ -45,8 +51,18 @@ class TokenCache:
 
     def _load(self) -> dict[str, np.ndarray]:
         if self._tokens is None:
-            arrays = load_arrays(self.folder / "tokens.npz", "token cache", self._rebuild_hint())
-            self._tokens = {k: v.astype(np.int64) for k, v in arrays.items()}
+            path = self.folder / "tokens.npz"
+            arrays = load_arrays(path, "token cache", self._rebuild_hint())
+            if self.meta.get("format") != TOKEN_CACHE_FORMAT:
+                self._tokens = {k: v.astype(np.int64) for k, v in arrays.items()}
+                return self._tokens
+            try:
+                ids, codes, offsets = self.meta["ids"], arrays["codes"].astype(np.int64), arrays["offsets"]
+                if len(offsets) != len(ids) + 1 or offsets[-1] != len(codes) or np.any(np.diff(offsets) < 0):
+                    raise ValueError(f"{len(ids)} ids, {len(offsets)} offsets, {len(codes)} codes")
+            except (KeyError, ValueError) as e:
+                raise DataError(path, f"inconsistent token cache ({e})", self._rebuild_hint()) from None
+            self._tokens = {m: codes[offsets[i] : offsets[i + 1]] for i, m in enumerate(ids)}
         return self._tokens
 
     def __getitem__(self, motion_id: str) -> np.ndarray:
@@ -130,10 +146,13 @@ def tokenize_dataset(
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = folder.with_name(f".{folder.name}.tmp-{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=True)
-    np.savez(tmp / "tokens.npz", **tokens)
+    order = sorted(tokens)
+    offsets = np.cumsum([0] + [len(tokens[m]) for m in order], dtype=np.int64)
+    np.savez(tmp / "tokens.npz", codes=np.concatenate([tokens[m] for m in order]), offsets=offsets)
     info = dict(meta or {})
     info.update(
         {
+            "format": TOKEN_CACHE_FORMAT,
             "splits": list(splits),
             "motions": len(tokens),
             "left_out_too_short": too_short,
@@ -141,6 +160,7 @@ def tokenize_dataset(
             "downsample": down,
         }
     )
+    info["ids"] = order  # last: the file stays readable above it
     (tmp / "meta.json").write_text(json.dumps(info, indent=2))
     try:
         os.replace(tmp, folder)  # fails when the folder exists (a directory is not replaced by another)
