@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-data bench-precision bench-precision-model bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
+.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-data bench-precision bench-precision-model bench-compile bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
@@ -96,7 +96,11 @@ bench-precision-model: $(STAMP) ## faithfulness of fp32/bf16/int8 on the champio
 	$(BIN)/python benchmarks/inference_precision.py --faithfulness-only --model models:/mmm-text2motion@champion \
 	    --out outputs/bench/inference_precision_champion.json $(ARGS)
 
-bench: bench-train bench-generate bench-precision ## all speed measurements (training and generation), JSON and plots in outputs/bench/
+bench-compile: $(STAMP) ## torch.compile with static length buckets against the uncompiled fp32/int8 passes, paper size, batch 1 (outputs/bench/inference_compiled.json)
+	$(BIN)/python benchmarks/inference_precision.py --cases b1_196 b1_40 --repeats 3 --no-faithfulness \
+	    --variants before fp32 int8 fp32-compiled int8-compiled --out outputs/bench/inference_compiled.json $(ARGS)
+
+bench: bench-train bench-generate bench-precision bench-compile ## all speed measurements (training and generation), JSON and plots in outputs/bench/
 
 stress: $(STAMP) ## concurrency and crash test (not in make test): 50 generate calls on a cold cache, racing promotions, a training SIGKILLed during saves
 	$(BIN)/python benchmarks/stress.py $(ARGS)

@@ -17,6 +17,9 @@ for the variants
                reference=True)`: text keys/values and the head at every position on every pass) and
                one VQ decoder call per distinct length
     fp32 | bf16 | int8   the package's path at that precision (mmm.generation.precision).
+    fp32-compiled | bf16-compiled | int8-compiled   the same through torch.compile with static
+               length buckets (mmm.generation.compiled; `--variants ... int8-compiled`); their
+               warm-up compiles every shape of the case and is reported as `warmup_s`.
 Variants run interleaved (before, fp32, bf16, int8, before, ...) after one warm-up each, so that a
 load shared with other processes falls on all alike; medians, spreads (min, max, IQR) and the
 speed-up against `before` per repeat (its median) are reported, with `uptime`'s load averages.
@@ -42,6 +45,9 @@ import numpy as np
 import torch
 
 VARIANTS = ("before", "fp32", "bf16", "int8")
+# torch.compile with static length buckets (mmm.generation.compiled): opt-in, each compiles its
+# shapes in the warm-up (which then runs every call of the case once).
+COMPILED = ("fp32-compiled", "bf16-compiled", "int8-compiled")
 MIXED_LENGTHS = np.linspace(40, 196, 32).round().astype(int).tolist()
 # Figures of the paper (RTX A5000), beside ours in the README; no GPU figure is measured here.
 PAPER = {"aits_s": 0.081, "40_frames_s": 0.018, "device": "NVIDIA RTX A5000"}
@@ -100,10 +106,14 @@ def decode_before(model, codes):
 
 class Runner:
     def __init__(self, model):
+        from mmm.generation.compiled import CompiledDecoding, default_compile_mode
         from mmm.generation.precision import inference_copy
 
         self.model = model
         self.copies = {p: inference_copy(model.transformer, p) for p in ("fp32", "bf16", "int8")}
+        mode = default_compile_mode(model.device)
+        for p in ("fp32", "bf16", "int8"):
+            self.copies[f"{p}-compiled"] = CompiledDecoding(self.copies[p], mode=mode)
 
     @torch.no_grad()
     def generate(self, variant: str, emb, frames: list[int], seed: int = 0):
@@ -152,9 +162,13 @@ def speed(runner: Runner, variants, repeats: dict, cases=CASES, warmup: bool = T
         times = {v: [] for v in variants}
         per_length = {v: defaultdict(list) for v in variants}
         passes = {}
+        warmup_s = {}
         if warmup:
             for v in variants:
-                runner.generate(v, *calls[0])
+                t0 = time.perf_counter()
+                for call in calls if v in COMPILED else calls[:1]:
+                    runner.generate(v, *call)
+                warmup_s[v] = round(time.perf_counter() - t0, 1)
         started = time.perf_counter()
         for _ in range(repeats.get(case, 1)):
             total = dict.fromkeys(variants, 0.0)
@@ -180,8 +194,13 @@ def speed(runner: Runner, variants, repeats: dict, cases=CASES, warmup: bool = T
             t = sorted(times[v])
             q = np.percentile(t, [25, 75]).tolist()
             row = {
-                "precision": "fp32" if v == "before" else v,
-                "path": "pre-change (plain loop, per-length decode)" if v == "before" else "package",
+                "precision": "fp32" if v == "before" else v.split("-")[0],
+                "path": "pre-change (plain loop, per-length decode)"
+                if v == "before"
+                else "package, compiled (static length buckets)"
+                if v in COMPILED
+                else "package",
+                "warmup_s": warmup_s.get(v),
                 "median_s_per_sentence": statistics.median(t),
                 "min_s": t[0],
                 "max_s": t[-1],
@@ -285,7 +304,7 @@ def main() -> None:
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
     parser.add_argument("--no-faithfulness", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS + COMPILED)
     parser.add_argument("--faithfulness-only", action="store_true", help="skip the speed cases")
     parser.add_argument(
         "--model", default=None, help="a trained model (models:/..., run id, path): faithfulness"

@@ -117,6 +117,12 @@ def add_precision_option(p: argparse.ArgumentParser) -> None:
         + ", ".join(f"{precision} on {device}" for device, precision in DEFAULT_PRECISION.items())
         + ")",
     )
+    p.add_argument(
+        "--compile",
+        action="store_true",
+        help="run the decoding passes through torch.compile with static length buckets (CUDA graphs on "
+        "a GPU); each new shape compiles on first use, so it pays off over many sentences",
+    )
 
 
 def sampling_config(args: argparse.Namespace):
@@ -159,7 +165,7 @@ def load_model(args: argparse.Namespace):
     from mmm.generation.model import TextToMotion
 
     text_files = {"weights": args.clip_weights, "vocab": args.clip_vocab}
-    return TextToMotion.load(
+    model = TextToMotion.load(
         args.model,
         tracking_uri=args.tracking_uri,
         output_dir=args.stage2_dir,
@@ -170,6 +176,8 @@ def load_model(args: argparse.Namespace):
         text_files={k: v for k, v in text_files.items() if v is not None},
         precision=getattr(args, "precision", None),
     )
+    model.compiled = getattr(args, "compile", False)
+    return model
 
 
 def meta(args, model, out, kind: str, extra: dict) -> dict:
@@ -183,6 +191,7 @@ def meta(args, model, out, kind: str, extra: dict) -> dict:
         "model": model.identity,
         "sampling": sampling,
         "precision": model.precision,
+        "compiled": model.compiled,
         "seconds": seconds,
         "forward_passes": out.forward_passes,
         **extra,

@@ -32,6 +32,7 @@ from mmm.checkpoints import (
     trusted_recorded_path,
 )
 from mmm.fingerprint import tensors_fingerprint
+from mmm.generation.compiled import CompiledDecoding, default_compile_mode
 from mmm.generation.length import load_length_estimator
 from mmm.generation.precision import check_precision, default_precision, inference_copy
 from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
@@ -74,6 +75,7 @@ class TextToMotion:
         device: str | torch.device = "cpu",
         length_source: tuple | None = None,
         precision: str | None = None,
+        compiled: bool = False,
     ):
         self.device = torch.device(device)
         self._length_source = length_source  # (reference, tracking uri): loaded on first use
@@ -89,6 +91,7 @@ class TextToMotion:
         self.max_frames = (transformer.cfg.max_tokens - 1) * self.unit
         self.min_frames = 24 if self.skeleton.name == "kit" else 40
         self._inference = None
+        self._compiled = bool(compiled)
         self.precision = precision
 
     # -- inference precision (mmm.generation.precision) -----------------------------------------
@@ -111,12 +114,27 @@ class TextToMotion:
             self._precision, self._inference = value, None
 
     @property
+    def compiled(self) -> bool:
+        """Whether the decoding passes run through torch.compile with static shapes
+        (mmm.generation.compiled; CUDA graphs on a GPU). Each new shape compiles on first use."""
+        return self._compiled
+
+    @compiled.setter
+    def compiled(self, value: bool) -> None:
+        if bool(value) != self._compiled:
+            self._compiled, self._inference = bool(value), None
+
+    @property
     def inference_transformer(self):
-        """The module the decoding passes run: the transformer at `precision` (built once)."""
-        if self._precision == "fp32":
+        """The module the decoding passes run: the transformer at `precision`, compiled when
+        `compiled` (built once)."""
+        if self._precision == "fp32" and not self._compiled:
             return self.transformer
         if self._inference is None or self._inference[0] is not self.transformer:
-            self._inference = (self.transformer, inference_copy(self.transformer, self._precision))
+            model = inference_copy(self.transformer, self._precision)
+            if self._compiled:
+                model = CompiledDecoding(model, mode=default_compile_mode(self.device))
+            self._inference = (self.transformer, model)
         return self._inference[1]
 
     # -- loading --------------------------------------------------------------------------------
