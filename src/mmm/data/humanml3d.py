@@ -18,7 +18,8 @@ in the page cache rather than in each process's own memory (`FeatureStore`). The
 feature files' names, sizes, mtimes, ctimes and inodes (the dataset fingerprint's rule), so a
 changed, added or removed file makes a new pack; a pack is written under a temporary name and
 renamed into place, so a crash never leaves a half-written one. Where the dataset folder cannot
-be written the files are read one by one, as before.
+be written the files are read one by one, as before. The caption files are packed the same way,
+parsed, into <root>/.captions-pack/<key>/index.json (`CaptionStore`).
 """
 
 from __future__ import annotations

@@ -108,8 +108,8 @@ class CompiledDecoding(nn.Module):
             index = torch.arange(rows, device=tokens.device).clamp(max=B - 1)
             inputs = [_rows(x, index) for x in inputs]
         logits = self._pass(*inputs)[:B, :M]
-        if head_rows is None:
-            return logits
+        if head_rows is None:  # a copy: CUDA graphs reuse their output buffer on the next pass
+            return logits.clone()
         return logits.reshape(B * M, -1).index_select(0, head_rows)
 
 
