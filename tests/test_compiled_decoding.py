@@ -102,3 +102,27 @@ def test_text_to_motion_compiles_an_inference_copy_and_keeps_the_weights(t2m):  
     assert all(torch.equal(v, before[k]) for k, v in t2m.transformer.state_dict().items())
     args = build_parser().parse_args(["generate", "--text", "x", "--out", "o", "--compile"])
     assert args.compile is True
+
+
+def test_the_served_bundle_compiles_when_its_model_config_says_so(monkeypatch):
+    from types import SimpleNamespace
+
+    from mmm.generation.model import TextToMotion
+    from mmm.registry.bundle import TextToMotionPyfunc
+
+    monkeypatch.setattr(
+        TextToMotion,
+        "from_files",
+        classmethod(lambda cls, *a, **k: SimpleNamespace(part_aware=False, precision="fp32", compiled=False)),
+    )
+
+    def load(config):
+        bundle = TextToMotionPyfunc()
+        bundle.load_context(
+            SimpleNamespace(model_config=config, artifacts={"transformer": "t", "tokenizer": "s"})
+        )
+        return bundle.model.compiled
+
+    assert load({}) is False and load({"compile": True}) is True
+    with pytest.raises(ValueError, match="model_config \"compile\" must be true or false, got 'yes'"):
+        load({"compile": "yes"})

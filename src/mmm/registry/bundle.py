@@ -141,7 +141,9 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         lower_mask (share of the source's lower-body codes hidden, default 0.5) and seed (guidance
         defaults to 4 there); and the output adds "lower_mask".
     model_config {"device": "cuda"} loads it on a GPU (default "cpu"); {"precision": "int8"} sets the
-    decoding precision (default: the device's, mmm.generation.precision); {"max_rows": N} bounds the
+    decoding precision (default: the device's, mmm.generation.precision); {"compile": true} runs
+    the decoding passes through torch.compile with static length buckets (mmm.generation.compiled:
+    each shape compiles on its first request, CUDA graphs on a GPU); {"max_rows": N} bounds the
     rows of one request (default 64; more are refused, HTTP 400 when served). A served model takes
     them from MLFLOW_PYFUNC_INFERENCE_CONFIG='{"max_rows": 16}'.
     """
@@ -162,6 +164,10 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
             precision=config.get("precision") or None,
         )
         self.precision = self.model.precision
+        compiled = config.get("compile", False)
+        if not isinstance(compiled, bool):
+            raise ValueError(f'model_config "compile" must be true or false, got {compiled!r}')
+        self.model.compiled = compiled
 
     def predict(self, context, model_input, params=None):
         params = dict(params or {})
