@@ -19,9 +19,10 @@ def codes(model, frames, cfg, **kwargs):
 
 
 def test_buckets_are_few_and_cover_every_length():
-    assert length_buckets(50) == (8, 16, 24, 32, 40, 48, 50)
+    assert length_buckets(50) == (4, 8, 12, 16, 24, 32, 40, 48, 50)
+    assert length_buckets(12) == (4, 8, 12) and length_buckets(14) == (4, 8, 12, 14)
     wrapped = CompiledDecoding(tiny_transformer(), backend="eager")
-    assert [wrapped.bucket(n) for n in (1, 8, 9, 49, 50)] == [8, 8, 16, 50, 50]
+    assert [wrapped.bucket(n) for n in (1, 8, 9, 11, 17, 49, 50)] == [4, 8, 12, 12, 24, 50, 50]
     with pytest.raises(ValueError, match="51 tokens is longer than the model's 50"):
         wrapped.bucket(51)
 

@@ -5,10 +5,10 @@ number of masked positions every pass; compiled as they come, each shape would b
 (and, on a GPU, a new CUDA graph). `CompiledDecoding` wraps a transformer (or its fp32/bf16/int8
 inference copy) so that every pass has one of a few shapes:
 
-    sequence  the tokens (B, M) are padded with PAD to the next length bucket (multiples of 8 up
-              to the model's max_tokens: at most 7); PAD keys are masked out of every attention,
-              as they are for the padding of a mixed-length batch, so the real positions' logits
-              are those of the unpadded pass (to float rounding);
+    sequence  the tokens (B, M) are padded with PAD to the next length bucket (multiples of 4 up
+              to 16, then of 8, up to the model's max_tokens: at most 9); PAD keys are masked out
+              of every attention, as they are for the padding of a mixed-length batch, so the
+              real positions' logits are those of the unpadded pass (to float rounding);
     rows      the rows that run (fewer as the samples of a mixed-length batch finish) are padded
               to the next power of two with copies of the last row, whose results are dropped;
     words     the cached keys/values of the words are padded to a multiple of 16 words, masked out;
@@ -37,9 +37,11 @@ WORD_BUCKET = 16
 RECOMPILE_LIMIT = 64
 
 
-def length_buckets(max_tokens: int, step: int = 8) -> tuple[int, ...]:
-    """Sequence lengths a pass is padded to: multiples of `step` below max_tokens, and max_tokens."""
-    return tuple(range(step, max_tokens, step)) + (max_tokens,)
+def length_buckets(max_tokens: int) -> tuple[int, ...]:
+    """Sequence lengths a pass is padded to: multiples of 4 up to 16 (short motions, where padding
+    costs most in proportion), then of 8, and max_tokens."""
+    steps = [*range(4, 17, 4), *range(24, max_tokens, 8)]
+    return tuple(n for n in steps if n < max_tokens) + (max_tokens,)
 
 
 def default_compile_mode(device: torch.device | str) -> str:
