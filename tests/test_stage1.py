@@ -12,10 +12,10 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
-from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.quantizer import EMAQuantizer
-from mmm.training.optim import OptimConfig, warmup_step_schedule
+from mmm.training.optim import OptimConfig, cosine_tail, warmup_step_schedule
 from mmm.training.stage1 import load_stage1_config, train_stage1
 
 TESTS = Path(__file__).resolve().parent
@@ -87,6 +87,63 @@ def test_lr_schedule_warmup_and_decay():
     f = warmup_step_schedule(1000, [200_000], 0.05)
     assert f(0) == pytest.approx(1 / 1000) and f(499) == pytest.approx(0.5) and f(999) == 1.0
     assert f(199_999) == 1.0 and f(200_000) == pytest.approx(0.05)
+
+
+def test_cosine_tail_follows_the_schedule_then_decays_from_its_scale_to_zero():
+    f = cosine_tail(warmup_step_schedule(10, [50], 0.1), start=60, steps=40, scale=0.3)
+    assert f(4) == pytest.approx(0.5) and f(55) == pytest.approx(0.1)  # the schedule before the tail
+    assert f(60) == pytest.approx(0.3) and f(80) == pytest.approx(0.15) and f(100) == pytest.approx(0.0)
+    assert f(90) == pytest.approx(0.3 * 0.5 * (1 + np.cos(np.pi * 0.75)))
+
+
+class RecordRefinement(L.Callback):
+    """The tokenizer's state and the learning rate when the refinement begins, and every rate."""
+
+    def __init__(self):
+        self.at_start, self.rates = None, []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.rates.append(trainer.optimizers[0].param_groups[0]["lr"])
+        if trainer.global_step == pl_module.refine_start:
+            self.at_start = {k: v.detach().clone() for k, v in pl_module.tokenizer.state_dict().items()}
+            reset = next(c for c in trainer.callbacks if isinstance(c, CodebookReset))
+            self.resets_at_start = reset.total_reset
+
+
+@pytest.mark.parametrize("part_aware", [False, True])
+def test_decoder_refinement_trains_the_decoder_alone_for_the_last_fraction_of_the_steps(part_aware):
+    torch.manual_seed(0)
+    data = torch.randn(128, 64, 263)
+    module = TokenizerModule(
+        263,
+        TokenizerConfig(width=32, num_codes=64, part_aware=part_aware),
+        OptimConfig(lr=1e-3, warmup_steps=2),
+        TokenizerLossConfig(),
+        refine=DecoderRefineConfig(fraction=0.4, lr=5e-4, root_weight=25.0),
+    )
+    record, reset = RecordRefinement(), CodebookReset(2)
+    _fit(module, data, [reset, CollapseMonitor(warmup_steps=2, window_steps=2), record], 20)
+    assert module.refine_start == 12 and module.hparams["refine"]["fraction"] == 0.4
+    assert record.at_start is not None and reset.total_reset == record.resets_at_start > 0
+    end = module.tokenizer.state_dict()
+    frozen = [k for k in end if "decoder" not in k.split(".")]
+    assert sum(k.endswith("quantizer.codebook") for k in frozen) == (2 if part_aware else 1)
+    assert any("encoder" in k.split(".") for k in frozen)
+    for key in frozen:  # encoder weights, codebook and its EMA statistics stand still
+        assert torch.equal(end[key], record.at_start[key]), key
+    trained = [k for k in end if "decoder" in k.split(".") and not torch.equal(end[k], record.at_start[k])]
+    assert len(trained) > 10
+    # The rate restarts at refine.lr and decays along a half cosine: step 12 of the 8-step tail, ...
+    assert record.rates[12] == pytest.approx(5e-4)
+    assert record.rates[16] == pytest.approx(2.5e-4) and record.rates[11] == pytest.approx(1e-3)
+
+
+def test_decoder_refinement_needs_a_step_budget():
+    module = TokenizerModule(
+        263, TokenizerConfig(width=8, num_codes=16), {}, {}, refine=DecoderRefineConfig(fraction=1.0)
+    )
+    with pytest.raises(ValueError, match=r"refine.fraction=1.0 .*set refine.fraction in \[0, 1\)"):
+        _fit(module, torch.randn(8, 16, 263), [], 4)
 
 
 def _fit(module, data, callbacks, steps):
@@ -193,6 +250,29 @@ def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_pa
     assert r0["global_step"] == r1["global_step"] == 24
 
 
+@pytest.mark.slow
+@pytest.mark.ddp
+def test_ddp_decoder_refinement_freezes_the_same_codebook_on_both_ranks(walker_dataset, tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(TESTS / "ddp_workers/stage1_ddp.py"), str(walker_dataset), str(tmp_path)]
+        + ["refine"],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    start = torch.load(tmp_path / "rank0-refine-start.pt", weights_only=True)
+    assert r0["global_step"] == r1["global_step"] == 40
+    for key, value in r0["tokenizer"].items():
+        assert torch.equal(value, r1["tokenizer"][key]), key  # the ranks agree on every weight and buffer
+        if "decoder" not in key.split("."):
+            assert torch.equal(value, start[key]), key  # frozen from step 20 on
+    decoder = [k for k in r0["tokenizer"] if k.startswith("decoder.")]
+    assert sum(not torch.equal(r0["tokenizer"][k], start[k]) for k in decoder) > 10
+
+
 def _stage1_overrides(root, out, steps, **extra):
     items = {
         "data.root": root,
@@ -204,6 +284,7 @@ def _stage1_overrides(root, out, steps, **extra):
         "trainer.val_check_interval": 5,
         "trainer.enable_progress_bar": "false",
         "optim.warmup_steps": 5,
+        "refine.fraction": 0.0,  # the resume test stops a run at 10 of 20 steps: no refinement to split
         "callbacks.reset_every_n_steps": 3,
         "callbacks.preview_clips": 2,
         "output_dir": out / "runs",

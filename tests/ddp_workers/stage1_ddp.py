@@ -1,9 +1,11 @@
 """Stage-1 training on 2 CPU processes over gloo; each rank saves its quantizer state at the end.
 
-Run by tests/test_stage1.py as `python stage1_ddp.py DATA_ROOT OUT_DIR [parts]`: Lightning's DDP
+Run by tests/test_stage1.py as `python stage1_ddp.py DATA_ROOT OUT_DIR [parts|refine]`: Lightning's DDP
 launcher re-runs this script for rank 1; `parts` trains the part-aware tokenizer (two codebooks). The collapse
 monitor is made to fire on rank 0 only, so both
-ranks stopping at the same step shows that the stop decision is reduced across ranks.
+ranks stopping at the same step shows that the stop decision is reduced across ranks. `refine` runs all
+40 steps instead, the last half refining the decoder alone, and also saves each rank's state as the
+refinement begins.
 """
 
 import os
@@ -28,6 +30,11 @@ class SaveRankState(L.Callback):
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         if self.first_batch_sum is None:
             self.first_batch_sum = float(batch.sum())
+        if trainer.global_step == pl_module.refine_start:
+            torch.save(
+                {name: value.detach().clone() for name, value in pl_module.tokenizer.state_dict().items()},
+                os.path.join(self.out_dir, f"rank{trainer.global_rank}-refine-start.pt"),
+            )
 
     def on_train_end(self, trainer, pl_module):
         quantizers = pl_module.quantizers.values()
@@ -43,13 +50,14 @@ class SaveRankState(L.Callback):
                 "global_step": trainer.global_step,
                 "total_reset": reset.total_reset,
                 "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
+                "tokenizer": {k: v.detach().clone() for k, v in pl_module.tokenizer.state_dict().items()},
                 "first_batch_sum": self.first_batch_sum,
             },
             os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt"),
         )
 
 
-def main(data_root, out_dir, parts=False):
+def main(data_root, out_dir, parts=False, refine=False):
     L.seed_everything(0)
     rank = int(os.environ.get("LOCAL_RANK", "0"))
     dm = TokenizerDataModule(DataConfig(root=data_root, batch_size=4, synthesize=None), seed=0)
@@ -62,12 +70,13 @@ def main(data_root, out_dir, parts=False):
         TokenizerLossConfig(),
         dm.mean,
         dm.std,
+        refine={"fraction": 0.5 if refine else 0.0},
     )
     monitor = CollapseMonitor(
         action="stop",
         warmup_steps=24,
         window_steps=4,
-        min_active_fraction=2.0 if rank == 0 else -1.0,
+        min_active_fraction=2.0 if rank == 0 and not refine else -1.0,
         perplexity_drop=0.0,
         patience=1,
     )
@@ -87,4 +96,4 @@ def main(data_root, out_dir, parts=False):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], parts=sys.argv[3:] == ["parts"])
+    main(sys.argv[1], sys.argv[2], parts=sys.argv[3:] == ["parts"], refine=sys.argv[3:] == ["refine"])

@@ -37,7 +37,9 @@ class CodebookReset(L.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = trainer.global_step
-        due = self.every_n_steps > 0 and step > 0 and step % self.every_n_steps == 0
+        # The decoder refinement (the run's last steps) keeps the codebook fixed: nothing to reset.
+        refining = getattr(pl_module, "refining", False)
+        due = self.every_n_steps > 0 and step > 0 and step % self.every_n_steps == 0 and not refining
         for name, q in pl_module.quantizers.items():
             n = q.reset_unused() if due else 0
             self.total_by_codebook[name] = self.total_by_codebook.get(name, 0) + n
@@ -174,6 +176,8 @@ class CollapseMonitor(L.Callback):
         return None
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if getattr(pl_module, "refining", False):
+            return  # the decoder refinement: a fixed codebook cannot collapse, and no usage is counted
         step = trainer.global_step
         metrics, reasons = {}, {}
         for name, quantizer in pl_module.quantizers.items():

@@ -61,7 +61,13 @@ def load_tokenizer_checkpoint(path: str | Path, expected_fingerprint: str | None
     ckpt = load_checkpoint(path, "stage1", expected_fingerprint)
     hp = ckpt["hyper_parameters"]
     try:
-        module = TokenizerModule(hp["feature_dim"], hp["model"], hp.get("optim") or {}, hp.get("loss") or {})
+        module = TokenizerModule(
+            hp["feature_dim"],
+            hp["model"],
+            hp.get("optim") or {},
+            hp.get("loss") or {},
+            refine=hp.get("refine"),
+        )
     except (TypeError, ValueError, KeyError) as e:
         raise CheckpointError(
             f"{path}: its stage-1 hyper-parameters do not describe a tokenizer ({e}); use the checkpoint as "

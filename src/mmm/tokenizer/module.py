@@ -35,6 +35,22 @@ class TokenizerLossConfig:
     )
 
 
+@dataclass
+class DecoderRefineConfig:
+    """The last `fraction` of the run's optimizer steps (trainer.max_steps) train the decoder alone.
+
+    The encoder and codebook are frozen (no EMA update, no reset), so the decoder fits fixed codes
+    instead of chasing a codebook that moves every step; the rate restarts at `lr` and decays to 0
+    along a half cosine, and the root dims' loss is multiplied by `root_weight`. The root
+    velocities' small per-clip bias is what integrates into the drift of the global root path
+    (README, Stage 1). 0: no refinement (the released recipe).
+    """
+
+    fraction: float = 0.0
+    lr: float = 3e-4
+    root_weight: float = 25.0
+
+
 def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean of values (B, T, ...) over positions where mask (B, T) is true."""
     mask = mask.to(values.dtype).view(mask.shape + (1,) * (values.dim() - 2))
@@ -56,12 +72,14 @@ class TokenizerModule(L.LightningModule):
         loss: TokenizerLossConfig | dict,
         mean: np.ndarray | torch.Tensor | None = None,
         std: np.ndarray | torch.Tensor | None = None,
+        refine: DecoderRefineConfig | dict | None = None,
     ):
         super().__init__()
-        model, optim, loss = (
+        model, optim, loss, refine = (
             as_config(TokenizerConfig, model),
             as_config(OptimConfig, optim),
             as_config(TokenizerLossConfig, loss),
+            as_config(DecoderRefineConfig, refine or {}),
         )
         # Tensors before save_hyperparameters, which compares its argument with every init
         # argument (a numpy array cannot be compared with a dict).
@@ -74,10 +92,11 @@ class TokenizerModule(L.LightningModule):
                 "model": asdict(model),
                 "optim": asdict(optim),
                 "loss": asdict(loss),
+                "refine": asdict(refine),
             },
             logger=False,
         )
-        self.model_cfg, self.optim_cfg, self.loss_cfg = model, optim, loss
+        self.model_cfg, self.optim_cfg, self.loss_cfg, self.refine_cfg = model, optim, loss, refine
         self.tokenizer = (
             PartAwareTokenizer(feature_dim, model)
             if model.part_aware
@@ -109,21 +128,73 @@ class TokenizerModule(L.LightningModule):
             )
         return quantizers[""]
 
+    @property
+    def refine_steps(self) -> int:
+        """How many of trainer.max_steps refine the decoder (0 without a trainer or a step budget)."""
+        if self.refine_cfg.fraction <= 0 or self._trainer is None or self.trainer.max_steps <= 0:
+            return 0
+        return round(self.trainer.max_steps * min(self.refine_cfg.fraction, 1.0))
+
+    @property
+    def refine_start(self) -> int | None:
+        """The first optimizer step of the decoder refinement (None: no refinement)."""
+        steps = self.refine_steps
+        return self.trainer.max_steps - steps if steps else None
+
+    @property
+    def refining(self) -> bool:
+        """Whether this step trains the decoder alone (the codebook callbacks then stand still)."""
+        start = self.refine_start
+        return start is not None and self.global_step >= start
+
     def losses(
-        self, recon: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+        self,
+        recon: torch.Tensor,
+        target: torch.Tensor,
+        mask: torch.Tensor | None = None,
+        root_weight: float | None = None,
     ) -> dict[str, torch.Tensor]:
         pos = self.layout.positions
         full = F.smooth_l1_loss(recon, target, reduction="none")
-        if self.loss_cfg.root_weight != 1.0:
+        root_weight = self.loss_cfg.root_weight if root_weight is None else root_weight
+        if root_weight != 1.0:
             weight = torch.ones(full.shape[-1], device=full.device, dtype=full.dtype)
-            weight[: self.layout.root_height.stop] = self.loss_cfg.root_weight
+            weight[: self.layout.root_height.stop] = root_weight
             full = full * weight
         position = F.smooth_l1_loss(recon[..., pos], target[..., pos], reduction="none")
         if mask is None:
             return {"recon": full.mean(), "position": position.mean()}
         return {"recon": masked_mean(full, mask), "position": masked_mean(position, mask)}
 
+    def _frozen_parameters(self) -> list[torch.nn.Parameter]:
+        """What the decoder refinement does not train: every tokenizer parameter outside a decoder."""
+        return [p for name, p in self.tokenizer.named_parameters() if "decoder" not in name.split(".")]
+
+    def _refine_step(self, batch: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            indices = self.tokenizer.encode(batch)  # no EMA update, no usage counted
+        recon = self.tokenizer.reconstruct(indices)
+        parts = self.losses(recon, batch, root_weight=self.refine_cfg.root_weight)
+        loss = parts["recon"] + self.loss_cfg.position_weight * parts["position"]
+        # DDP waits for a gradient of every parameter: the frozen ones get zeros, dropped before the step.
+        loss = loss + 0.0 * sum(p.sum() for p in self._frozen_parameters())
+        self.log_dict(
+            {"train/loss": loss, "train/recon": parts["recon"], "train/position": parts["position"]},
+            on_step=True,
+            on_epoch=False,
+        )
+        self.log("loss", loss, prog_bar=True, logger=False)
+        return loss
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        if self.refining:
+            # No gradient, no AdamW update: momentum and weight decay would otherwise move them.
+            for p in self._frozen_parameters():
+                p.grad = None
+
     def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
+        if self.refining:
+            return self._refine_step(batch)
         out = self.tokenizer(batch)
         parts = self.losses(out.reconstruction, batch)
         loss = (
@@ -200,4 +271,13 @@ class TokenizerModule(L.LightningModule):
         self.val_mpjpe_global.reset()
 
     def configure_optimizers(self):
-        return build_optimizer(self.parameters(), self.optim_cfg, foreach=True)
+        fraction, max_steps = self.refine_cfg.fraction, self.trainer.max_steps
+        if fraction > 0 and (fraction >= 1 or max_steps <= 0):
+            raise ValueError(
+                f"refine.fraction={fraction} with trainer.max_steps={max_steps}: "
+                "the decoder refinement needs a step budget (max_steps > 0) and a fraction below 1, so that "
+                "the codebook trains first; set refine.fraction in [0, 1) and trainer.max_steps"
+            )
+        start = self.refine_start
+        tail = None if start is None else (start, self.refine_steps, self.refine_cfg.lr / self.optim_cfg.lr)
+        return build_optimizer(self.parameters(), self.optim_cfg, foreach=True, tail=tail)

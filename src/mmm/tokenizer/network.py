@@ -147,6 +147,10 @@ class MotionTokenizer(nn.Module):
     @torch.no_grad()
     def decode(self, indices: torch.Tensor) -> torch.Tensor:
         """Motion (B, T' * 4, D) of code indices (B, T')."""
+        return self.reconstruct(indices)
+
+    def reconstruct(self, indices: torch.Tensor) -> torch.Tensor:
+        """`decode` with gradients to the decoder (the decoder refinement trains it alone)."""
         return self.decoder(self.quantizer.lookup(indices)).transpose(1, 2)
 
     @torch.no_grad()

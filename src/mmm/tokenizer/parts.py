@@ -67,7 +67,11 @@ class PartAwareTokenizer(nn.Module):
                 "a part-aware tokenizer decodes index pairs (B, T', 2) (lower, upper), got shape "
                 f"{tuple(indices.shape)}"
             )
-        return self.decode_parts(indices[..., 0], indices[..., 1])
+        return self.reconstruct(indices)
+
+    def reconstruct(self, indices: torch.Tensor) -> torch.Tensor:
+        """`decode` with gradients to both decoders (the decoder refinement trains them alone)."""
+        return merge_parts(self.lower.reconstruct(indices[..., 0]), self.upper.reconstruct(indices[..., 1]))
 
     @torch.no_grad()
     def decode_parts(self, lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:

@@ -8,6 +8,7 @@ charts it as `train/lr`. Each LightningModule's `configure_optimizers` is one ca
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Iterable
 
@@ -34,12 +35,26 @@ def warmup_step_schedule(warmup_steps: int, milestones: list[int], gamma: float)
     return factor
 
 
+def cosine_tail(schedule, start: int, steps: int, scale: float):
+    """`schedule` (lr multiplier at step s) until `start`, then `scale` decaying to 0 along a
+    half cosine over `steps` steps."""
+
+    def factor(step: int) -> float:
+        if step < start:
+            return schedule(step)
+        done = min(step - start, steps) / steps
+        return scale * 0.5 * (1.0 + math.cos(math.pi * done))
+
+    return factor
+
+
 def build_optimizer(
     parameters: Iterable[torch.nn.Parameter],
     cfg: OptimConfig,
     *,
     foreach: bool | None = None,
     decay_matrices_only: bool = False,
+    tail: tuple[int, int, float] | None = None,
 ) -> dict:
     """AdamW over `parameters` with the warm-up/step schedule of `cfg`, as Lightning's
     `configure_optimizers` returns it: {"optimizer", "lr_scheduler": {scheduler, per step, `train/lr`}}.
@@ -47,6 +62,8 @@ def build_optimizer(
     foreach: AdamW's multi-tensor implementation (None: torch's default for the device).
     decay_matrices_only: weight decay on the trainable weight matrices only (dim >= 2), none on
     biases, norms and scalars such as a logit scale; otherwise on every parameter.
+    tail: (start, steps, scale): from step `start` on, the rate is cfg.lr x scale decaying to 0
+    along a half cosine over `steps` (`cosine_tail`; the tokenizer's decoder refinement).
     """
     if decay_matrices_only:
         trainable = [p for p in parameters if p.requires_grad]
@@ -57,9 +74,10 @@ def build_optimizer(
     optimizer = torch.optim.AdamW(
         parameters, lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=foreach
     )
-    schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma)
-    )
+    factor = warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma)
+    if tail is not None:
+        factor = cosine_tail(factor, *tail)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
     return {
         "optimizer": optimizer,
         "lr_scheduler": {"scheduler": schedule, "interval": "step", "name": "train/lr"},

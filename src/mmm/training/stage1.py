@@ -15,7 +15,7 @@ from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.data.normalization import NormalizationConfig
 from mmm.fingerprint import dataset_fingerprint
 from mmm.kinds import STAGE1, STAGE1_PARTS
-from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tracking import TrackingConfig
 from mmm.training.common import TrackedRun, TrainResult, run_target, tracked_fit
 from mmm.training.configs import ModelConfig, TrainerConfig
@@ -40,6 +40,7 @@ class Stage1Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: TokenizerLossConfig = field(default_factory=TokenizerLossConfig)
+    refine: DecoderRefineConfig = field(default_factory=DecoderRefineConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     logger: TrackingConfig = field(default_factory=TrackingConfig)
     callbacks: Stage1Callbacks = field(default_factory=Stage1Callbacks)
@@ -73,7 +74,13 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     datamodule.prepare_data()
     datamodule.setup("fit")
     module = TokenizerModule(
-        cfg.data.feature_dim, cfg.model.tokenizer, cfg.optim, cfg.loss, datamodule.mean, datamodule.std
+        cfg.data.feature_dim,
+        cfg.model.tokenizer,
+        cfg.optim,
+        cfg.loss,
+        datamodule.mean,
+        datamodule.std,
+        cfg.refine,
     )
     fingerprint = dataset_fingerprint(cfg.data.root)
     tokenizer = cfg.model.tokenizer
