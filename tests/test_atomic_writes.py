@@ -189,6 +189,7 @@ def test_training_killed_during_a_checkpoint_save_resumes_from_the_previous_one(
         "model.tokenizer.width=16",
         "model.tokenizer.num_codes=32",
         "trainer.max_steps=6",
+        "refine.steps=0",
         "trainer.val_check_interval=2",
         "trainer.enable_progress_bar=false",
         "callbacks.preview_clips=0",

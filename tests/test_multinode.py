@@ -97,7 +97,8 @@ def test_stage1_and_stage2_on_two_nodes_and_resumed_across_process_counts(walker
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     # No codebook resets: they draw random codes, and a reset drawn on 2 processes is another draw
     # than on 1; everything else a step does is a function of its samples.
-    stage1 = ["callbacks.reset_every_n_steps=100000", "trainer.val_check_interval=6"]
+    # No decoder refinement either: it would follow each leg's max_steps (6, 12, 18), not only the last.
+    stage1 = ["callbacks.reset_every_n_steps=100000", "trainer.val_check_interval=6", "refine.steps=0"]
 
     def one_process(steps: int, *extra: str, resume=None):
         cfg = tiny_stage1_config(walker_dataset, tmp_path, *stage1, f"trainer.max_steps={steps}", *extra)

@@ -882,9 +882,9 @@ def test_recipe_paper_sets_the_released_recipe_for_every_command():
         s1.trainer.max_steps,
         s1.normalization.statistics,
         s1.normalization.feat_bias,
-        s1.refine.fraction,
-    ) == (256, 300000, "evaluator_style", 25.0, 0.0)
-    assert load_stage1_config([]).refine.fraction == 0.5  # the package's default refines the decoder
+        s1.refine.steps,
+    ) == (256, 300000, "evaluator_style", 25.0, 0)
+    assert load_stage1_config([]).refine.steps == 1000  # the package's default refines the decoder
     s2 = load_stage2_config(["recipe=paper"])
     assert (
         s2.model.transformer.num_layers,

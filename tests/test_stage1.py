@@ -12,6 +12,7 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
+from mmm.config import ConfigError
 from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.quantizer import EMAQuantizer
@@ -119,11 +120,11 @@ def test_decoder_refinement_trains_the_decoder_alone_for_the_last_fraction_of_th
         TokenizerConfig(width=32, num_codes=64, part_aware=part_aware),
         OptimConfig(lr=1e-3, warmup_steps=2),
         TokenizerLossConfig(),
-        refine=DecoderRefineConfig(fraction=0.4, lr=5e-4, root_weight=25.0),
+        refine=DecoderRefineConfig(steps=8, lr=5e-4, root_weight=25.0),
     )
     record, reset = RecordRefinement(), CodebookReset(2)
     _fit(module, data, [reset, CollapseMonitor(warmup_steps=2, window_steps=2), record], 20)
-    assert module.refine_start == 12 and module.hparams["refine"]["fraction"] == 0.4
+    assert module.refine_start == 12 and module.hparams["refine"]["steps"] == 8
     assert record.at_start is not None and reset.total_reset == record.resets_at_start > 0
     end = module.tokenizer.state_dict()
     frozen = [k for k in end if "decoder" not in k.split(".")]
@@ -138,12 +139,28 @@ def test_decoder_refinement_trains_the_decoder_alone_for_the_last_fraction_of_th
     assert record.rates[16] == pytest.approx(2.5e-4) and record.rates[11] == pytest.approx(1e-3)
 
 
-def test_decoder_refinement_needs_a_step_budget():
+def test_decoder_refinement_needs_a_step_budget(walker_dataset, tmp_path):
     module = TokenizerModule(
-        263, TokenizerConfig(width=8, num_codes=16), {}, {}, refine=DecoderRefineConfig(fraction=1.0)
+        263, TokenizerConfig(width=8, num_codes=16), {}, {}, refine=DecoderRefineConfig(steps=4)
     )
-    with pytest.raises(ValueError, match=r"refine.fraction=1.0 .*set refine.fraction in \[0, 1\)"):
+    with pytest.raises(ValueError, match=r"refine.steps=4 with a fit of max_steps=4: .*budget"):
         _fit(module, torch.randn(8, 16, 263), [], 4)
+    cfg = load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, -1, **{"refine.steps": 5}))
+    with pytest.raises(ConfigError, match=r"refine.steps=5 with trainer.max_steps=-1: .*refine.steps=0"):
+        train_stage1(cfg)
+
+
+@pytest.mark.slow
+def test_stage1_runs_its_steps_then_the_refinement_steps(walker_dataset, tmp_path):
+    result = train_stage1(
+        load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, 6, **{"refine.steps": 4}))
+    )
+    ckpt = torch.load(result.last_checkpoint, map_location="cpu", weights_only=True)
+    assert ckpt["global_step"] == 10 and ckpt["hyper_parameters"]["refine"]["steps"] == 4
+    client = MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    params = client.get_run(result.run_id).data.params
+    assert (params["trainer.max_steps"], params["refine.steps"]) == ("6", "4")  # as the user set them
+    assert not result.stopped_early
 
 
 def _fit(module, data, callbacks, steps):
@@ -284,7 +301,7 @@ def _stage1_overrides(root, out, steps, **extra):
         "trainer.val_check_interval": 5,
         "trainer.enable_progress_bar": "false",
         "optim.warmup_steps": 5,
-        "refine.fraction": 0.0,  # the resume test stops a run at 10 of 20 steps: no refinement to split
+        "refine.steps": 0,  # the resume test stops a run at 10 of 20 steps: no refinement to split
         "callbacks.reset_every_n_steps": 3,
         "callbacks.preview_clips": 2,
         "output_dir": out / "runs",

@@ -70,7 +70,7 @@ def main(data_root, out_dir, parts=False, refine=False):
         TokenizerLossConfig(),
         dm.mean,
         dm.std,
-        refine={"fraction": 0.5 if refine else 0.0},
+        refine={"steps": 20 if refine else 0},
     )
     monitor = CollapseMonitor(
         action="stop",

@@ -37,16 +37,17 @@ class TokenizerLossConfig:
 
 @dataclass
 class DecoderRefineConfig:
-    """The last `fraction` of the run's optimizer steps (trainer.max_steps) train the decoder alone.
+    """`steps` more optimizer steps after the tokenizer's own train the decoder alone.
 
     The encoder and codebook are frozen (no EMA update, no reset), so the decoder fits fixed codes
     instead of chasing a codebook that moves every step; the rate restarts at `lr` and decays to 0
     along a half cosine, and the root dims' loss is multiplied by `root_weight`. The root
     velocities' small per-clip bias is what integrates into the drift of the global root path
-    (README, Stage 1). 0: no refinement (the released recipe).
+    (README, Stage 1). The module refines in the last `steps` of its fit; `train_stage1` runs
+    trainer.max_steps + steps. 0: no refinement (the released recipe).
     """
 
-    fraction: float = 0.0
+    steps: int = 0
     lr: float = 3e-4
     root_weight: float = 25.0
 
@@ -129,17 +130,11 @@ class TokenizerModule(L.LightningModule):
         return quantizers[""]
 
     @property
-    def refine_steps(self) -> int:
-        """How many of trainer.max_steps refine the decoder (0 without a trainer or a step budget)."""
-        if self.refine_cfg.fraction <= 0 or self._trainer is None or self.trainer.max_steps <= 0:
-            return 0
-        return round(self.trainer.max_steps * min(self.refine_cfg.fraction, 1.0))
-
-    @property
     def refine_start(self) -> int | None:
-        """The first optimizer step of the decoder refinement (None: no refinement)."""
-        steps = self.refine_steps
-        return self.trainer.max_steps - steps if steps else None
+        """The first optimizer step of the decoder refinement: the fit's last `refine.steps`
+        (None: no refinement, or no trainer)."""
+        steps = self.refine_cfg.steps
+        return self.trainer.max_steps - steps if steps > 0 and self._trainer is not None else None
 
     @property
     def refining(self) -> bool:
@@ -271,13 +266,13 @@ class TokenizerModule(L.LightningModule):
         self.val_mpjpe_global.reset()
 
     def configure_optimizers(self):
-        fraction, max_steps = self.refine_cfg.fraction, self.trainer.max_steps
-        if fraction > 0 and (fraction >= 1 or max_steps <= 0):
+        steps, max_steps = self.refine_cfg.steps, self.trainer.max_steps
+        if steps < 0 or (steps > 0 and max_steps <= steps):
             raise ValueError(
-                f"refine.fraction={fraction} with trainer.max_steps={max_steps}: "
-                "the decoder refinement needs a step budget (max_steps > 0) and a fraction below 1, so that "
-                "the codebook trains first; set refine.fraction in [0, 1) and trainer.max_steps"
+                f"refine.steps={steps} with a fit of max_steps={max_steps}: the decoder refinement takes the "
+                "fit's last refine.steps, after the codebook has trained; set refine.steps >= 0 and a step "
+                "budget (trainer.max_steps) above it"
             )
         start = self.refine_start
-        tail = None if start is None else (start, self.refine_steps, self.refine_cfg.lr / self.optim_cfg.lr)
+        tail = None if start is None else (start, steps, self.refine_cfg.lr / self.optim_cfg.lr)
         return build_optimizer(self.parameters(), self.optim_cfg, foreach=True, tail=tail)

@@ -10,7 +10,7 @@ from omegaconf import DictConfig
 from mmm.callbacks.checkpoints import CheckpointConfig
 from mmm.callbacks.codebook import CodebookReset, CollapseConfig, CollapseMonitor
 from mmm.callbacks.previews import CodebookUsagePlot, ReconstructionPreview
-from mmm.config import compose, to_object
+from mmm.config import ConfigError, compose, to_object
 from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.data.normalization import NormalizationConfig
 from mmm.fingerprint import dataset_fingerprint
@@ -68,6 +68,13 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     """Train a tokenizer as configured; `resume` = "last" or a checkpoint path continues a run
     (a checkpoint outside this stage's run folders is only read: the run goes on in a new folder)."""
     cfg: Stage1Config = to_object(cfg_node)
+    if cfg.refine.steps < 0 or (cfg.refine.steps > 0 and cfg.trainer.max_steps <= 0):
+        raise ConfigError(
+            f"refine.steps={cfg.refine.steps} with trainer.max_steps={cfg.trainer.max_steps}: the decoder "
+            "refinement runs after trainer.max_steps steps of the whole tokenizer; set trainer.max_steps > 0 "
+            "or refine.steps=0"
+        )
+    cfg.trainer.max_steps += cfg.refine.steps  # the fit: the whole tokenizer, then the decoder alone
     L.seed_everything(cfg.seed, workers=True)
     target = run_target(cfg, resume)
     datamodule = TokenizerDataModule(cfg.data, seed=cfg.seed, normalization=cfg.normalization)
