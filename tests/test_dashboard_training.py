@@ -26,6 +26,7 @@ def stage1_runs(walker_dataset, tmp_path_factory):
     os.environ["MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL"] = "1"
     try:
         extra = [
+            "refine.steps=0",  # the 4 steps and 2 validations the tests below count
             "trainer.val_check_interval=2",
             "callbacks.preview_clips=2",
             "callbacks.usage_plot=true",

@@ -79,12 +79,13 @@ def test_pipeline_and_promotion_over_a_tracking_server(tmp_path, monkeypatch, ca
         by_step = {tags(c)["mmm.step"]: c for c in children}
         assert len(by_step) == 9 and all(c["info"]["status"] == "FINISHED" for c in children)
 
-        # Metrics: the stage-1 run's training curve and its validation MPJPE.
+        # Metrics: the stage-1 run's training curve (4 steps, then 2 of the decoder alone) and its
+        # validation MPJPE.
         stage1 = tags(by_step["stage1"])["output.run_id"]
         status, history = get(f"{base}{API}/metrics/get-history", run_id=stage1, metric_key="train/loss")
         assert (
             status == 200
-            and len(history["metrics"]) == 4
+            and len(history["metrics"]) == 6
             and all(np.isfinite(m["value"]) for m in history["metrics"])
         )
         status, run = get(f"{base}{API}/runs/get", run_id=stage1)
