@@ -9,7 +9,8 @@ text encoder is the real MiniLM, whose time is included as it is part of inferen
 - AITS: the mean time per sentence at batch 1 over lengths spread like a test set (40..196);
 - the time of a 10.873-minute motion (13,047 frames at 20 fps) from many prompts, generated
   as segments in one batch, transitions in one pass, and one decode (the paper: 1.65 s).
-Timed with the device synchronized, after warm-up, medians of repeats, excluding model loading.
+Timed with the device synchronized, after warm-up, medians of repeats, excluding model loading, at
+`--precision` (default: the device's default, int8 on CPU; recorded as `dtype`).
 Paper (RTX A5000): AITS 0.081 s; 0.018 s for 40 frames; 1.65 s for the 10.873-minute motion.
 Writes JSON (device, dtype, batch, model size with every figure) and a plot of the curve.
 """
@@ -39,7 +40,7 @@ PROMPTS = [
 PAPER = {"aits_s": 0.081, "40_frames_s": 0.018, "long_10.873min_s": 1.65, "device": "NVIDIA RTX A5000"}
 
 
-def build_model(size: str, device: str):
+def build_model(size: str, device: str, precision: str | None):
     from mmm.config import compose
     from mmm.generation.model import TextToMotion
     from mmm.text import build_text_encoder
@@ -58,7 +59,7 @@ def build_model(size: str, device: str):
         text.sentence_dim,
         text.word_dim,
     )
-    model = TextToMotion(tokenizer, transformer, text, {"size": size}, device=device)
+    model = TextToMotion(tokenizer, transformer, text, {"size": size}, device=device, precision=precision)
     params = sum(p.numel() for p in transformer.parameters()) + sum(p.numel() for p in tokenizer.parameters())
     return model, params
 
@@ -85,6 +86,9 @@ def main() -> None:
     parser.add_argument("--long-minutes", type=float, default=10.873, help="0 skips the long sequence")
     parser.add_argument("--no-aits", action="store_true", help="skip the AITS spread")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument(
+        "--precision", default=None, choices=["fp32", "bf16", "int8"], help="default: the device's default"
+    )
     parser.add_argument("--out", default="outputs/bench/generation_speed.json")
     args = parser.parse_args()
     lengths = [int(x) for x in args.lengths.split(",")]
@@ -94,15 +98,18 @@ def main() -> None:
         if args.device.startswith("cuda")
         else f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)"
     )
+    from mmm.generation.precision import default_precision
+
+    precision = args.precision or default_precision(args.device)
     report = {
         "device": device_name,
-        "dtype": "float32",
+        "dtype": precision,
         "torch": torch.__version__,
         "paper": PAPER,
         "sizes": {},
     }
     for size in args.sizes:
-        model, params = build_model(size, args.device)
+        model, params = build_model(size, args.device, precision)
         entry = {"params_M": round(params / 1e6, 2), "per_sentence_s": {}, "sentences_per_s": {}}
         for batch in batches:
             curve = {}

@@ -85,6 +85,7 @@ def test_inductor_compiles_each_shape_once_and_draws_the_same_codes():
 
 def test_text_to_motion_compiles_an_inference_copy_and_keeps_the_weights(t2m):  # noqa: F811
     before = {k: v.clone() for k, v in t2m.transformer.state_dict().items()}
+    t2m.precision = "fp32"
     reference = t2m.generate(["a", "b"], frames=[120, 60], seed=3)
     t2m.compiled = True
     try:
@@ -99,6 +100,7 @@ def test_text_to_motion_compiles_an_inference_copy_and_keeps_the_weights(t2m):  
     finally:
         t2m.compiled, t2m.precision = False, "fp32"
     assert t2m.inference_transformer is t2m.transformer
+    t2m.precision = None  # back to the device's default
     assert all((a == b).all() for a, b in zip(out.codes, reference.codes))
     assert all(torch.equal(v, before[k]) for k, v in t2m.transformer.state_dict().items())
     args = build_parser().parse_args(["generate", "--text", "x", "--out", "o", "--compile"])

@@ -13,6 +13,7 @@ from mmm.generation.model import TextToMotion
 from mmm.generation.prompts import split_paragraph
 from mmm.generation.sampler import (
     SamplingConfig,
+    draw_codes,
     filter_logits,
     frames_to_codes,
     iteration_counts,
@@ -122,6 +123,23 @@ def test_forward_passes_follow_each_samples_own_count(model):
     assert [f.shape for f in out.features] == [(81, 263), (43, 263)] and out.joints[0].shape == (81, 22, 3)
 
 
+def test_codes_are_drawn_with_their_probabilities():
+    probs = torch.tensor([[0.5, 0.0, 0.3, 0.2], [0.0, 0.0, 0.0, 1.0]]).repeat(20000, 1)
+    codes = draw_codes(probs, torch.Generator().manual_seed(0))
+    first, second = codes[0::2], codes[1::2]
+    freq = torch.bincount(first, minlength=4).float() / len(first)
+    # binomial standard error at 20,000 draws: <= 0.0036
+    assert torch.allclose(freq, torch.tensor([0.5, 0.0, 0.3, 0.2]), atol=0.015)
+    assert int((first == 1).sum()) == 0 and bool((second == 3).all())  # probability 0 is never drawn
+    # By hand: the code whose interval of the cumulative sum [0.5, 0.5, 0.8, 1.0] holds the seed's uniform.
+    generator = torch.Generator().manual_seed(5)
+    u = float(torch.rand(1, 1, generator=torch.Generator().manual_seed(5)))
+    expected = int(np.searchsorted([0.5, 0.5, 0.8, 1.0], u, side="right"))
+    assert int(draw_codes(probs[:1], generator)) == expected
+    again = [draw_codes(probs, torch.Generator().manual_seed(1)) for _ in range(2)]
+    assert torch.equal(*again)
+
+
 def test_a_seed_gives_identical_output(model):
     a = model.generate(["walk", "jump"], frames=[80, 120], seed=7)
     b = model.generate(["walk", "jump"], frames=[80, 120], seed=7)
@@ -181,12 +199,14 @@ def test_keep_mask_and_edit_errors(model):
 
 
 def test_long_sequence_in_one_decode(model):
+    # The passes are counted on the float32 transformer itself (the counter has no layers to convert).
     counter = CountingTransformer(model.transformer)
-    model.transformer, inner = counter, model.transformer
+    model.transformer, inner, precision = counter, model.transformer, model.precision
+    model.precision = "fp32"
     try:
         out = model.generate_long(["walk", "jump", "wave"], frames=[80, 120, 40], seed=0, transition_codes=2)
     finally:
-        model.transformer = inner
+        model.transformer, model.precision = inner, precision
     # Segments: one batch of passes (the longest takes ceil(10 * 30 / 50) = 6); transitions: one pass for
     # both.
     assert len(counter.calls) == 6 + 1 and len(counter.calls[-1]) == 2

@@ -222,6 +222,16 @@ def filter_logits(logits: torch.Tensor, top_k: float | None, top_p: float | None
     return logits
 
 
+def draw_codes(probs: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """(N, K) probabilities -> (N,) one code per row drawn from them, by inverse CDF: one uniform
+    number per row, its place in the row's cumulative sum. A code of probability 0 is never drawn.
+    torch.multinomial draws a row as argmax(p / q) with q ~ Exp(1) for every code: 8,192 random
+    numbers per position instead of one, which was 8-12% of an int8 decoding pass."""
+    cdf = probs.cumsum(-1)
+    u = torch.rand(len(probs), 1, generator=generator, device=probs.device) * cdf[:, -1:]
+    return torch.searchsorted(cdf, u, right=True).squeeze(1).clamp_(max=probs.shape[-1] - 1)
+
+
 @torch.no_grad()
 def sample_tokens(
     model,
@@ -328,7 +338,10 @@ def sample_tokens(
             probs = logits.softmax(-1)
         else:
             probs = (logits / cfg.temperature).softmax(-1)
-            sampled = torch.multinomial(probs.view(-1, K), 1, generator=generator).view(sub.shape)
+            drawn_at = (sub == mask_id).flatten().nonzero().squeeze(1)
+            sampled = torch.zeros(sub.numel(), dtype=torch.long, device=device)
+            sampled[drawn_at] = draw_codes(probs.view(-1, K)[drawn_at], generator)
+            sampled = sampled.view(sub.shape)
         confidence = probs.gather(-1, sampled.unsqueeze(-1)).squeeze(-1)
         masked = sub == mask_id
         decoded = torch.where(masked, sampled, sub)
@@ -383,11 +396,11 @@ def _decode_cached(
 
     Everything that depends on the data only through counts (which rows run, how many positions
     stay masked) is planned on the host before the loop; the loop itself only queues device work.
-    The draw is multinomial's own (argmax of p / q, q ~ Exp(1) over every position of the rows that
-    run), so the generator is consumed exactly as the reference loop consumes it."""
+    Codes are drawn by `draw_codes` at the masked positions in row-major order, as the reference
+    loop draws them, so the generator is consumed exactly as there."""
     device = tokens.device
     B, M = tokens.shape
-    K, mask_id = model.num_codes, model.mask_id
+    mask_id = model.mask_id
     passes = int(iterations.max()) if B else 0
     gamma = DECODING_SCHEDULES[cfg.schedule]
     remain_all, active = _remaining_masked(iterations, free, gamma, passes)
@@ -447,10 +460,7 @@ def _decode_cached(
             probs = logits.softmax(-1)
         else:
             probs = (logits / cfg.temperature).softmax(-1)
-            # torch.multinomial(probs, 1) draws argmax(p / q), q ~ Exp(1) for every row given: the
-            # same noise over all b * M positions, read where codes are drawn.
-            noise = torch.empty(b * M, K, device=device).exponential_(1, generator=generator)
-            sampled = (probs / noise.index_select(0, head_rows)).argmax(-1)
+            sampled = draw_codes(probs, generator)
         drawn = probs.gather(-1, sampled.unsqueeze(-1)).squeeze(-1)
         confidence = (
             torch.full((b * M,), float("inf"), device=device).index_copy(0, head_rows, drawn).view(b, M)
