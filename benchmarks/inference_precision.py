@@ -232,8 +232,9 @@ def speed(runner: Runner, variants, repeats: dict, cases=CASES, warmup: bool = T
 
 
 @torch.no_grad()
-def faithfulness(runner: Runner, embed, lengths_frames: list[int], seeds=(0, 1, 2)) -> dict:
-    """Against fp32: top-1 agreement of logits at masked positions, share of identical codes."""
+def faithfulness(runner: Runner, embed, lengths_frames: list[int], variants, seeds=(0, 1, 2)) -> dict:
+    """Against fp32, for each of `variants` (fp32 always): top-1 agreement of logits at masked
+    positions, share of identical codes."""
     from mmm.generation.sampler import frames_to_codes
 
     model = runner.model
@@ -250,13 +251,15 @@ def faithfulness(runner: Runner, embed, lengths_frames: list[int], seeds=(0, 1, 
     tokens = torch.where(positions == lengths[:, None], torch.full_like(tokens, t.end_id), tokens)
     tokens = torch.where(positions > lengths[:, None], torch.full_like(tokens, t.pad_id), tokens)
     masked = (tokens == t.mask_id).flatten().nonzero().squeeze(1)
+    variants = ["fp32"] + [v for v in variants if v not in ("before", "fp32")]
+    copies = {p: runner.copies[p] for p in variants}
     logits = {}
-    for p, copy in runner.copies.items():
+    for p, copy in copies.items():
         context = copy.text_context(emb.sentence, emb.words, emb.word_mask)
         logits[p] = copy.forward_cached(tokens, context, head_rows=masked)
-    codes = {p: [runner.generate(p, emb, lengths_frames, seed)[0] for seed in seeds] for p in runner.copies}
+    codes = {p: [runner.generate(p, emb, lengths_frames, seed)[0] for seed in seeds] for p in copies}
     out = {}
-    for p in runner.copies:
+    for p in copies:
         same = [
             np.mean(np.concatenate([a == b for a, b in zip(c, r)])) for c, r in zip(codes[p], codes["fp32"])
         ]
@@ -354,7 +357,7 @@ def main() -> None:
         report["speed"] = speed(runner, args.variants, repeats, args.cases)
     if not args.no_faithfulness:
         frames = np.linspace(40, 196, 8).round().astype(int).tolist()
-        report["faithfulness"] = faithfulness(runner, embed, frames)
+        report["faithfulness"] = faithfulness(runner, embed, frames, args.variants)
     report["load_after"] = load()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

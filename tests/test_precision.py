@@ -78,20 +78,23 @@ def test_int8_linear_is_close_to_the_float_layer():
 
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test_every_precision_generates_and_stays_close_to_fp32(t2m, precision):
+    # Over 5 seeds: one code drawn otherwise changes the context of every later pass, so a single
+    # seed's share swings (0.73-1.0 for bf16 on this model).
     t2m.precision = "fp32"
-    reference = t2m.generate(["a", "b"], frames=[120, 60], seed=3)
+    reference = [t2m.generate(["a", "b"], frames=[120, 60], seed=seed) for seed in range(5)]
     t2m.precision = precision
     try:
-        out = t2m.generate(["a", "b"], frames=[120, 60], seed=3)
+        outs = [t2m.generate(["a", "b"], frames=[120, 60], seed=seed) for seed in range(5)]
         assert t2m.inference_transformer.__class__ is type(t2m.transformer)
         if precision != "fp32":
             assert t2m.inference_transformer is not t2m.transformer
             assert t2m.inference_transformer is t2m.inference_transformer  # built once
     finally:
         t2m.precision = "fp32"
-    assert [f.shape for f in out.features] == [(120, 263), (60, 263)]
-    same = sum(int((a == b).sum()) for a, b in zip(out.codes, reference.codes)) / sum(map(len, out.codes))
-    assert same == 1.0 if precision == "fp32" else same > 0.8
+    assert [f.shape for f in outs[0].features] == [(120, 263), (60, 263)]
+    pairs = [(a, b) for out, ref in zip(outs, reference) for a, b in zip(out.codes, ref.codes)]
+    same = sum(int((a == b).sum()) for a, b in pairs) / sum(len(a) for a, _ in pairs)
+    assert same == 1.0 if precision == "fp32" else same > 0.85
 
 
 def test_cli_and_evaluate_take_a_precision():

@@ -223,13 +223,15 @@ def filter_logits(logits: torch.Tensor, top_k: float | None, top_p: float | None
 
 
 def draw_codes(probs: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
-    """(N, K) probabilities -> (N,) one code per row drawn from them, by inverse CDF: one uniform
-    number per row, its place in the row's cumulative sum. A code of probability 0 is never drawn.
-    torch.multinomial draws a row as argmax(p / q) with q ~ Exp(1) for every code: 8,192 random
-    numbers per position instead of one, which was 8-12% of an int8 decoding pass."""
-    cdf = probs.cumsum(-1)
-    u = torch.rand(len(probs), 1, generator=generator, device=probs.device) * cdf[:, -1:]
-    return torch.searchsorted(cdf, u, right=True).squeeze(1).clamp_(max=probs.shape[-1] - 1)
+    """(N, K) probabilities -> (N,) one code per row drawn from them: argmax(p / q) with q = -log(u),
+    u ~ U[0, 1) per code, i.e. q ~ Exp(1), torch.multinomial's own rule for one draw. A code of
+    probability 0 is never drawn. Two sets of probabilities that differ a little (another precision)
+    draw the same code for the same u unless the two best p / q are that close, which keeps seeded
+    outputs comparable across precisions (an inverse-CDF draw, one uniform per row, changed 3 codes
+    in 4). `-log(uniform_)` is 4x faster than `exponential_` on this CPU, where torch.multinomial's
+    exponentials over every position were 8-12% of an int8 decoding pass."""
+    q = torch.empty_like(probs).uniform_(generator=generator).log_().neg_()
+    return (probs / q).argmax(-1)
 
 
 @torch.no_grad()
