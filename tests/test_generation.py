@@ -125,23 +125,25 @@ def test_forward_passes_follow_each_samples_own_count(model):
 
 def test_codes_are_drawn_with_their_probabilities():
     probs = torch.tensor([[0.5, 0.0, 0.3, 0.2], [0.0, 0.0, 0.0, 1.0]]).repeat(20000, 1)
-    codes = draw_codes(probs, torch.Generator().manual_seed(0))
+    every = torch.arange(len(probs))
+    codes = draw_codes(probs, every, len(probs), torch.Generator().manual_seed(0))
     first, second = codes[0::2], codes[1::2]
     freq = torch.bincount(first, minlength=4).float() / len(first)
     # binomial standard error at 20,000 draws: <= 0.0036
     assert torch.allclose(freq, torch.tensor([0.5, 0.0, 0.3, 0.2]), atol=0.015)
     assert int((first == 1).sum()) == 0 and bool((second == 3).all())  # probability 0 is never drawn
-    # By hand: the largest p / -log(u), u the generator's uniform numbers in the order of the codes.
-    u = torch.rand(4, generator=torch.Generator().manual_seed(5)).tolist()
+    # By hand: position 2 of 3 draws the largest p / -log(u) of the third row of the seed's noise.
+    u = torch.rand(3, 4, generator=torch.Generator().manual_seed(5))[2].tolist()
     expected = max(range(4), key=lambda k: [0.5, 0.0, 0.3, 0.2][k] / -math.log(u[k]))
-    assert int(draw_codes(probs[:1], torch.Generator().manual_seed(5))) == expected
-    again = [draw_codes(probs, torch.Generator().manual_seed(1)) for _ in range(2)]
-    assert torch.equal(*again)
+    assert int(draw_codes(probs[:1], torch.tensor([2]), 3, torch.Generator().manual_seed(5))) == expected
+    # A position's draw does not depend on which other positions draw.
+    alone = draw_codes(probs[:1], torch.tensor([2]), 3, torch.Generator().manual_seed(9))
+    assert torch.equal(draw_codes(probs[:3], torch.arange(3), 3, torch.Generator().manual_seed(9))[2:], alone)
     # Coupled across precisions: probabilities 0.1% off (what int8 or bf16 logits do) draw the same code
     # for the same seed almost everywhere, even where the distribution is nearly flat.
     flat = torch.randn(2000, 512, generator=torch.Generator().manual_seed(2)).mul(0.1).softmax(-1)
     noisy = flat * (1 + 1e-3 * torch.randn(flat.shape, generator=torch.Generator().manual_seed(3)))
-    codes = [draw_codes(p, torch.Generator().manual_seed(4)) for p in (flat, noisy)]
+    codes = [draw_codes(p, torch.arange(2000), 2000, torch.Generator().manual_seed(4)) for p in (flat, noisy)]
     assert float((codes[0] == codes[1]).float().mean()) > 0.98
 
 
