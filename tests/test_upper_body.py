@@ -161,7 +161,10 @@ def test_decoding_with_a_condition_is_deterministic_and_depends_on_it():
         and a.tokens[0, 7] == K
         and (a.tokens[0, 8:] == K + 1).all()
     )
-    assert not torch.equal(run(lower.flip(1)).tokens, a.tokens)
+    # Another condition changes what is drawn; on this tiny random model it moves the probabilities
+    # only a little, and a seed draws the same code wherever the best two p / q are not close, so over
+    # several seeds.
+    assert any(not torch.equal(run(lower.flip(1), seed).tokens, run(lower, seed).tokens) for seed in range(5))
 
 
 # -- a trained (briefly) part-aware model ---------------------------------------------------------
