@@ -128,7 +128,7 @@ class SamplingConfig:
     def validate(self) -> None:
         """ValueError naming the field, its value and the allowed range (SamplingValueError for a
         value out of range): NaN and infinities never reach the decoder, whose softmax and
-        multinomial draw would fail on them mid-generation."""
+        draw would fail on them mid-generation."""
         if self.decoding not in DECODINGS:
             raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {self.decoding!r}")
         check_schedule(self.schedule, DECODING_SCHEDULES, "schedule")
