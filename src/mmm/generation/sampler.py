@@ -339,17 +339,17 @@ def sample_tokens(
         else:
             logits = model(sub, sentence, words, word_mask, drop, sub_condition)
         logits = filter_logits(logits.float(), cfg.top_k, cfg.top_p)
+        masked = sub == mask_id
         if cfg.temperature <= 0:
             sampled = logits.argmax(-1)
             probs = logits.softmax(-1)
         else:
             probs = (logits / cfg.temperature).softmax(-1)
-            drawn_at = (sub == mask_id).flatten().nonzero().squeeze(1)
+            drawn_at = masked.flatten().nonzero().squeeze(1)
             sampled = torch.zeros(sub.numel(), dtype=torch.long, device=device)
             sampled[drawn_at] = draw_codes(probs.view(-1, K)[drawn_at], drawn_at, sub.numel(), generator)
             sampled = sampled.view(sub.shape)
         confidence = probs.gather(-1, sampled.unsqueeze(-1)).squeeze(-1)
-        masked = sub == mask_id
         decoded = torch.where(masked, sampled, sub)
         confidence = torch.where(masked, confidence, torch.full_like(confidence, float("inf")))
         # Positions still masked after this iteration: ceil(gamma(t / T_b) * F_b).
