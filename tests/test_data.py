@@ -172,6 +172,46 @@ def test_window_dataset_enumerates_every_window():
     assert torch.equal(ds[8], ds[0])  # indices tagged with the epoch wrap around
 
 
+def test_window_dataset_switches_its_extra_share_to_clip_starts():
+    motions = [make_features(70, 0), make_features(80, 1), make_features(30, 2)]
+    mean, std = np.zeros(D, np.float32), np.full(D, 2.0, np.float32)
+    anywhere = (70 - 64 + 1) + (80 - 64 + 1)  # 24
+    half = MotionWindowDataset(motions, mean, std, window=64, start_windows=0.5)
+    assert (half.num_anywhere, len(half), half.at_start) == (anywhere, 2 * anywhere, False)
+    assert torch.allclose(half[10], torch.from_numpy(motions[1][3:67] / 2))  # a window anywhere, as before
+
+    def is_window(x, k, offset):
+        return torch.allclose(x, torch.from_numpy(motions[k][offset : offset + 64] / 2))
+
+    def where(x):
+        return next((k, o) for k in (0, 1) for o in range(motions[k].shape[0] - 63) if is_window(x, k, o))
+
+    # Before the switch the extra indices are windows anywhere, spread over both clips.
+    before = [where(half[anywhere + i]) for i in range(anywhere)]
+    assert len({k for k, _ in before}) == 2 and len(set(before)) > anywhere // 2
+    half.at_start = True  # the refinement's switch: each long-enough clip's first 64 frames in turn
+    assert half.at_start and all(is_window(half[anywhere + i], i % 2, 0) for i in range(anywhere))
+    assert is_window(half[10], 1, 3)  # the other indices stay what they were
+    quarter = MotionWindowDataset(motions, mean, std, window=64, start_windows=0.25)
+    assert len(quarter) - anywhere == 8  # 24 * 0.25 / 0.75
+    assert len(MotionWindowDataset(motions, mean, std, window=64)) == anywhere
+    for bad in (1.0, -0.1):
+        with pytest.raises(ValueError, match=rf"refine.start_windows={bad}: .*\[0, 1\)"):
+            MotionWindowDataset(motions, mean, std, window=64, start_windows=bad)
+
+
+def test_the_clip_start_switch_reaches_loader_workers():
+    motions = [make_features(70, 0), make_features(80, 1)]
+    ds = MotionWindowDataset(motions, np.zeros(D, np.float32), np.ones(D, np.float32), start_windows=0.5)
+    loader = torch.utils.data.DataLoader(ds, batch_size=len(ds), num_workers=1, persistent_workers=True)
+    first = next(iter(loader))
+    ds.at_start = True  # set in this process after the worker started
+    second = next(iter(loader))
+    n = ds.num_anywhere
+    assert torch.equal(first[:n], second[:n]) and not torch.equal(first[n:], second[n:])
+    assert all(torch.allclose(second[n + i], torch.from_numpy(motions[i % 2][:64])) for i in range(n))
+
+
 def test_text_motion_dataset_crops_like_the_reference_and_collate_pads(tmp_path):
     write_dataset(
         tmp_path,

@@ -205,6 +205,17 @@ def test_generate_follows_a_recorded_stage1_file_only_inside_outputs(files, tmp_
     assert model.identity["stage1"]["identity"] == tensors_fingerprint(model.tokenizer.state_dict())
 
 
+def test_evaluate_takes_the_recorded_stage1_file_when_named(files, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(files["root"])
+    argv = ["evaluate", f"text2motion={files['far_stage2']}", "what=[adherence]"]
+    argv.append(f"data.root={tmp_path / 'none'}")
+    code, err = run_cli(argv, capsys)
+    assert code == 2 and f"stage1={files['far_stage1']}" in err  # how to name it, for this command
+    # Named: the model loads (its fingerprint checked) and the run goes on to the data, missing here.
+    code, err = run_cli(argv + [f"stage1={files['far_stage1']}"], capsys)
+    assert code == 2 and "outside outputs/" not in err and str(tmp_path / "none") in err
+
+
 def test_a_stage1_model_with_other_weights_is_refused(files, monkeypatch):
     monkeypatch.chdir(files["root"])
     with pytest.raises(CheckpointError, match="the tokens would not mean the same codes"):

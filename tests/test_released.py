@@ -884,7 +884,9 @@ def test_recipe_paper_sets_the_released_recipe_for_every_command():
         s1.normalization.feat_bias,
         s1.refine.steps,
     ) == (256, 300000, "evaluator_style", 25.0, 0)
-    assert load_stage1_config([]).refine.steps == 1000  # the package's default refines the decoder
+    default = load_stage1_config([])  # the package's: the decoder refined, half its windows at clip starts
+    refine = default.refine
+    assert (refine.steps, refine.path_weight, refine.start_windows) == (1000, 0.1, 0.5)
     s2 = load_stage2_config(["recipe=paper"])
     assert (
         s2.model.transformer.num_layers,

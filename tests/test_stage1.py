@@ -13,6 +13,7 @@ from mlflow.tracking import MlflowClient
 
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
 from mmm.config import ConfigError
+from mmm.motion.features import recover_from_ric
 from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.quantizer import EMAQuantizer
@@ -137,6 +138,72 @@ def test_decoder_refinement_trains_the_decoder_alone_for_the_last_fraction_of_th
     # The rate restarts at refine.lr and decays along a half cosine: step 12 of the 8-step tail, ...
     assert record.rates[12] == pytest.approx(5e-4)
     assert record.rates[16] == pytest.approx(2.5e-4) and record.rates[11] == pytest.approx(1e-3)
+
+
+def test_root_path_integrates_the_root_velocity_in_metres():
+    mean, std = torch.linspace(-0.5, 0.5, 263), torch.linspace(0.5, 2.0, 263)
+    module = TokenizerModule(263, TokenizerConfig(width=8, num_codes=16), {}, {}, mean=mean, std=std)
+    raw = torch.zeros(1, 6, 263)
+    raw[..., 1], raw[..., 2] = 0.03, 0.1  # x/z metres per frame in the heading frame, no turn
+    path = module.root_path((raw - mean) / std)
+    expected = torch.arange(6.0)[:, None] * torch.tensor([0.03, 0.1])
+    assert path.shape == (1, 6, 2) and torch.allclose(path[0], expected, atol=1e-5)
+    raw[..., 0] = torch.tensor([0.2, 0.0, -0.1, 0.3, 0.0, 0.0])  # turning: the path recover_from_ric gives
+    turned = module.root_path((raw - mean) / std)
+    assert torch.allclose(turned, recover_from_ric(raw)[..., 0, [0, 2]], atol=1e-5)
+    assert not torch.allclose(turned, path, atol=1e-3)
+
+
+def test_decoder_refinement_adds_the_root_path_distance_times_its_weight():
+    torch.manual_seed(0)
+    module = TokenizerModule(
+        263,
+        TokenizerConfig(width=16, num_codes=16),
+        {},
+        {},
+        refine=DecoderRefineConfig(steps=4, path_weight=0.3),
+    )
+    module.tokenizer(torch.randn(4, 64, 263))  # the codebook seeds itself from the first latents
+    logged = {}
+    module.log_dict = lambda metrics, **kw: logged.update(metrics)
+    module.log = lambda *a, **kw: None
+    batch = torch.randn(4, 64, 263)
+    with_path = module._refine_step(batch)
+    module.refine_cfg.path_weight = 0.0
+    without = module._refine_step(batch)
+    with torch.no_grad():
+        recon = module.tokenizer.reconstruct(module.tokenizer.encode(batch))
+        distance = (module.root_path(recon) - module.root_path(batch)).norm(dim=-1).mean()
+    assert float(distance) > 0.01
+    assert float((with_path - without).detach()) == pytest.approx(0.3 * float(distance), rel=1e-4)
+    # Logged by the first step, the one with the path loss.
+    assert float(logged["train/root_path_m"]) == pytest.approx(float(distance), rel=1e-4)
+
+
+def test_the_refinement_switches_its_windows_to_clip_starts():
+    from mmm.data.datasets import MotionWindowDataset
+
+    torch.manual_seed(0)
+    motions = [np.random.default_rng(i).standard_normal((80, 263)).astype(np.float32) for i in range(4)]
+    data = MotionWindowDataset(
+        motions, np.zeros(263, np.float32), np.ones(263, np.float32), start_windows=0.5
+    )
+    module = TokenizerModule(
+        263,
+        TokenizerConfig(width=16, num_codes=16),
+        OptimConfig(warmup_steps=1),
+        {},
+        refine=DecoderRefineConfig(steps=4, start_windows=0.5),
+    )
+
+    class Phase(L.Callback):
+        seen: list[bool] = []
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            self.seen.append(data.at_start)
+
+    _fit(module, data, [Phase()], 10)
+    assert Phase.seen == [False] * 6 + [True] * 4  # switched when the refinement (steps 6-9) begins
 
 
 def test_decoder_refinement_needs_a_step_budget(walker_dataset, tmp_path):

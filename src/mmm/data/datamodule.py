@@ -148,11 +148,14 @@ class _DatasetFolder(L.LightningDataModule):
 class TokenizerDataModule(_DatasetFolder):
     """Stage 1: training batches of `window`-frame windows (B, window, D); validation on whole
     clips, padded: {"motion" (B, T, D), "lengths" (B,), "names"}. Normalized with the statistics
-    `normalization` chooses (mmm.data.normalization; the dataset's Mean/Std when None)."""
+    `normalization` chooses (mmm.data.normalization; the dataset's Mean/Std when None).
+    start_windows: the share of the training windows that are clip starts once the decoder
+    refinement switches them on (MotionWindowDataset)."""
 
-    def __init__(self, cfg: DataConfig, seed: int = 0, normalization=None):
+    def __init__(self, cfg: DataConfig, seed: int = 0, normalization=None, start_windows: float = 0.0):
         super().__init__(cfg, seed)
         self.normalization = normalization
+        self.start_windows = start_windows
 
     def _stats(self) -> None:
         if self.mean is None and self.normalization is not None:
@@ -174,7 +177,7 @@ class TokenizerDataModule(_DatasetFolder):
             _log_report(f"{self.cfg.name} {split} clips", report)
             if split == "train":
                 self.datasets[split] = MotionWindowDataset(
-                    list(clips.values()), self.mean, self.std, self.cfg.window
+                    list(clips.values()), self.mean, self.std, self.cfg.window, self.start_windows
                 )
             else:
                 self.datasets[split] = MotionClipDataset(

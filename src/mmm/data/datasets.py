@@ -22,9 +22,30 @@ class MotionWindowDataset(Dataset):
 
     Windows are normalized when drawn (the same numbers as normalizing whole motions first), so the
     motions stay as loaded: views of the memory-mapped feature pack, not a second copy in memory.
+
+    start_windows: the share of the indices that, once `at_start` is switched on (the decoder
+    refinement does it), are a clip's first `window` frames (each clip equally often); before, they
+    are windows anywhere like the rest, so the codebook trains on the usual windows. A clip's first
+    frame is unlike the others: its heading is the identity, so the yaw velocity of frame 0
+    carries the turn to the smoothed heading of frame 1 (up to 0.1 rad) and rotates the whole
+    recovered root path. Random windows begin there once in (length - window + 1) draws, so the
+    decoder hardly learns it, while every decoded clip (a reconstruction, a generated motion)
+    begins there. The switch lives in shared memory, so loader workers see it too.
     """
 
-    def __init__(self, motions: list[np.ndarray], mean: np.ndarray, std: np.ndarray, window: int = 64):
+    def __init__(
+        self,
+        motions: list[np.ndarray],
+        mean: np.ndarray,
+        std: np.ndarray,
+        window: int = 64,
+        start_windows: float = 0.0,
+    ):
+        if not 0.0 <= start_windows < 1.0:
+            raise ValueError(
+                f"refine.start_windows={start_windows}: it is the share of the refinement's windows that "
+                "begin at a clip's first frame; use a value in [0, 1)"
+            )
         self.window = window
         self.mean, self.std = mean, std
         self.motions = [m for m in motions if m.shape[0] >= window]
@@ -33,14 +54,31 @@ class MotionWindowDataset(Dataset):
             raise ValueError(f"no motion is at least {window} frames long (the tokenizer's window)")
         counts = [m.shape[0] - window + 1 for m in self.motions]
         self.starts = np.concatenate(([0], np.cumsum(counts)))
+        self.num_anywhere = int(self.starts[-1])
+        self.num_at_start = round(self.num_anywhere * start_windows / (1.0 - start_windows))
+        self._at_start = torch.zeros((), dtype=torch.bool).share_memory_()
+
+    @property
+    def at_start(self) -> bool:
+        """Whether the last `num_at_start` indices are clip starts (else windows anywhere)."""
+        return bool(self._at_start)
+
+    @at_start.setter
+    def at_start(self, value: bool) -> None:
+        self._at_start.fill_(bool(value))
 
     def __len__(self) -> int:
-        return int(self.starts[-1])
+        return self.num_anywhere + self.num_at_start
 
     def __getitem__(self, index: int) -> torch.Tensor:
         index %= len(self)  # samplers may tag indices with the epoch
-        k = int(np.searchsorted(self.starts, index, side="right")) - 1
-        offset = index - int(self.starts[k])
+        if index >= self.num_anywhere and self.at_start:
+            k, offset = (index - self.num_anywhere) % len(self.motions), 0
+        else:
+            if index >= self.num_anywhere:  # a fixed window anywhere, spread by a multiplicative hash
+                index = index * 2654435761 % self.num_anywhere
+            k = int(np.searchsorted(self.starts, index, side="right")) - 1
+            offset = index - int(self.starts[k])
         return torch.from_numpy(
             normalize(self.motions[k][offset : offset + self.window], self.mean, self.std)
         )

@@ -77,6 +77,9 @@ class EvaluateConfig:
     text2motion: str | None = None  # stage-2 model: path, run id, models:/NAME@ALIAS; newest when null
     task: str = "text2motion"  # text2motion | inbetween | outpaint | prefix | suffix | upper-body | long
     tokenizer: str | None = None  # for reconstruction metrics; default: the text2motion model's own
+    # The stage-1 model text2motion was trained with, when the file its checkpoint records lies
+    # outside outputs/ (generate's --stage1); its weights must be the ones the transformer learned.
+    stage1: str | None = None
     evaluator: EvaluatorChoice = field(default_factory=EvaluatorChoice)
     split: str = "test"
     what: list[str] = field(default_factory=lambda: ["text2motion", "reconstruction", "adherence"])
@@ -188,6 +191,7 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
         tracking_uri,
         device=cfg.device,
         parts=cfg.task == "upper-body",
+        stage1=cfg.stage1,
         precision=cfg.precision,
     )
     if editing:

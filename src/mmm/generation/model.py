@@ -272,8 +272,8 @@ class TextToMotion:
             raise CheckpointError(
                 f"{checkpoint}: its stage-1 model is recorded as {recorded}, outside outputs/; a file a "
                 "checkpoint names is read only "
-                f"from outputs/ or when you name it: pass --stage1 {recorded} (from Python: "
-                "tokenizer_checkpoint=PATH) if you trust it"
+                f"from outputs/ or when you name it: pass --stage1 {recorded} "
+                f"(mmm evaluate: stage1={recorded}; from Python: tokenizer_checkpoint=PATH) if you trust it"
             )
         else:
             raise FileNotFoundError(

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torchmetrics import MeanMetric
 
 from mmm.config import as_config
-from mmm.motion.features import FeatureLayout, recover_from_ric
+from mmm.motion.features import FeatureLayout, recover_from_ric, recover_root_rot_pos
 from mmm.motion.skeleton import skeleton_for
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.parts import PartAwareTokenizer
@@ -43,13 +43,19 @@ class DecoderRefineConfig:
     instead of chasing a codebook that moves every step; the rate restarts at `lr` and decays to 0
     along a half cosine, and the root dims' loss is multiplied by `root_weight`. The root
     velocities' small per-clip bias is what integrates into the drift of the global root path
-    (README, Stage 1). The module refines in the last `steps` of its fit; `train_stage1` runs
-    trainer.max_steps + steps. 0: no refinement (the released recipe).
+    (README, Stage 1); `path_weight` adds the mean distance (m) between the decoded and the true
+    root path (x/z, integrated over each window as recover_from_ric does), which weighs the
+    velocity errors by how far they carry the root; `start_windows` of the refinement's windows
+    are the first frames of a clip (mmm.data.datasets.MotionWindowDataset says why). The module
+    refines in the last `steps` of its fit; `train_stage1` runs trainer.max_steps + steps. 0: no
+    refinement (the released recipe).
     """
 
     steps: int = 0
     lr: float = 3e-4
     root_weight: float = 25.0
+    path_weight: float = 0.0
+    start_windows: float = 0.0
 
 
 def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -171,15 +177,25 @@ class TokenizerModule(L.LightningModule):
         recon = self.tokenizer.reconstruct(indices)
         parts = self.losses(recon, batch, root_weight=self.refine_cfg.root_weight)
         loss = parts["recon"] + self.loss_cfg.position_weight * parts["position"]
+        if self.refine_cfg.path_weight > 0:
+            parts["path_m"] = (self.root_path(recon) - self.root_path(batch)).norm(dim=-1).mean()
+            loss = loss + self.refine_cfg.path_weight * parts["path_m"]
         # DDP waits for a gradient of every parameter: the frozen ones get zeros, dropped before the step.
         loss = loss + 0.0 * sum(p.sum() for p in self._frozen_parameters())
-        self.log_dict(
-            {"train/loss": loss, "train/recon": parts["recon"], "train/position": parts["position"]},
-            on_step=True,
-            on_epoch=False,
-        )
+        metrics = {"train/loss": loss, "train/recon": parts["recon"], "train/position": parts["position"]}
+        if "path_m" in parts:
+            metrics["train/root_path_m"] = parts["path_m"]
+        self.log_dict(metrics, on_step=True, on_epoch=False)
         self.log("loss", loss, prog_bar=True, logger=False)
         return loss
+
+    def on_train_batch_start(self, batch, batch_idx: int) -> None:
+        if self.refining:
+            # The training windows switch to clip starts where the dataset has them (its share is
+            # refine.start_windows); a loader fetches a batch or two ahead, so they begin that late.
+            dataset = getattr(self.trainer.train_dataloader, "dataset", None)
+            if getattr(dataset, "at_start", True) is False:
+                dataset.at_start = True
 
     def on_before_optimizer_step(self, optimizer) -> None:
         if self.refining:
@@ -227,6 +243,11 @@ class TokenizerModule(L.LightningModule):
         return (
             recover_from_ric(self.denormalize(x).float(), self.skeleton.num_joints) * self.skeleton.unit_scale
         )
+
+    def root_path(self, x: torch.Tensor) -> torch.Tensor:
+        """Root x/z path (B, T, 2) in metres of normalized features (B, T, D), from 0 at the first frame."""
+        _, root = recover_root_rot_pos(self.denormalize(x).float())
+        return root[..., [0, 2]] * self.skeleton.unit_scale
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         motion, lengths = batch["motion"], batch["lengths"]

@@ -77,7 +77,12 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     cfg.trainer.max_steps += cfg.refine.steps  # the fit: the whole tokenizer, then the decoder alone
     L.seed_everything(cfg.seed, workers=True)
     target = run_target(cfg, resume)
-    datamodule = TokenizerDataModule(cfg.data, seed=cfg.seed, normalization=cfg.normalization)
+    datamodule = TokenizerDataModule(
+        cfg.data,
+        seed=cfg.seed,
+        normalization=cfg.normalization,
+        start_windows=cfg.refine.start_windows if cfg.refine.steps > 0 else 0.0,
+    )
     datamodule.prepare_data()
     datamodule.setup("fit")
     module = TokenizerModule(
