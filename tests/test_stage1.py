@@ -349,6 +349,7 @@ def test_ddp_decoder_refinement_freezes_the_same_codebook_on_both_ranks(walker_d
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
     start = torch.load(tmp_path / "rank0-refine-start.pt", weights_only=True)
     assert r0["global_step"] == r1["global_step"] == 40
+    assert r0["at_start"] and r1["at_start"]  # both ranks switched to clip-start windows
     for key, value in r0["tokenizer"].items():
         assert torch.equal(value, r1["tokenizer"][key]), key  # the ranks agree on every weight and buffer
         if "decoder" not in key.split("."):

@@ -52,6 +52,7 @@ class SaveRankState(L.Callback):
                 "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
                 "tokenizer": {k: v.detach().clone() for k, v in pl_module.tokenizer.state_dict().items()},
                 "first_batch_sum": self.first_batch_sum,
+                "at_start": bool(getattr(trainer.train_dataloader.dataset, "at_start", False)),
             },
             os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt"),
         )
@@ -60,7 +61,13 @@ class SaveRankState(L.Callback):
 def main(data_root, out_dir, parts=False, refine=False):
     L.seed_everything(0)
     rank = int(os.environ.get("LOCAL_RANK", "0"))
-    dm = TokenizerDataModule(DataConfig(root=data_root, batch_size=4, synthesize=None), seed=0)
+    # The refinement as the default runs it: a root-path loss, half its windows at clip starts.
+    refine_cfg = {"steps": 20, "path_weight": 0.1, "start_windows": 0.5} if refine else {"steps": 0}
+    dm = TokenizerDataModule(
+        DataConfig(root=data_root, batch_size=4, synthesize=None),
+        seed=0,
+        start_windows=refine_cfg.get("start_windows", 0.0),
+    )
     dm.prepare_data()
     dm.setup("fit")
     module = TokenizerModule(
@@ -70,7 +77,7 @@ def main(data_root, out_dir, parts=False, refine=False):
         TokenizerLossConfig(),
         dm.mean,
         dm.std,
-        refine={"steps": 20 if refine else 0},
+        refine=refine_cfg,
     )
     monitor = CollapseMonitor(
         action="stop",
