@@ -194,7 +194,7 @@ class TokenizerModule(L.LightningModule):
             # The training windows switch to clip starts where the dataset has them (its share is
             # refine.start_windows); a loader fetches a batch or two ahead, so they begin that late.
             dataset = getattr(self.trainer.train_dataloader, "dataset", None)
-            if getattr(dataset, "at_start", True) is False:
+            if hasattr(dataset, "at_start") and not dataset.at_start:  # a MotionWindowDataset
                 dataset.at_start = True
 
     def on_before_optimizer_step(self, optimizer) -> None:
