@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup lint test test-fast data demo train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-data bench-precision bench-precision-model bench-compile bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
+.PHONY: help setup lint test test-fast data demo train-quality train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-data bench-precision bench-precision-model bench-compile bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
@@ -58,6 +58,9 @@ demo: $(DATA)/all.txt ## the main job: data, evaluator and both stages (tiny), e
 	@echo "  outputs/evaluation/evaluation.md              the evaluation table"
 	@echo "  make mlflow-ui                                 the dashboard: runs (mmm-pipeline: the pipeline run, its steps in order), models and aliases"
 	@$(BIN)/mmm dashboard
+
+train-quality: $(DATA)/all.txt ## the quality recipe: the demo's pipeline longer and wider (recipe=quality, ~50 min on 2 CPU cores; outputs/quality)
+	$(BIN)/mmm pipeline full recipe=quality data.root=$(DATA) $(ARGS)
 
 train-stage1: $(STAMP) ## train the tokenizer (tiny size on the synthetic data by default); ARGS="key=value ..."
 	$(BIN)/mmm train stage1 $(ARGS)

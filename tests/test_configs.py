@@ -106,3 +106,48 @@ def test_extends_is_one_level(tmp_path):
     assert OmegaConf.to_container(compose("b", ["x=5"], directory=tmp_path)) == {"x": 5, "y": 3}
     with pytest.raises(ValueError, match="one level only"):
         compose("c", directory=tmp_path)
+
+
+def _flat(cfg, prefix=""):
+    out = {}
+    for key, value in cfg.items():
+        name = f"{prefix}{key}"
+        out.update(_flat(value, name + ".") if OmegaConf.is_dict(value) else {name: value})
+    return out
+
+
+def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
+    from mmm.pipeline.steps import load_pipeline_config
+
+    pipeline = load_pipeline_config(["recipe=quality"])
+    assert pipeline.state_file == "outputs/quality/pipeline/state.json"
+    assert list(pipeline.overrides.stage1) == ["recipe=quality"]
+    assert list(pipeline.overrides.stage2) == ["recipe=quality"]
+    assert "adherence_max_items" not in str(pipeline.overrides.evaluate)  # every test caption
+
+    def changed(load):
+        demo, quality = _flat(load([])), _flat(load(["recipe=quality"]))
+        assert demo.keys() == quality.keys()
+        return {k: quality[k] for k in demo if demo[k] != quality[k]}
+
+    assert changed(load_stage1_config) == {
+        "output_dir": "outputs/quality/stage1",
+        "refine.steps": 2000,
+        "trainer.max_steps": 3000,
+        "trainer.val_check_interval": 500,
+    }
+    assert changed(load_stage2_config) == {
+        "output_dir": "outputs/quality/stage2",
+        "stage1_output_dir": "outputs/quality/stage1",
+        "model.transformer.embed_dim": 256,
+        "model.transformer.num_heads": 8,
+        "optim.milestones": [2250],
+        "optim.gamma": 0.1,
+        "trainer.max_steps": 3000,
+        "trainer.val_check_interval": 300,
+        "callbacks.adherence_captions": 128,
+        "callbacks.checkpoint.monitor": "val_adherence/ordered_rate",
+        "callbacks.checkpoint.mode": "max",
+    }
+    # The command line still wins over the recipe.
+    assert load_stage2_config(["recipe=quality", "trainer.max_steps=7"]).trainer.max_steps == 7

@@ -410,3 +410,55 @@ def test_reconstruction_reports_whether_the_labelled_actions_survive_the_tokeniz
     assert frozen["adherence"]["rate"] < 0.5 * exact["adherence"]["rate"]
     assert set(frozen["adherence"]["per_action"]) == set(exact["adherence"]["per_action"])
     assert "adherence" not in reconstruction_metrics(stub(lambda z: z), None, clips)  # no labels given
+
+
+def test_best_checkpoint_by_adherence_is_refused_where_the_curve_is_not_measured(tmp_path):
+    from mmm.config import ConfigError, to_object
+    from mmm.training.stage2 import check_adherence_monitor, load_stage2_config
+
+    def cfg(*extra):
+        return to_object(load_stage2_config([f"data.root={tmp_path}", *extra]))
+
+    assert check_adherence_monitor(cfg(), []) is False  # val/loss: nothing asked of the curve
+    by_rate = ["callbacks.checkpoint.monitor=val_adherence/ordered_rate", "callbacks.checkpoint.mode=max"]
+    assert check_adherence_monitor(cfg(*by_rate), ["an item"]) is True
+    with pytest.raises(ConfigError, match=r"labels/ in data.root=.*adherence_captions > 0 \(is 0\)"):
+        check_adherence_monitor(cfg(*by_rate, "callbacks.adherence_captions=0"), [])
+    with pytest.raises(ConfigError, match="set callbacks.checkpoint.mode=max"):
+        check_adherence_monitor(cfg(by_rate[0]), ["an item"])
+    with pytest.raises(ConfigError, match="val_adherence/ordered_rate or val_adherence/rate"):
+        check_adherence_monitor(cfg("callbacks.checkpoint.monitor=val_adherence/walk"), ["an item"])
+
+
+@pytest.mark.slow
+def test_best_checkpoint_can_be_the_most_followed_validation(synthetic_small, tmp_path):
+    from mlflow.tracking import MlflowClient
+
+    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from tests.helpers import stage2_overrides, train_tiny_stage1
+
+    train_tiny_stage1(synthetic_small, tmp_path)
+    result = train_stage2(
+        load_stage2_config(
+            stage2_overrides(
+                synthetic_small,
+                tmp_path,
+                **{
+                    "trainer.max_steps": 9,
+                    "callbacks.adherence_captions": 4,
+                    "callbacks.preview_captions": 0,
+                    "callbacks.checkpoint.monitor": "val_adherence/ordered_rate",
+                    "callbacks.checkpoint.mode": "max",
+                },
+            )
+        )
+    )
+    history = MlflowClient(f"sqlite:///{tmp_path}/mlflow.db").get_metric_history(
+        result.run_id, "val_adherence/ordered_rate"
+    )
+    assert sorted(m.step for m in history) == [3, 6, 9]
+    best = torch.load(result.best_checkpoint, weights_only=True)
+    (state,) = [v for k, v in best["callbacks"].items() if "val_adherence/ordered_rate" in k]
+    top = max(m.value for m in history)
+    assert float(state["best_model_score"]) == pytest.approx(top)
+    assert best["global_step"] == min(m.step for m in history if m.value == top)

@@ -295,6 +295,9 @@ def test_ddp_ranks_agree(tmp_path, variant):
     assert torch.equal(r0["weights"], r1["weights"])
     assert r0["step"] == r1["step"] == 15
     assert r0["val_loss"] == r1["val_loss"] and r0["val_acc"] == r1["val_acc"]  # reduced across ranks
+    # The adherence figures are measured once, on rank 0, and every rank holds rank 0's value.
+    assert (r0["measured"], r1["measured"]) == (1, 0)
+    assert r0["adherence"] == r1["adherence"] == 0.25
 
 
 @pytest.mark.slow

@@ -2,7 +2,9 @@
 
 Run by tests/test_stage2.py as `python stage2_ddp.py OUT_DIR [parts]`. Random token sequences and
 random text embeddings: the point is that ranks see different batches yet end with the same
-weights, and that validation metrics are reduced across ranks. `parts`: the part-aware
+weights, that validation metrics are reduced across ranks, and that the adherence curve's
+figures, measured on rank 0 only, reach every rank's callback_metrics (what best.ckpt can be chosen
+by). `parts`: the part-aware
 transformer on [lower, upper] code pairs (the lower ones its partly masked condition).
 """
 
@@ -13,6 +15,7 @@ import lightning as L
 import torch
 from torch.utils.data import Dataset
 
+from mmm.callbacks.adherence import AdherenceCurve
 from mmm.data.resumable import ResumableDataLoader
 from mmm.training.common import build_strategy
 from mmm.training.configs import TrainerConfig
@@ -63,9 +66,21 @@ def collate(data, parts: bool):
     return fn
 
 
+class RankAdherence(AdherenceCurve):
+    """The curve with its measurement replaced by a value that differs per rank, counted."""
+
+    def __init__(self):
+        super().__init__(None, None, ".", items=[None], publish=True)
+        self.measured = 0
+
+    def _measure(self, pl_module):
+        self.measured += 1
+        return {"val_adherence/ordered_rate": 0.25 + 0.5 * pl_module.global_rank, "val_adherence/rate": 0.1}
+
+
 class SaveRankState(L.Callback):
-    def __init__(self, out_dir):
-        self.out_dir, self.first = out_dir, None
+    def __init__(self, out_dir, curve):
+        self.out_dir, self.first, self.curve = out_dir, None, curve
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         if self.first is None:
@@ -79,6 +94,8 @@ class SaveRankState(L.Callback):
                 "val_acc": float(trainer.callback_metrics["val/acc_masked"]),
                 "first_batch": self.first,
                 "step": trainer.global_step,
+                "adherence": float(trainer.callback_metrics["val_adherence/ordered_rate"]),
+                "measured": self.curve.measured,
             },
             os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt"),
         )
@@ -110,7 +127,7 @@ def main(out_dir, parts=False):
         enable_progress_bar=False,
         use_distributed_sampler=False,
         num_sanity_val_steps=0,
-        callbacks=[SaveRankState(out_dir)],
+        callbacks=[curve := RankAdherence(), SaveRankState(out_dir, curve)],
     )
     trainer.fit(
         module,

@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 from mmm.callbacks.adherence import AdherenceCurve
 from mmm.callbacks.checkpoints import CheckpointConfig
 from mmm.callbacks.previews import GenerationPreview
-from mmm.config import compose, to_object
+from mmm.config import ConfigError, compose, to_object
 from mmm.data.datamodule import DataConfig, TokenTextDataModule
 from mmm.kinds import STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS
 from mmm.resolve import registered_version
@@ -174,6 +174,34 @@ def adherence_items(cfg: Stage2Config) -> list:
     return items[::stride][:wanted]
 
 
+ADHERENCE_MONITORS = ("val_adherence/ordered_rate", "val_adherence/rate")
+
+
+def check_adherence_monitor(cfg: Stage2Config, curve_items: list) -> bool:
+    """Whether best.ckpt is chosen by the adherence curve (callbacks.checkpoint.monitor names one of
+    its overall figures); refused where the curve is not measured."""
+    monitor = cfg.callbacks.checkpoint.monitor
+    if not monitor.startswith("val_adherence/"):
+        return False
+    if monitor not in ADHERENCE_MONITORS:
+        raise ConfigError(
+            f"callbacks.checkpoint.monitor={monitor}: best.ckpt can follow the overall adherence only, "
+            f"{' or '.join(ADHERENCE_MONITORS)} (with mode=max)"
+        )
+    if not curve_items:
+        raise ConfigError(
+            f"callbacks.checkpoint.monitor={monitor} needs the adherence curve, which is not measured here: "
+            f"it needs a labelled whole-body dataset (labels/ in data.root={cfg.data.root}) and "
+            f"callbacks.adherence_captions > 0 (is {cfg.callbacks.adherence_captions}); "
+            "or monitor val/loss (mode=min)"
+        )
+    if cfg.callbacks.checkpoint.mode != "max":
+        raise ConfigError(
+            f"callbacks.checkpoint.monitor={monitor} is a share followed: set callbacks.checkpoint.mode=max"
+        )
+    return True
+
+
 def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult:
     cfg: Stage2Config = to_object(cfg_node)
     L.seed_everything(cfg.seed, workers=True)
@@ -203,8 +231,13 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
         else []
     )
     curve_items = adherence_items(cfg) if not cfg.part_aware else []
+    by_adherence = check_adherence_monitor(cfg, curve_items)
     if curve_items:
-        callbacks.append(AdherenceCurve(tokenizer, text_encoder, cfg.data.root, curve_items, cfg.seed))
+        callbacks.append(
+            AdherenceCurve(
+                tokenizer, text_encoder, cfg.data.root, curve_items, cfg.seed, publish=by_adherence
+            )
+        )
     lineage = (
         stage1_lineage(source, resolve_tracking_uri(cfg.logger.tracking_uri)) if cfg.logger.enabled else {}
     )
