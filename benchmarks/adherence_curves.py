@@ -24,14 +24,15 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 from mmm.atomic import atomic_write  # noqa: E402
 from mmm.tracking import resolve_tracking_uri  # noqa: E402
 
-GROUPS = ("single", "composition", "counts")  # val_adherence/<group>_<metric>
 
-
-def curve_names(metric: str) -> dict[str, str]:
-    """{group label: metric key} for the order-aware or strict figures."""
-    overall = "val_adherence/ordered_rate" if metric == "ordered" else "val_adherence/rate"
-    names = {"all": overall}
-    names.update({group: f"val_adherence/{group}_{metric}" for group in GROUPS})
+def curve_names(run, metric: str) -> dict[str, str]:
+    """{label: metric key} of the run's order-aware or strict figures: overall ("all"), then each
+    group the run logged (`val_adherence/<group>_<metric>`, as adherence_metrics names them)."""
+    names = {"all": "val_adherence/ordered_rate" if metric == "ordered" else "val_adherence/rate"}
+    suffix = f"_{metric}"
+    for key in sorted(run.data.metrics):
+        if key.startswith("val_adherence/") and key.endswith(suffix):
+            names[key.removeprefix("val_adherence/").removesuffix(suffix)] = key
     return names
 
 
@@ -42,7 +43,7 @@ def run_curves(client: MlflowClient, run_id: str, metric: str) -> dict[str, list
     except MlflowException as err:
         raise SystemExit(f"run {run_id}: not in this tracking store ({err.message}); pass --tracking-uri")
     curves = {}
-    for label, key in curve_names(metric).items():
+    for label, key in curve_names(run, metric).items():
         history = sorted((m.step, m.value) for m in client.get_metric_history(run_id, key))
         if history:
             curves[label] = history
