@@ -10,7 +10,8 @@ text encoder is the real MiniLM, whose time is included as it is part of inferen
 - the time of a 10.873-minute motion (13,047 frames at 20 fps) from many prompts, generated
   as segments in one batch, transitions in one pass, and one decode (the paper: 1.65 s).
 Timed with the device synchronized, after warm-up, medians of repeats, excluding model loading, at
-`--precision` (default: the device's default, int8 on CPU; recorded as `dtype`).
+`--precision` (default: the device's default, int8 on CPU; recorded as `dtype`), through
+torch.compile with `--compile` (recorded as `compiled`; each shape compiles during its warm-up).
 Paper (RTX A5000): AITS 0.081 s; 0.018 s for 40 frames; 1.65 s for the 10.873-minute motion.
 Writes JSON (device, dtype, batch, model size with every figure) and a plot of the curve.
 """
@@ -40,7 +41,7 @@ PROMPTS = [
 PAPER = {"aits_s": 0.081, "40_frames_s": 0.018, "long_10.873min_s": 1.65, "device": "NVIDIA RTX A5000"}
 
 
-def build_model(size: str, device: str, precision: str | None):
+def build_model(size: str, device: str, precision: str | None, compiled: bool = False):
     from mmm.config import compose
     from mmm.generation.model import TextToMotion
     from mmm.text import build_text_encoder
@@ -59,7 +60,9 @@ def build_model(size: str, device: str, precision: str | None):
         text.sentence_dim,
         text.word_dim,
     )
-    model = TextToMotion(tokenizer, transformer, text, {"size": size}, device=device, precision=precision)
+    model = TextToMotion(
+        tokenizer, transformer, text, {"size": size}, device=device, precision=precision, compiled=compiled
+    )
     params = sum(p.numel() for p in transformer.parameters()) + sum(p.numel() for p in tokenizer.parameters())
     return model, params
 
@@ -89,6 +92,11 @@ def main() -> None:
     parser.add_argument(
         "--precision", default=None, choices=["fp32", "bf16", "int8"], help="default: the device's default"
     )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="decode through torch.compile (CUDA graphs on a GPU); every shape compiles in the warm-up",
+    )
     parser.add_argument("--out", default="outputs/bench/generation_speed.json")
     args = parser.parse_args()
     lengths = [int(x) for x in args.lengths.split(",")]
@@ -104,18 +112,21 @@ def main() -> None:
     report = {
         "device": device_name,
         "dtype": precision,
+        "compiled": args.compile,
         "torch": torch.__version__,
         "paper": PAPER,
         "sizes": {},
     }
+    # CUDA graphs are recorded on a shape's second call and replayed from the third.
+    warmup = 2 if args.compile else 1
     for size in args.sizes:
-        model, params = build_model(size, args.device, precision)
+        model, params = build_model(size, args.device, precision, args.compile)
         entry = {"params_M": round(params / 1e6, 2), "per_sentence_s": {}, "sentences_per_s": {}}
         for batch in batches:
             curve = {}
             for frames in lengths:
                 texts = [PROMPTS[i % len(PROMPTS)] for i in range(batch)]
-                seconds = timed(lambda: model.generate(texts, [frames] * batch, seed=0), args.repeats)
+                seconds = timed(lambda: model.generate(texts, [frames] * batch, seed=0), args.repeats, warmup)
                 curve[frames] = seconds / batch
                 print(
                     f"{size} batch {batch:3d} {frames:4d} frames: {seconds / batch * 1000:8.1f} ms per "
@@ -131,6 +142,7 @@ def main() -> None:
                 timed(
                     lambda n=n: model.generate([PROMPTS[n % len(PROMPTS)]], [n], seed=0),
                     max(1, args.repeats // 2),
+                    warmup,
                 )
                 for n in spread
             ]
@@ -149,7 +161,7 @@ def main() -> None:
         def run_long():
             result["out"] = model.generate_long(texts, frames, seed=0)
 
-        seconds = timed(run_long, max(1, args.repeats // 2))
+        seconds = timed(run_long, max(1, args.repeats // 2), warmup)
         produced = result["out"].features[0].shape[0]
         entry["long"] = {
             "prompts": count,
@@ -186,7 +198,8 @@ def plot(report: dict, path: Path) -> None:
     ax.set_xlabel("motion length (frames)")
     ax.set_ylabel("seconds per sentence")
     ax.set_yscale("log")
-    ax.set_title(f"time per sentence ({report['device']}, {report['dtype']})", fontsize=9)
+    compiled = ", compiled" if report.get("compiled") else ""
+    ax.set_title(f"time per sentence ({report['device']}, {report['dtype']}{compiled})", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path)

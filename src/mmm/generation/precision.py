@@ -31,8 +31,10 @@ from torch import nn
 PRECISIONS = ("fp32", "bf16", "int8")
 # The precision when none is asked for (benchmarks/inference_precision.py, README "Speed"): on CPU
 # int8, the fastest at every case measured (4x float32 at the paper size), with prompt adherence
-# and FID within float32's intervals on the demo model; float32 elsewhere (int8 is CPU-only, and no
-# GPU figure of bf16 has been measured). The release's codes are reproduced in fp32 only.
+# and FID within float32's intervals on the demo model; float32 on a GPU: int8 is CPU-only, and bf16
+# on an H200 was slower than float32 at batch 1 (AITS 82 against 62 ms: a batch-1 pass is bound by
+# kernel launches, and autocast adds cast kernels), faster only for large batches (README "Speed on
+# a GPU"). The release's codes are reproduced in fp32 only.
 DEFAULT_PRECISION = {"cpu": "int8", "cuda": "fp32"}
 
 
