@@ -83,7 +83,10 @@ def test_part_aware_configs_extend_the_whole_body_ones():
     )
     assert parts["output_dir"] == "outputs/stage1-parts"
     differing = {k for k in base if base[k] != parts[k]}
-    assert differing == {"model", "logger", "output_dir"}  # everything else is inherited
+    assert differing == {"model", "logger", "output_dir", "refine", "loss"}  # everything else is inherited
+    # its tokenizer training as its upper-body figures were measured, the rest of both groups inherited
+    assert parts["refine"] == {**base["refine"], "steps": 1000}
+    assert parts["loss"] == {**base["loss"], "path_weight": 0.0}
     assert {k: v for k, v in parts["model"]["tokenizer"].items() if k != "part_aware"} == {
         k: v for k, v in base["model"]["tokenizer"].items() if k != "part_aware"
     }
@@ -132,7 +135,6 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
 
     assert changed(load_stage1_config) == {
         "output_dir": "outputs/quality/stage1",
-        "refine.steps": 2000,
         "trainer.max_steps": 3000,
         "trainer.val_check_interval": 500,
     }

@@ -886,7 +886,9 @@ def test_recipe_paper_sets_the_released_recipe_for_every_command():
     ) == (256, 300000, "evaluator_style", 25.0, 0)
     default = load_stage1_config([])  # the package's: the decoder refined, half its windows at clip starts
     refine = default.refine
-    assert (refine.steps, refine.path_weight, refine.start_windows) == (1000, 0.1, 0.5)
+    assert (refine.steps, refine.path_weight, refine.start_windows) == (2000, 0.1, 0.5)
+    # and a root-path loss in its own steps, which the release does not have
+    assert (default.loss.path_weight, s1.loss.path_weight) == (0.1, 0.0)
     s2 = load_stage2_config(["recipe=paper"])
     assert (
         s2.model.transformer.num_layers,

@@ -180,6 +180,28 @@ def test_decoder_refinement_adds_the_root_path_distance_times_its_weight():
     assert float(logged["train/root_path_m"]) == pytest.approx(float(distance), rel=1e-4)
 
 
+def test_the_tokenizer_steps_add_the_root_path_distance_times_loss_path_weight():
+    torch.manual_seed(0)
+    module = TokenizerModule(263, TokenizerConfig(width=16, num_codes=16), {}, {"path_weight": 0.2})
+    module.tokenizer(torch.randn(4, 64, 263))  # the codebook seeds itself from the first latents
+    module.tokenizer.eval()  # no EMA update or reset between the two steps below
+    logged = {}
+    module.log_dict = lambda metrics, **kw: logged.update(metrics)
+    module.log = lambda *a, **kw: None
+    batch = torch.randn(4, 64, 263)
+    with_path = module.training_step(batch, 0)
+    with_path_logged, logged = logged, {}
+    module.loss_cfg.path_weight = 0.0
+    without = module.training_step(batch, 0)
+    with torch.no_grad():
+        recon = module.tokenizer(batch).reconstruction
+        distance = (module.root_path(recon) - module.root_path(batch)).norm(dim=-1).mean()
+    assert float(distance) > 0.01
+    assert float((with_path - without).detach()) == pytest.approx(0.2 * float(distance), rel=1e-4)
+    assert float(with_path_logged["train/root_path_m"]) == pytest.approx(float(distance), rel=1e-4)
+    assert "train/root_path_m" not in logged
+
+
 def test_the_refinement_switches_its_windows_to_clip_starts():
     from mmm.data.datasets import MotionWindowDataset
 

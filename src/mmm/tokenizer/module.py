@@ -33,6 +33,9 @@ class TokenizerLossConfig:
     root_weight: float = (
         1.0  # the reconstruction loss of the root dims (yaw and x/z velocity, height) times this
     )
+    # Mean distance (m) between the decoded and the true root path (x/z) of each window, in the
+    # tokenizer's own steps (the refinement has its own, refine.path_weight).
+    path_weight: float = 0.0
 
 
 @dataclass
@@ -216,6 +219,9 @@ class TokenizerModule(L.LightningModule):
         if self.loss_cfg.global_weight > 0:
             parts["global_m"] = (self.joints(out.reconstruction) - self.joints(batch)).norm(dim=-1).mean()
             loss = loss + self.loss_cfg.global_weight * parts["global_m"]
+        if self.loss_cfg.path_weight > 0:
+            parts["path_m"] = (self.root_path(out.reconstruction) - self.root_path(batch)).norm(dim=-1).mean()
+            loss = loss + self.loss_cfg.path_weight * parts["path_m"]
         self.last_perplexities = {name: float(p) for name, p in out.perplexities.items()}
         metrics = {
             "train/loss": loss,
@@ -225,6 +231,8 @@ class TokenizerModule(L.LightningModule):
         }
         if "global_m" in parts:
             metrics["train/global_position_m"] = parts["global_m"]
+        if "path_m" in parts:
+            metrics["train/root_path_m"] = parts["path_m"]
         for name, quantizer in self.quantizers.items():
             active = quantizer.window_active()
             metrics[metric_name("codebook", name, "perplexity")] = out.perplexities[name]
