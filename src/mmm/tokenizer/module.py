@@ -181,7 +181,7 @@ class TokenizerModule(L.LightningModule):
         parts = self.losses(recon, batch, root_weight=self.refine_cfg.root_weight)
         loss = parts["recon"] + self.loss_cfg.position_weight * parts["position"]
         if self.refine_cfg.path_weight > 0:
-            parts["path_m"] = (self.root_path(recon) - self.root_path(batch)).norm(dim=-1).mean()
+            parts["path_m"] = self.root_path_distance(recon, batch)
             loss = loss + self.refine_cfg.path_weight * parts["path_m"]
         # DDP waits for a gradient of every parameter: the frozen ones get zeros, dropped before the step.
         loss = loss + 0.0 * sum(p.sum() for p in self._frozen_parameters())
@@ -220,7 +220,7 @@ class TokenizerModule(L.LightningModule):
             parts["global_m"] = (self.joints(out.reconstruction) - self.joints(batch)).norm(dim=-1).mean()
             loss = loss + self.loss_cfg.global_weight * parts["global_m"]
         if self.loss_cfg.path_weight > 0:
-            parts["path_m"] = (self.root_path(out.reconstruction) - self.root_path(batch)).norm(dim=-1).mean()
+            parts["path_m"] = self.root_path_distance(out.reconstruction, batch)
             loss = loss + self.loss_cfg.path_weight * parts["path_m"]
         self.last_perplexities = {name: float(p) for name, p in out.perplexities.items()}
         metrics = {
@@ -256,6 +256,11 @@ class TokenizerModule(L.LightningModule):
         """Root x/z path (B, T, 2) in metres of normalized features (B, T, D), from 0 at the first frame."""
         _, root = recover_root_rot_pos(self.denormalize(x).float())
         return root[..., [0, 2]] * self.skeleton.unit_scale
+
+    def root_path_distance(self, recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Mean distance (m) between the root paths of normalized features (B, T, D): the root-path
+        loss of the tokenizer's steps (loss.path_weight) and of the refinement (refine.path_weight)."""
+        return (self.root_path(recon) - self.root_path(target)).norm(dim=-1).mean()
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         motion, lengths = batch["motion"], batch["lengths"]
