@@ -157,6 +157,44 @@ def test_temporal_task_exactness_and_intervals(model, walker_items, trained, tmp
     assert "| Edited (prefix) |" in out["table"] and "kept frames of an 80-frame motion: 0:60" in out["table"]
 
 
+@pytest.mark.slow
+def test_temporal_task_without_text_decodes_the_unconditional_branch(model, walker_items, trained, tmp_path):
+    mean, std = load_stats(trained["walker"], 263)
+    seen = []
+    edit_batch = model.edit_batch
+
+    def recording(sources, kept, texts, *args, **kwargs):
+        seen.extend(texts)
+        return edit_batch(sources, kept, texts, *args, **kwargs)
+
+    model.edit_batch = recording
+    try:
+        out = evaluate_editing(
+            "inbetween",
+            model,
+            MeanEvaluator(),
+            walker_items,
+            mean,
+            std,
+            QUICK,
+            EditingConfig(with_text=False),
+            trained["walker"],
+            tmp_path,
+            progress=False,
+        )
+    finally:
+        model.edit_batch = edit_batch
+    assert seen and all(t is None for t in seen)  # every edit of the protocol, none with its caption
+    assert model.text_dropout == 0.1  # read from the checkpoint: its unconditional branch is trained
+    metrics = out["metrics"]
+    assert "edit/inbetween-without-text/fid" in metrics
+    assert not any(k.startswith("edit/inbetween/") for k in metrics)
+    assert out["results"]["editing"]["with_text"] is False
+    assert "| Edited (inbetween, without text) |" in out["table"]
+    # The kept codes are the source's with or without text.
+    assert out["results"]["exactness"]["reconstruction_far"]["max"] < 1.0
+
+
 @pytest.fixture(scope="module")
 def synthetic_small(tmp_path_factory):
     from mmm.data.synthetic.generate import generate_dataset

@@ -225,6 +225,30 @@ def test_long_sequence_in_one_decode(model):
     )
 
 
+def test_untrained_unconditional_branch_is_warned_about_once(model, caplog):
+    source = model.generate(["s"], frames=[80], seed=0).features[0]
+    unknown, model.text_dropout = model.text_dropout, 0.1
+    try:
+        with caplog.at_level("WARNING", logger="mmm.generation.model"):
+            model.edit(source, [(0, 40)], None, seed=0)
+            model.generate(["s"], frames=[80], sampling=SamplingConfig(guidance_scale=2.0), seed=0)
+        assert not caplog.records  # trained with text dropout: nothing to say
+        model.text_dropout = 0.0
+        with caplog.at_level("WARNING", logger="mmm.generation.model"):
+            for _ in range(2):
+                model.edit(source, [(0, 40)], None, seed=0)
+                model.generate(["s"], frames=[80], sampling=SamplingConfig(guidance_scale=2.0), seed=0)
+                model.generate(["s"], frames=[80], seed=0)  # guidance 1 with a text: no warning
+                model.generate_long(["a", "b"], frames=[40, 40], seed=0)  # transitions: no warning
+        messages = [r.getMessage() for r in caplog.records]
+        assert len(messages) == 2, messages
+        assert messages[0].startswith("an edit without text") and "corruption.cond_drop=0.1" in messages[0]
+        assert messages[1].startswith("classifier-free guidance")
+    finally:
+        model.text_dropout = unknown
+        model._warned.clear()
+
+
 def test_paragraph_splitter():
     assert split_paragraph(
         "A person walks forward, then turns left. After that they jump twice and finally sit down."

@@ -9,7 +9,10 @@ crops, seeds and intervals), with the batch's motions produced by an edit instea
   50%; outpaint keeps the middle 50% and generates the first and last 25%; prefix keeps the first
   50% and generates the rest; suffix keeps the last 50% and generates the first 50%. Fractions are
   `EditingConfig`'s; frame bounds are rounded to the tokenizer's 4-frame unit, so the kept frames
-  are exactly the kept codes' frames.
+  are exactly the kept codes' frames. `with_text=False` generates them without the caption (the
+  method's motion completion without text: the unconditional branch), logged as
+  edit/<task>-without-text/...; R-Precision then says how much of the caption the kept frames
+  alone carry into the completion.
 - upper-body (the upper-body editing table; part-aware models): the lower body of each real crop
   is kept, the upper body generated from its caption, for every lower-body mask of the ablation
   sweep (`lower_masks`), one table row each, and a plot.
@@ -78,6 +81,7 @@ class EditingConfig:
     prefix_keep: float = 0.5  # prefix: the first share kept, the rest generated
     suffix_keep: float = 0.5  # suffix: the last share kept, the first 1 - x generated
     far_frames: int = 32  # exactness "far": kept frames at least this many frames from a generated one
+    with_text: bool = True  # temporal tasks: False generates without the caption (completion without text)
     lower_mask: float = 0.5  # upper-body: the share of lower-body codes hidden in the main row
     lower_masks: list[float] = field(
         default_factory=lambda: [0.0, 0.25, 0.5, 0.75, 1.0]
@@ -307,6 +311,7 @@ class TemporalEdits:
     ) -> list[np.ndarray]:
         sources = [real[i, :n].numpy() for i, n in enumerate(lengths)]
         kept = [keep_ranges(self.task, n, self.cfg, self.model.unit) for n in lengths]
+        texts = texts if self.cfg.with_text else [None] * len(texts)
         out = self.model.edit_batch(sources, kept, texts, self.sampling, seed, check_lengths=False)
         self.exactness.add(sources, out.features, kept)
         return out.features
@@ -421,7 +426,7 @@ def temporal_adherence(
         out = model.edit_batch(
             [item.features[:frames] for item, frames, *_ in chunk],
             [kept for *_, kept, _ in chunk],
-            [item.captions[0].text for item, *_ in chunk],
+            [item.captions[0].text if cfg.with_text else None for item, *_ in chunk],
             sampling,
             seed + b,
             check_lengths=False,
@@ -602,7 +607,7 @@ def evaluate_editing(
         max_items,
         head,
         progress,
-        f"edit/{task}",
+        f"edit/{task}" + ("" if cfg.with_text or task not in TEMPORAL_TASKS else "-without-text"),
     )
     job.results.update(task=task, editing={**cfg.__dict__, "lower_masks": list(cfg.lower_masks)})
     started = time.perf_counter()
@@ -622,6 +627,10 @@ def evaluate_editing(
         "series": dict(job.series),
         "artifacts": job.artifacts,
     }
+
+
+def _text_note(cfg: EditingConfig) -> str:
+    return "" if cfg.with_text else ", without text"
 
 
 def _temporal(job: _Task, task: str) -> None:
@@ -644,7 +653,7 @@ def _temporal(job: _Task, task: str) -> None:
     )
     job.tables += [
         results_table(
-            {"Real motion": proto["real"], f"Edited ({task})": proto["generated"]},
+            {"Real motion": proto["real"], f"Edited ({task}{_text_note(cfg)})": proto["generated"]},
             f"{task} on {job.head}; kept frames of an 80-frame motion: {example}; MultiModality not "
             "measured for edits",
         ),
@@ -680,7 +689,8 @@ def _temporal(job: _Task, task: str) -> None:
         job.results["adherence"] = found
         job.log({f"adherence_{key}": found[key] for key in ("rate", "real_rate", "whole_rate")})
         job.tables.append(
-            f"**Adherence of the generated part**: {_fmt(found['rate'])} of {found['count']} edits whose "
+            f"**Adherence of the generated part**{_text_note(cfg)}: {_fmt(found['rate'])} of "
+            f"{found['count']} edits whose "
             f"generated frames cover a labelled action (the same parts on the real motions: "
             f"{_fmt(found['real_rate'])}); {found['unchecked']} edits generated no checkable part; the "
             f"whole edited motion against its label: {_fmt(found['whole_rate'])} of {found['whole_count']}"

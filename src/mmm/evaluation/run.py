@@ -15,8 +15,9 @@ the data fingerprint (also the run's dataset input) and the git commit.
 `task=` picks what is evaluated: `text2motion` (the default: all of the above) or one of the
 paper's editing benchmarks, inbetween|outpaint|prefix|suffix|upper-body|long (editing.py; the
 `editing:` settings), run named `evaluate-<task>-<data>-<time>`, metrics `edit/<task>/<metric>`
-(the upper-body lower-mask sweep also as `edit/upper-body/sweep/<metric>` by step = mask in
-percent), its tables in evaluation.md/json and the sweep's plot as an artifact.
+(`edit/<task>-without-text/<metric>` for a temporal task with editing.with_text=false; the
+upper-body lower-mask sweep also as `edit/upper-body/sweep/<metric>` by step = mask in percent),
+its tables in evaluation.md/json and the sweep's plot as an artifact.
 """
 
 from __future__ import annotations

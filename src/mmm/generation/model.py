@@ -13,6 +13,7 @@ and decode the concatenation once.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import defaultdict
@@ -36,7 +37,7 @@ from mmm.generation.compiled import CompiledDecoding, default_compile_mode
 from mmm.generation.length import load_length_estimator
 from mmm.generation.precision import check_precision, default_precision, inference_copy
 from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
-from mmm.generation.upper_body import edit_upper_body
+from mmm.generation.upper_body import UPPER_BODY_GUIDANCE, edit_upper_body
 from mmm.kinds import LENGTH, STAGE2, STAGE2_PARTS
 from mmm.motion.features import recover_from_ric
 from mmm.resolve import _RUN_ID, ModelNotFound, champion_reference, resolve_bundle, resolve_model
@@ -44,6 +45,8 @@ from mmm.text import build_text_encoder
 from mmm.tokenizer.load import load_tokenizer, load_tokenizer_checkpoint, resolve_tokenizer
 from mmm.tracking import resolve_tracking_uri
 from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -93,6 +96,10 @@ class TextToMotion:
         self._inference = None
         self._compiled = bool(compiled)
         self.precision = precision
+        # The text dropout it was trained with (corruption.cond_drop; None: unknown). At 0 the
+        # unconditional branch was never trained: warned about where it decides the result.
+        self.text_dropout: float | None = None
+        self._warned: set[str] = set()
 
     # -- inference precision (mmm.generation.precision) -----------------------------------------
     @property
@@ -309,6 +316,7 @@ class TextToMotion:
                 "checkpoint as training wrote it"
             ) from None
         load_state(module, ckpt["state_dict"], checkpoint, "stage2")
+        text_dropout = float(module.corruption_cfg.cond_drop)
         text = dict(hp.get("text_encoder") or {})
         name, options = text_encoder_options(text, text_files, checkpoint)
         encoder = build_text_encoder(name, **options)
@@ -327,7 +335,7 @@ class TextToMotion:
             "text_encoder": text["identity"],
             "transformer": ckpt.get(FINGERPRINT_KEY) or expected_identity.get("transformer"),
         }
-        return cls(
+        model = cls(
             tokenizer,
             module.transformer,
             encoder,
@@ -337,6 +345,8 @@ class TextToMotion:
             length_source=length_source,
             precision=precision,
         )
+        model.text_dropout = text_dropout
+        return model
 
     # -- pieces ---------------------------------------------------------------------------------
     @property
@@ -478,6 +488,27 @@ class TextToMotion:
             list(texts), features, joints, codes, result.iterations.tolist(), result.forward_passes, seconds
         )
 
+    def _check_unconditional(self, sampling: SamplingConfig, without_text: bool = False) -> None:
+        """Warn once per kind when a model trained without text dropout is asked for its untrained
+        unconditional branch: guidance (scale != 1) or an edit without text. The transitions of
+        generate_long are not warned about: their context codes decide them (README, Stage 2)."""
+        if self.text_dropout != 0.0:
+            return
+        uses = (["classifier-free guidance"] if sampling.guidance_scale != 1.0 else []) + (
+            ["an edit without text"] if without_text else []
+        )
+        for use in uses:
+            if use not in self._warned:
+                self._warned.add(use)
+                log.warning(
+                    "%s asks for the unconditional branch of %s, which was trained without text dropout "
+                    "(corruption.cond_drop=0): it never saw an empty caption, so %s follows no learned "
+                    "prior. Give a text and guidance 1, or use a model trained with corruption.cond_drop=0.1",
+                    use,
+                    self.identity.get("reference"),
+                    use,
+                )
+
     # -- generation and editing -----------------------------------------------------------------
     @torch.no_grad()
     def generate(
@@ -505,6 +536,7 @@ class TextToMotion:
                 self.check_frames(f)
             elif not 1 <= f <= self.max_frames:
                 raise ValueError(f"length {f} frames is outside 1..{self.max_frames}")
+        self._check_unconditional(sampling)
         text = self.encode_text(texts)
         self._sync()
         seconds = {"text": time.perf_counter() - started}
@@ -591,6 +623,7 @@ class TextToMotion:
         for i, (_, tokens, mask) in enumerate(rows):
             keep_tokens[i, : len(tokens)] = torch.from_numpy(tokens)
             keep_mask[i, : len(mask)] = torch.from_numpy(mask)
+        self._check_unconditional(sampling, without_text=any(t is None for t in texts))
         emb = self.encode_text(texts)
         generator = torch.Generator(device=self.device).manual_seed(seed) if seed is not None else None
         seconds = {"text": time.perf_counter() - started}
@@ -711,6 +744,7 @@ class TextToMotion:
         check_lengths: bool = True,
     ) -> Generated:
         """A new upper body from `text` on the source's lower body (part-aware models; see upper_body.py)."""
+        self._check_unconditional(sampling or SamplingConfig(guidance_scale=UPPER_BODY_GUIDANCE))
         return edit_upper_body(
             self, source, text, lower_mask, lower_keep, sampling, seed, num_samples, check_lengths
         )
