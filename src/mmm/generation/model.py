@@ -491,7 +491,8 @@ class TextToMotion:
     def _check_unconditional(self, sampling: SamplingConfig, without_text: bool = False) -> None:
         """Warn once per kind when a model trained without text dropout is asked for its untrained
         unconditional branch: guidance (scale != 1) or an edit without text. The transitions of
-        generate_long are not warned about: their context codes decide them (README, Stage 2)."""
+        generate_long are not warned about: their context codes decide them (README, "Completion
+        without text")."""
         if self.text_dropout != 0.0:
             return
         uses = (["classifier-free guidance"] if sampling.guidance_scale != 1.0 else []) + (
