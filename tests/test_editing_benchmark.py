@@ -1,6 +1,7 @@
 """The editing benchmarks (`mmm evaluate task=...`): kept ranges, the batched edit, exactness of the
 kept frames, the labelled checks, long sequences, upper-body edits and the protocol refactor."""
 
+import json
 import math
 
 import numpy as np
@@ -262,6 +263,13 @@ def test_mmm_evaluate_runs_an_editing_task_and_refuses_the_wrong_model(trained, 
     assert math.isfinite(run.data.metrics["edit/outpaint/fid"])
     assert "edit/outpaint/kept_mean_mm_vs_reconstruction" in run.data.metrics
     assert "| Edited (outpaint) |" in (tmp_path / "eval/evaluation.md").read_text()
+    results = evaluation_run.evaluate(
+        evaluation_run.load_evaluate_config([*common, "task=prefix", "editing.with_text=false"])
+    )
+    run = MlflowClient(trained["uri"]).get_run(results["run_id"])
+    assert run.info.run_name.startswith("evaluate-prefix-without-text-")
+    assert json.loads(run.data.params["editing"])["with_text"] is False
+    assert "edit/prefix-without-text/fid" in run.data.metrics
     with pytest.raises(
         ValueError, match=r"part-aware model; .* whole-body model\. Pass text2motion=models:/mmm-upperbody"
     ):

@@ -42,7 +42,7 @@ from mmm.data.datamodule import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
-from mmm.evaluation.editing import TASKS, EditingConfig, check_task_model, evaluate_editing
+from mmm.evaluation.editing import TASKS, TEMPORAL_TASKS, EditingConfig, check_task_model, evaluate_editing
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
@@ -334,6 +334,8 @@ class _EvaluationRun:
     def __init__(self, cfg: EvaluateConfig, tracking_uri: str):
         self.cfg, self.client = cfg, MlflowClient(tracking_uri)
         task = "" if cfg.task == "text2motion" else f"{cfg.task}-"  # today's name for the default task
+        if cfg.task in TEMPORAL_TASKS and not cfg.editing.with_text:
+            task += "without-text-"
         experiment_id = prepare_experiment(
             self.client, cfg.logger.experiment, artifact_location(tracking_uri, cfg.logger.artifact_root)
         )
@@ -350,6 +352,8 @@ class _EvaluationRun:
             "precision": cfg.precision or "default",
             "sampling": json.dumps(asdict(cfg.protocol.sampling))[:500],
         }
+        if cfg.task != "text2motion":
+            params["editing"] = json.dumps(asdict(cfg.editing))[:500]
         for key, value in params.items():
             self.client.log_param(self.run_id, key, value)
 
