@@ -116,6 +116,11 @@ class EditingConfig:
             raise ValueError(f"editing.far_frames={self.far_frames}: a number of frames, 0 or more")
 
 
+def task_label(task: str, cfg: EditingConfig) -> str:
+    """The task's name in metric keys and run names: `<task>-without-text` for a text-free temporal edit."""
+    return task if cfg.with_text or task not in TEMPORAL_TASKS else f"{task}-without-text"
+
+
 def _to_unit(x: float, unit: int) -> int:
     """x frames rounded to the nearest multiple of `unit` (halves up)."""
     return int(math.floor(x / unit + 0.5)) * unit
@@ -607,7 +612,7 @@ def evaluate_editing(
         max_items,
         head,
         progress,
-        f"edit/{task}" + ("" if cfg.with_text or task not in TEMPORAL_TASKS else "-without-text"),
+        f"edit/{task_label(task, cfg)}",
     )
     job.results.update(task=task, editing={**cfg.__dict__, "lower_masks": list(cfg.lower_masks)})
     started = time.perf_counter()

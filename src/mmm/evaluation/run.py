@@ -42,7 +42,7 @@ from mmm.data.datamodule import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
-from mmm.evaluation.editing import TASKS, TEMPORAL_TASKS, EditingConfig, check_task_model, evaluate_editing
+from mmm.evaluation.editing import TASKS, EditingConfig, check_task_model, evaluate_editing, task_label
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
@@ -333,9 +333,8 @@ class _EvaluationRun:
 
     def __init__(self, cfg: EvaluateConfig, tracking_uri: str):
         self.cfg, self.client = cfg, MlflowClient(tracking_uri)
-        task = "" if cfg.task == "text2motion" else f"{cfg.task}-"  # today's name for the default task
-        if cfg.task in TEMPORAL_TASKS and not cfg.editing.with_text:
-            task += "without-text-"
+        # no task in the default task's name (as it always was)
+        task = "" if cfg.task == "text2motion" else f"{task_label(cfg.task, cfg.editing)}-"
         experiment_id = prepare_experiment(
             self.client, cfg.logger.experiment, artifact_location(tracking_uri, cfg.logger.artifact_root)
         )
