@@ -125,12 +125,11 @@ def test_default_producer_gives_the_numbers_of_generation(model, walker_items, t
     }
 
 
-@pytest.mark.slow
-def test_temporal_task_exactness_and_intervals(model, walker_items, trained, tmp_path):
+def _edit_walker(task, model, walker_items, trained, cfg, tmp_path):
+    """evaluate_editing of `task` on the walker items with the quick protocol and MeanEvaluator."""
     mean, std = load_stats(trained["walker"], 263)
-    cfg = EditingConfig(prefix_keep=0.75, far_frames=24)
-    out = evaluate_editing(
-        "prefix",
+    return evaluate_editing(
+        task,
         model,
         MeanEvaluator(),
         walker_items,
@@ -141,6 +140,13 @@ def test_temporal_task_exactness_and_intervals(model, walker_items, trained, tmp
         trained["walker"],
         tmp_path,
         progress=False,
+    )
+
+
+@pytest.mark.slow
+def test_temporal_task_exactness_and_intervals(model, walker_items, trained, tmp_path):
+    out = _edit_walker(
+        "prefix", model, walker_items, trained, EditingConfig(prefix_keep=0.75, far_frames=24), tmp_path
     )
     results, metrics = out["results"], out["metrics"]
     for metric in ("top1", "fid", "diversity", "matching_score"):
@@ -159,8 +165,9 @@ def test_temporal_task_exactness_and_intervals(model, walker_items, trained, tmp
 
 
 @pytest.mark.slow
-def test_temporal_task_without_text_decodes_the_unconditional_branch(model, walker_items, trained, tmp_path):
-    mean, std = load_stats(trained["walker"], 263)
+def test_temporal_task_without_text_decodes_the_unconditional_branch(
+    model, walker_items, trained, tmp_path, monkeypatch
+):
     seen = []
     edit_batch = model.edit_batch
 
@@ -168,23 +175,8 @@ def test_temporal_task_without_text_decodes_the_unconditional_branch(model, walk
         seen.extend(texts)
         return edit_batch(sources, kept, texts, *args, **kwargs)
 
-    model.edit_batch = recording
-    try:
-        out = evaluate_editing(
-            "inbetween",
-            model,
-            MeanEvaluator(),
-            walker_items,
-            mean,
-            std,
-            QUICK,
-            EditingConfig(with_text=False),
-            trained["walker"],
-            tmp_path,
-            progress=False,
-        )
-    finally:
-        model.edit_batch = edit_batch
+    monkeypatch.setattr(model, "edit_batch", recording)
+    out = _edit_walker("inbetween", model, walker_items, trained, EditingConfig(with_text=False), tmp_path)
     assert seen and all(t is None for t in seen)  # every edit of the protocol, none with its caption
     assert model.text_dropout == 0.1  # read from the checkpoint: its unconditional branch is trained
     metrics = out["metrics"]
@@ -220,20 +212,7 @@ def test_labelled_checks_count_every_edit(model, synthetic_small):
 
 @pytest.mark.slow
 def test_long_task_scores_segments_and_transitions(model, walker_items, trained, tmp_path):
-    mean, std = load_stats(trained["walker"], 263)
-    out = evaluate_editing(
-        "long",
-        model,
-        MeanEvaluator(),
-        walker_items,
-        mean,
-        std,
-        QUICK,
-        EditingConfig(long_prompts=4),
-        trained["walker"],
-        tmp_path,
-        progress=False,
-    )
+    out = _edit_walker("long", model, walker_items, trained, EditingConfig(long_prompts=4), tmp_path)
     smooth = out["results"]["smoothness"]
     assert all(math.isfinite(v) and v > 0 for v in smooth.values()), smooth
     assert math.isfinite(out["metrics"]["edit/long/fid"]) and "edit/long/transition_ratio" in out["metrics"]
