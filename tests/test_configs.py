@@ -83,7 +83,8 @@ def test_part_aware_configs_extend_the_whole_body_ones():
     )
     assert parts["output_dir"] == "outputs/stage1-parts"
     differing = {k for k in base if base[k] != parts[k]}
-    assert differing == {"model", "logger", "output_dir", "refine", "loss"}  # everything else is inherited
+    assert differing == {"model", "logger", "output_dir", "refine", "loss", "encode"}  # the rest inherited
+    assert base["encode"] == {"candidates": 4, "sweeps": 1} and parts["encode"]["candidates"] == 1
     # its tokenizer training as its upper-body figures were measured, the rest of both groups inherited
     assert parts["refine"] == {**base["refine"], "steps": 1000}
     assert parts["loss"] == {**base["loss"], "path_weight": 0.0}

@@ -390,6 +390,7 @@ def test_reconstruction_reports_whether_the_labelled_actions_survive_the_tokeniz
     from mmm.data.humanml3d import load_clips
     from mmm.evaluation.run import reconstruction_metrics
     from mmm.motion.skeleton import T2M_SKELETON
+    from mmm.tokenizer.search import CodeSearchConfig
 
     clips, _ = load_clips(synthetic_small, "train", feature_dim=263, min_length=40)
     mean, std = load_stats(synthetic_small, 263)
@@ -397,7 +398,12 @@ def test_reconstruction_reports_whether_the_labelled_actions_survive_the_tokeniz
     def stub(decode):
         network = SimpleNamespace(cfg=SimpleNamespace(downsample=4), encode=lambda x: x, decode=decode)
         return SimpleNamespace(
-            tokenizer=network, mean=torch.from_numpy(mean), std=torch.from_numpy(std), skeleton=T2M_SKELETON
+            tokenizer=network,
+            encode=network.encode,
+            encode_cfg=CodeSearchConfig(candidates=1),
+            mean=torch.from_numpy(mean),
+            std=torch.from_numpy(std),
+            skeleton=T2M_SKELETON,
         )
 
     exact = reconstruction_metrics(stub(lambda z: z), None, clips, labels=synthetic_small / "labels")

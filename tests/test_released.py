@@ -279,6 +279,7 @@ def test_import_registers_both_models_tagged_with_the_source_files(release, impo
         next((imported["tmp"] / "imported").glob("released-*/tokenizer.ckpt")), weights_only=True
     )
     assert torch.equal(tok_ckpt["state_dict"]["std"], torch.from_numpy(np.load(release["stats"] / "std.npy")))
+    assert tok_ckpt["hyper_parameters"]["encode"]["candidates"] == 1  # the nearest code, as released
     # Importing the same files again reuses the versions.
     assert main(import_args(release, imported["tmp"])) == 0
     assert len(client.search_model_versions("name='mmm-text2motion'")) == 1
@@ -889,6 +890,8 @@ def test_recipe_paper_sets_the_released_recipe_for_every_command():
     assert (refine.steps, refine.path_weight, refine.start_windows) == (2000, 0.1, 0.5)
     # and a root-path loss in its own steps, which the release does not have
     assert (default.loss.path_weight, s1.loss.path_weight) == (0.1, 0.0)
+    # and it tokenizes known motions by the code search; the release, and an import, the nearest code
+    assert (default.encode.candidates, s1.encode.candidates) == (4, 1)
     s2 = load_stage2_config(["recipe=paper"])
     assert (
         s2.model.transformer.num_layers,

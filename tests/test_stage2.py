@@ -216,13 +216,15 @@ def test_tokens_are_cached_per_tokenizer_and_data(walker_dataset, tmp_path):
     tok = tiny_tokenizer()
     identity = tensors_fingerprint(tok.state_dict())
     fingerprint = dataset_fingerprint(walker_dataset)
-    folder = token_cache_folder(tmp_path, identity, fingerprint)
+    folder = token_cache_folder(tmp_path, identity, fingerprint, tok.encode_cfg.label)
     cache = tokenize_dataset(tok, walker_dataset, folder, progress=False)
-    assert len(cache) == 30 and folder.name == f"{identity}-{fingerprint}"
+    assert len(cache) == 30 and folder.name == f"{identity}-search4x1-{fingerprint}"
+    assert json.loads((folder / "meta.json").read_text())["encoding"] == "search4x1"
+    assert token_cache_folder(tmp_path, identity, fingerprint).name == f"{identity}-{fingerprint}"  # nearest
     features = np.load(walker_dataset / "new_joint_vecs/000003.npy")
     usable = features.shape[0] // 4 * 4
     x = torch.from_numpy(((features[:usable] - tok.mean.numpy()) / tok.std.numpy())[None].astype(np.float32))
-    assert np.array_equal(cache["000003"], tok.tokenizer.encode(x)[0].numpy())
+    assert np.array_equal(cache["000003"], tok.encode(x)[0].numpy())  # the code search, as configured
     assert cache["000003"].shape == (usable // 4,)
     other = tiny_tokenizer(seed=1)
     assert tensors_fingerprint(other.state_dict()) != identity  # another tokenizer: another folder

@@ -270,7 +270,12 @@ class TokenTextDataModule(_DatasetFolder):
 
     def _token_folder(self):
         self.data_fingerprint = self.data_fingerprint or dataset_fingerprint(self.root)
-        return token_cache_folder(self.token_cache_dir, self.tokenizer_identity, self.data_fingerprint)
+        return token_cache_folder(
+            self.token_cache_dir,
+            self.tokenizer_identity,
+            self.data_fingerprint,
+            self.tokenizer.encode_cfg.label,
+        )
 
     def prepare_data(self) -> None:
         if getattr(self, "_prepared", False):  # Lightning calls it again inside fit

@@ -1,6 +1,7 @@
 """Motion tokens of a dataset under one tokenizer, computed once and cached on disk.
 
-<cache_dir>/<tokenizer identity>-<data fingerprint>/tokens.npz and meta.json: every motion's
+<cache_dir>/<tokenizer identity>[-<encoding>]-<data fingerprint>/tokens.npz and meta.json (the
+encoding, e.g. `search4x1`, named unless it is the nearest code: mmm.tokenizer.search): every motion's
 (T // 4,) codes, or (T // 4, 2) [lower, upper] codes of a part-aware tokenizer, concatenated into
 one `codes` array with `offsets` (motions + 1,); meta.json lists the motion ids in that order
 (`"format": 2`). One array instead of one archive entry per motion: 30k motions open in a
@@ -84,8 +85,13 @@ class TokenCache:
         return {"folder": self.folder, "meta": self.meta, "_tokens": None}
 
 
-def token_cache_folder(cache_dir: str | Path, tokenizer_identity: str, data_fingerprint: str) -> Path:
-    return Path(cache_dir) / f"{tokenizer_identity}-{data_fingerprint}"
+def token_cache_folder(
+    cache_dir: str | Path, tokenizer_identity: str, data_fingerprint: str, encoding: str = "nearest"
+) -> Path:
+    """The cache of one (tokenizer, dataset content, encoding): `encoding` is the tokenizer's
+    `encode_cfg.label`, so tokens of the code search never mix with nearest-code ones."""
+    key = tokenizer_identity if encoding == "nearest" else f"{tokenizer_identity}-{encoding}"
+    return Path(cache_dir) / f"{key}-{data_fingerprint}"
 
 
 @torch.no_grad()
@@ -138,7 +144,7 @@ def tokenize_dataset(
         for start in range(0, len(group), batch_size):
             chunk = group[start : start + batch_size]
             x = torch.from_numpy(np.stack([(f - mean) / std for _, f in chunk]).astype(np.float32)).to(device)
-            codes = tokenizer.tokenizer.encode(x).cpu().numpy()
+            codes = tokenizer.encode(x).cpu().numpy()
             for (motion_id, _), c in zip(chunk, codes):
                 tokens[motion_id] = c.astype(np.int16 if num_codes <= 32767 else np.int32)
             bar.update(len(chunk))
@@ -158,6 +164,7 @@ def tokenize_dataset(
             "left_out_too_short": too_short,
             "num_codes": num_codes,
             "downsample": down,
+            "encoding": tokenizer.encode_cfg.label,
         }
     )
     info["ids"] = order  # last: the file stays readable above it

@@ -104,7 +104,9 @@ def reconstruction_metrics(
 ) -> dict:
     """Stage-1 reconstruction of whole clips (cut to a multiple of 4, at most 196 frames): FID of
     the reconstructions against the clips (when an evaluator is given), and MPJPE in mm
-    (root-aligned and global). With `labels` (a labels/ folder), also whether each clip's actions
+    (root-aligned and global), of the codes `tokenizer.encode` picks ("encoding": its label); when
+    that is the code search, the MPJPE of the nearest codes too (`*_nearest`), so the two can be
+    compared. With `labels` (a labels/ folder), also whether each clip's actions
     are still there after the round trip: "adherence" {"rate", "per_action": {actions: (passed,
     total)}} of the reconstructions, checked like generated motions (strict, on the labelled spans)."""
     unit = tokenizer.tokenizer.cfg.downsample
@@ -114,25 +116,36 @@ def reconstruction_metrics(
         n = min(features.shape[0], 196) // unit * unit
         if n >= unit:
             by_length.setdefault(n, []).append((motion_id, features[:n]))
-    real_emb, rec_emb, errors, errors_global, frames = [], [], 0.0, 0.0, 0
+    searched = tokenizer.encode_cfg.candidates > 1
+    real_emb, rec_emb, frames = [], [], 0
+    errors = defaultdict(float)  # summed over frames, mm: aligned, global (and of the nearest codes)
     kept: dict[str, list[int]] = defaultdict(lambda: [0, 0])
     scale = tokenizer.skeleton.unit_scale * 1000.0
+
+    def add_errors(j_real: torch.Tensor, j_rec: torch.Tensor, suffix: str = "") -> None:
+        local = ((j_real - j_real[..., :1, :]) - (j_rec - j_rec[..., :1, :])).norm(dim=-1).mean(-1)
+        errors["mpjpe_root_aligned_mm" + suffix] += float(local.sum()) * scale
+        errors["mpjpe_global_mm" + suffix] += float((j_real - j_rec).norm(dim=-1).mean(-1).sum()) * scale
+
     for n, group in sorted(by_length.items()):
         for i in range(0, len(group), batch):
             ids = [motion_id for motion_id, _ in group[i : i + batch]]
             x = torch.from_numpy(np.stack([f for _, f in group[i : i + batch]]).astype(np.float32)).to(
                 mean.device
             )
-            rec = tokenizer.tokenizer.decode(tokenizer.tokenizer.encode((x - mean) / std)) * std + mean
+            rec = tokenizer.tokenizer.decode(tokenizer.encode((x - mean) / std)) * std + mean
             lengths = torch.full((len(x),), n)
             if evaluator is not None:
                 real_emb.append(evaluator.embed_motions(x, lengths).cpu())
                 rec_emb.append(evaluator.embed_motions(rec, lengths).cpu())
             j_real, j_rec = recover_from_ric(x.cpu()), recover_from_ric(rec.cpu())
-            local = ((j_real - j_real[..., :1, :]) - (j_rec - j_rec[..., :1, :])).norm(dim=-1).mean(-1)
-            errors += float(local.sum()) * scale
-            errors_global += float((j_real - j_rec).norm(dim=-1).mean(-1).sum()) * scale
-            frames += local.numel()
+            add_errors(j_real, j_rec)
+            if searched:
+                nearest = (
+                    tokenizer.tokenizer.decode(tokenizer.tokenizer.encode((x - mean) / std)) * std + mean
+                )
+                add_errors(j_real, recover_from_ric(nearest.cpu()), "_nearest")
+            frames += j_real.shape[0] * j_real.shape[1]
             if labels is not None:
                 for motion_id, joints in zip(ids, j_rec.numpy()):
                     path = labels / f"{motion_id}.json"
@@ -142,11 +155,8 @@ def reconstruction_metrics(
                             counts = kept["+".join(p["action"] for p in parts)]
                             counts[0] += check_motion(joints, parts).passed
                             counts[1] += 1
-    result = {
-        "mpjpe_root_aligned_mm": errors / frames,
-        "mpjpe_global_mm": errors_global / frames,
-        "clips": sum(len(g) for g in by_length.values()),
-    }
+    result = {name: total / frames for name, total in errors.items()}
+    result.update({"clips": sum(len(g) for g in by_length.values()), "encoding": tokenizer.encode_cfg.label})
     if evaluator is not None:
         result["fid"] = fid(torch.cat(real_emb), torch.cat(rec_emb))
     if kept:
@@ -245,7 +255,9 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
         labels = root / "labels" if (root / "labels").is_dir() else None
         recon = reconstruction_metrics(tokenizer, evaluator, clips, labels=labels)
         results["reconstruction"] = recon
-        metrics.update({f"recon/{k}": float(v) for k, v in recon.items() if k not in ("clips", "adherence")})
+        metrics.update(
+            {f"recon/{k}": float(v) for k, v in recon.items() if k not in ("clips", "adherence", "encoding")}
+        )
         fid_text = f"FID {recon['fid']:.4f}, " if "fid" in recon else ""
         kept = recon.get("adherence")
         if kept:
@@ -253,7 +265,13 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
         tables.append(
             f"**Reconstruction ({recon['clips']} {cfg.split} clips)**: {fid_text}MPJPE "
             f"{recon['mpjpe_root_aligned_mm']:.1f} mm (root-aligned), "
-            f"{recon['mpjpe_global_mm']:.1f} mm (global)"
+            f"{recon['mpjpe_global_mm']:.1f} mm (global), codes by {recon['encoding']}"
+            + (
+                f" (the nearest codes: {recon['mpjpe_root_aligned_mm_nearest']:.1f} / "
+                f"{recon['mpjpe_global_mm_nearest']:.1f} mm)"
+                if "mpjpe_global_mm_nearest" in recon
+                else ""
+            )
             + (f"; the labelled actions still there after the round trip: {kept['rate']:.3f}" if kept else "")
         )
     if "adherence" in cfg.what and (root / "labels").is_dir():

@@ -13,6 +13,7 @@ and decode the concatenation once.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import time
@@ -94,6 +95,9 @@ class TextToMotion:
         self.max_frames = (transformer.cfg.max_tokens - 1) * self.unit
         self.min_frames = 24 if self.skeleton.name == "kit" else 40
         self._inference = None
+        # Source codes by content: the code search decodes each candidate, and the editing
+        # benchmarks edit the same sources in every replication (mmm.tokenizer.search).
+        self._source_codes: dict[bytes, np.ndarray] = {}
         self._compiled = bool(compiled)
         self.precision = precision
         # The text dropout it was trained with (corruption.cond_drop; None: unknown). At 0 the
@@ -416,26 +420,37 @@ class TextToMotion:
             torch.as_tensor(features, dtype=torch.float32, device=self.device) - self.tokenizer.mean
         ) / self.tokenizer.std
 
-    @torch.no_grad()
     def encode_motion(self, features: np.ndarray) -> np.ndarray:
         """Codes (T // 4,) of un-normalized features (T, D)."""
-        usable = features.shape[0] // self.unit * self.unit
-        return self.tokenizer.tokenizer.encode(self.normalize(features[:usable])[None])[0].cpu().numpy()
+        return self.encode_motions([features])[0]
 
     @torch.no_grad()
     def encode_motions(self, features: list[np.ndarray]) -> list[np.ndarray]:
-        """Codes (T_i // 4,) of each un-normalized (T_i, D); one encoder call per distinct usable
-        length (padding would leak into the last codes through the convolutions); the codes
-        `encode_motion` gives each alone."""
+        """Codes (T_i // 4,) of each un-normalized (T_i, D), as the tokenizer's `encode` picks them;
+        one call per distinct usable length (padding would leak into the last codes through the
+        convolutions), so each gets the codes it gets alone. Each content is encoded once per
+        model: a source seen before gets its codes back (a copy) without a tokenizer call."""
+        keys = [
+            hashlib.blake2b(
+                np.ascontiguousarray(f, dtype=np.float32).tobytes()
+                + f"{f.shape}{self.tokenizer.encode_cfg.label}".encode(),
+                digest_size=16,
+            ).digest()
+            for f in features
+        ]
+        if len(self._source_codes) > 50_000:  # a long-lived server: bounded, not grown forever
+            self._source_codes.clear()
         groups: dict[int, list[int]] = defaultdict(list)
-        for i, f in enumerate(features):
-            groups[f.shape[0] // self.unit * self.unit].append(i)
-        out: list[np.ndarray | None] = [None] * len(features)
+        queued = set(self._source_codes)
+        for i, (f, key) in enumerate(zip(features, keys)):
+            if key not in queued:
+                queued.add(key)
+                groups[f.shape[0] // self.unit * self.unit].append(i)
         for usable, members in groups.items():
             batch = self.normalize(np.stack([features[i][:usable] for i in members]))
-            for i, c in zip(members, self.tokenizer.tokenizer.encode(batch).cpu().numpy()):
-                out[i] = c
-        return out
+            for i, c in zip(members, self.tokenizer.encode(batch).cpu().numpy()):
+                self._source_codes[keys[i]] = c
+        return [self._source_codes[key].copy() for key in keys]
 
     @torch.no_grad()
     def decode(self, codes: list[np.ndarray]) -> list[np.ndarray]:

@@ -288,7 +288,7 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         evaluator = _evaluator(cfg, uri, required=any(c.metric == "recon/fid" for c in criteria))
         clips, _ = cfg.data.clips(cfg.split, root)
         recon = reconstruction_metrics(tokenizer, evaluator, clips)
-        metrics = {f"recon/{k}": v for k, v in recon.items() if k != "clips"}
+        metrics = {f"recon/{k}": v for k, v in recon.items() if k not in ("clips", "encoding")}
         metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
         identity = tensors_fingerprint(tokenizer.state_dict())
         needs_fid = any(

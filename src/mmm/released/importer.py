@@ -45,6 +45,7 @@ from mmm.resolve import log_artifact_with_digest
 from mmm.text import build_text_encoder
 from mmm.text.clip import find_vocab
 from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.search import CodeSearchConfig
 from mmm.tracking import artifact_location, prepare_experiment, resolve_tracking_uri
 from mmm.training.optim import OptimConfig
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
@@ -127,8 +128,15 @@ def _save_atomic(obj: dict, path: Path) -> None:
 def build_tokenizer(net: dict[str, torch.Tensor], source: str, mean: np.ndarray, std: np.ndarray):
     """A TokenizerModule holding the released stage-1 weights and the statistics it normalizes with."""
     state, sizes = tokenizer_from_released(net, source)
+    # The released tokenizer encodes to the nearest code; an imported one does too (encode.candidates 1).
     module = TokenizerModule(
-        sizes.feature_dim, sizes.config(), OptimConfig(), TokenizerLossConfig(), mean, std
+        sizes.feature_dim,
+        sizes.config(),
+        OptimConfig(),
+        TokenizerLossConfig(),
+        mean,
+        std,
+        encode=CodeSearchConfig(candidates=1),
     )
     module.load_state_dict({**state, "mean": torch.as_tensor(mean), "std": torch.as_tensor(std)}, strict=True)
     return module.eval()

@@ -67,6 +67,7 @@ def load_tokenizer_checkpoint(path: str | Path, expected_fingerprint: str | None
             hp.get("optim") or {},
             hp.get("loss") or {},
             refine=hp.get("refine"),
+            encode=hp.get("encode"),  # absent (before the code search): the default search
         )
     except (TypeError, ValueError, KeyError) as e:
         raise CheckpointError(

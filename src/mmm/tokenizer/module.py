@@ -20,6 +20,7 @@ from mmm.motion.skeleton import skeleton_for
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.parts import PartAwareTokenizer
 from mmm.tokenizer.quantizer import EMAQuantizer, metric_name
+from mmm.tokenizer.search import CodeSearchConfig, search_codes
 from mmm.training.optim import OptimConfig, build_optimizer
 
 
@@ -83,13 +84,15 @@ class TokenizerModule(L.LightningModule):
         mean: np.ndarray | torch.Tensor | None = None,
         std: np.ndarray | torch.Tensor | None = None,
         refine: DecoderRefineConfig | dict | None = None,
+        encode: CodeSearchConfig | dict | None = None,
     ):
         super().__init__()
-        model, optim, loss, refine = (
+        model, optim, loss, refine, encode = (
             as_config(TokenizerConfig, model),
             as_config(OptimConfig, optim),
             as_config(TokenizerLossConfig, loss),
             as_config(DecoderRefineConfig, refine or {}),
+            as_config(CodeSearchConfig, encode or {}),
         )
         # Tensors before save_hyperparameters, which compares its argument with every init
         # argument (a numpy array cannot be compared with a dict).
@@ -103,10 +106,12 @@ class TokenizerModule(L.LightningModule):
                 "optim": asdict(optim),
                 "loss": asdict(loss),
                 "refine": asdict(refine),
+                "encode": asdict(encode),
             },
             logger=False,
         )
         self.model_cfg, self.optim_cfg, self.loss_cfg, self.refine_cfg = model, optim, loss, refine
+        self.encode_cfg = encode  # how `encode` tokenizes a known motion (mmm.tokenizer.search)
         self.tokenizer = (
             PartAwareTokenizer(feature_dim, model)
             if model.part_aware
@@ -251,6 +256,14 @@ class TokenizerModule(L.LightningModule):
         return (
             recover_from_ric(self.denormalize(x).float(), self.skeleton.num_joints) * self.skeleton.unit_scale
         )
+
+    @torch.no_grad()
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """Code indices (B, T // 4), or (B, T // 4, 2) part-aware, of normalized features (B, T, D)
+        whose clips all have T frames, as `encode_cfg` says: the nearest codes (candidates 1) or
+        those the code search picks. What tokenizes datasets for stage 2, reconstruction metrics and
+        the kept frames of edits; training and the refinement quantize to the nearest code."""
+        return search_codes(self.tokenizer, x, self.joints, self.encode_cfg)
 
     def root_path(self, x: torch.Tensor) -> torch.Tensor:
         """Root x/z path (B, T, 2) in metres of normalized features (B, T, D), from 0 at the first frame."""

@@ -145,6 +145,11 @@ class MotionTokenizer(nn.Module):
         return self.quantizer.quantize(self.encoder(motion.transpose(1, 2)))
 
     @torch.no_grad()
+    def candidate_codes(self, motion: torch.Tensor, k: int) -> torch.Tensor:
+        """The k codes (B, T // 4, k) nearest each latent of motion (B, T, D), nearest first."""
+        return self.quantizer.nearest_codes(self.encoder(motion.transpose(1, 2)), k)
+
+    @torch.no_grad()
     def decode(self, indices: torch.Tensor) -> torch.Tensor:
         """Motion (B, T' * 4, D) of code indices (B, T')."""
         return self.reconstruct(indices)

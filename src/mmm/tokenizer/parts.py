@@ -60,6 +60,14 @@ class PartAwareTokenizer(nn.Module):
         return torch.stack((self.lower.encode(lower), self.upper.encode(upper)), dim=-1)
 
     @torch.no_grad()
+    def candidate_codes(self, motion: torch.Tensor, k: int) -> torch.Tensor:
+        """The k codes (B, T // 4, 2, k) of each codebook nearest each latent of motion (B, T, 263)."""
+        lower, upper = split_parts(motion)
+        return torch.stack(
+            (self.lower.candidate_codes(lower, k), self.upper.candidate_codes(upper, k)), dim=2
+        )
+
+    @torch.no_grad()
     def decode(self, indices: torch.Tensor) -> torch.Tensor:
         """Motion (B, T' * 4, 263) of code index pairs (B, T', 2)."""
         if indices.dim() != 3 or indices.shape[-1] != len(PARTS):

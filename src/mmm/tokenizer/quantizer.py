@@ -82,13 +82,22 @@ class EMAQuantizer(nn.Module):
         flat = z.permute(0, 2, 1).reshape(-1, self.code_dim)
         return F.normalize(flat, dim=-1) if self.l2_normalize else flat
 
+    def _distances(self, flat: torch.Tensor) -> torch.Tensor:
+        """Squared L2 distances (N, K) of latents (N, C) to every code."""
+        codebook = self.codebook.to(flat.dtype)
+        return flat.pow(2).sum(-1, keepdim=True) - 2 * flat @ codebook.t() + codebook.pow(2).sum(-1)[None]
+
     def nearest(self, flat: torch.Tensor) -> torch.Tensor:
         """Index (N,) of the nearest code (L2) of each latent (N, C)."""
-        codebook = self.codebook.to(flat.dtype)
-        distances = (
-            flat.pow(2).sum(-1, keepdim=True) - 2 * flat @ codebook.t() + codebook.pow(2).sum(-1)[None]
-        )
-        return distances.argmin(dim=-1)
+        return self._distances(flat).argmin(dim=-1)
+
+    def nearest_codes(self, z: torch.Tensor, k: int) -> torch.Tensor:
+        """Indices (B, T', k) of the k codes nearest each latent of z (B, C, T'), nearest first
+        (at most num_codes); what the code search (mmm.tokenizer.search) tries."""
+        distances = self._distances(self._flatten(z))
+        nearest = distances.topk(min(k, self.num_codes), dim=-1, largest=False).indices
+        nearest[:, 0] = distances.argmin(dim=-1)  # on ties, the code `quantize` picks comes first
+        return nearest.view(z.shape[0], z.shape[2], -1)
 
     def lookup(self, indices: torch.Tensor) -> torch.Tensor:
         """Code vectors (B, C, T') of indices (B, T')."""

@@ -16,6 +16,7 @@ from mmm.data.normalization import NormalizationConfig
 from mmm.fingerprint import dataset_fingerprint
 from mmm.kinds import STAGE1, STAGE1_PARTS
 from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.search import CodeSearchConfig
 from mmm.tracking import TrackingConfig
 from mmm.training.common import TrackedRun, TrainResult, run_target, tracked_fit
 from mmm.training.configs import ModelConfig, TrainerConfig
@@ -41,6 +42,7 @@ class Stage1Config:
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: TokenizerLossConfig = field(default_factory=TokenizerLossConfig)
     refine: DecoderRefineConfig = field(default_factory=DecoderRefineConfig)
+    encode: CodeSearchConfig = field(default_factory=CodeSearchConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     logger: TrackingConfig = field(default_factory=TrackingConfig)
     callbacks: Stage1Callbacks = field(default_factory=Stage1Callbacks)
@@ -93,6 +95,7 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
         datamodule.mean,
         datamodule.std,
         cfg.refine,
+        cfg.encode,
     )
     fingerprint = dataset_fingerprint(cfg.data.root)
     tokenizer = cfg.model.tokenizer

@@ -1,0 +1,208 @@
+"""The code search (mmm.tokenizer.search): which codes it tries, that it keeps the best of them,
+and where the package tokenizes with it."""
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from mmm.checkpoints import FINGERPRINT_KEY
+from mmm.evaluation.run import reconstruction_metrics
+from mmm.fingerprint import tensors_fingerprint
+from mmm.motion.features import recover_from_ric
+from mmm.tokenizer.load import load_tokenizer_checkpoint
+from mmm.tokenizer.module import TokenizerModule
+from mmm.tokenizer.network import TokenizerConfig
+from mmm.tokenizer.quantizer import EMAQuantizer
+from mmm.tokenizer.search import CodeSearchConfig, _joint_error, search_codes
+
+
+def tokenizer(part_aware=False, candidates=4, sweeps=1, seed=0):
+    """A tiny tokenizer with random weights, its codebook seeded from latents of random motion."""
+    torch.manual_seed(seed)
+    mean, std = torch.randn(263) * 0.1, torch.rand(263) * 0.5 + 0.5
+    module = TokenizerModule(
+        263,
+        TokenizerConfig(width=16, num_codes=32, code_dim=8, part_aware=part_aware),
+        {},
+        {},
+        mean=mean,
+        std=std,
+        encode={"candidates": candidates, "sweeps": sweeps},
+    )
+    module.train()
+    module.tokenizer(torch.randn(4, 64, 263))
+    return module.eval()
+
+
+def motion(batch=3, frames=32, seed=1):
+    """Normalized features (B, T, 263) of a smooth random motion (a random walk over frames)."""
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(batch, frames, 263, generator=g).cumsum(1) * 0.1
+
+
+def error(module, indices, x):
+    return _joint_error(module.joints(module.tokenizer.decode(indices)), module.joints(x))
+
+
+def test_the_config_refuses_what_is_not_a_count_and_names_the_key():
+    assert CodeSearchConfig().label == "search4x1" and CodeSearchConfig(1, 3).label == "nearest"
+    for bad in ({"candidates": 0}, {"sweeps": -1}, {"candidates": 2.5}, {"candidates": True}):
+        with pytest.raises(ValueError, match=f"encode.{next(iter(bad))}="):
+            CodeSearchConfig(**bad)
+
+
+def test_nearest_codes_are_in_order_of_distance_and_start_with_the_quantized_one():
+    q = EMAQuantizer(num_codes=5, code_dim=2)
+    q.codebook.copy_(torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [0.0, 2.5], [-0.4, 0.0]]))
+    z = torch.tensor([[[0.9, 2.9], [0.1, 0.0]]])  # (B=1, C=2, T'=2): latents (0.9, 0.1) and (2.9, 0)
+    codes = q.nearest_codes(z, 3)
+    assert codes.shape == (1, 2, 3)
+    assert codes[0, 0].tolist() == [1, 0, 4]  # distances 0.02, 0.82, 1.70
+    assert codes[0, 1].tolist() == [2, 1, 0]  # 0.01, 3.61, 8.41
+    assert torch.equal(codes[..., 0], q.quantize(z))
+    assert q.nearest_codes(z, 99).shape == (1, 2, 5)  # at most the whole codebook
+
+
+def test_one_candidate_is_the_nearest_code():
+    module = tokenizer(candidates=1)
+    x = motion()
+    assert torch.equal(module.encode(x), module.tokenizer.encode(x))
+
+
+def test_on_one_position_the_search_keeps_the_best_of_its_candidates():
+    module = tokenizer(candidates=5)
+    x = motion(batch=4, frames=4)  # one code per clip: the greedy pass is exhaustive
+    candidates = module.tokenizer.candidate_codes(x, 5)  # (B, 1, 5)
+    picked = module.encode(x)
+    scores = torch.stack([error(module, candidates[:, :, k], x) for k in range(5)], dim=1)  # (B, 5)
+    assert torch.equal(picked[:, 0], candidates[torch.arange(4), 0, scores.argmin(1)])
+    assert (picked != candidates[..., 0]).any()  # the nearest code is not always the best decoded one
+
+
+def test_on_two_positions_two_sweeps_find_what_brute_force_finds_or_no_worse():
+    module = tokenizer(candidates=3, sweeps=2)
+    x = motion(batch=6, frames=8)
+    candidates = module.tokenizer.candidate_codes(x, 3)  # (B, 2, 3)
+    picked = module.encode(x)
+    rows = torch.arange(6)
+    best = (
+        torch.stack(
+            [
+                error(module, torch.stack((candidates[rows, 0, a], candidates[rows, 1, b]), dim=1), x)
+                for a, b in itertools.product(range(3), range(3))
+            ],
+            dim=1,
+        )
+        .min(1)
+        .values
+    )
+    found = error(module, picked, x)
+    nearest = error(module, candidates[..., 0], x)
+    assert (found <= nearest + 1e-6).all() and (found < nearest - 1e-6).any()
+    # Greedy coordinate descent can stop short of the optimum, but not above the nearest codes.
+    assert (found >= best - 1e-6).all() and (found <= best + 1e-6).float().mean() >= 0.5
+
+
+@pytest.mark.parametrize("part_aware", [False, True])
+def test_the_searched_codes_are_candidates_and_decode_no_worse_than_the_nearest(part_aware):
+    module = tokenizer(part_aware=part_aware, candidates=3)
+    x = motion(batch=3, frames=24)
+    nearest = module.tokenizer.encode(x)
+    picked = module.encode(x)
+    assert picked.shape == nearest.shape == ((3, 6, 2) if part_aware else (3, 6))
+    candidates = module.tokenizer.candidate_codes(x, 3)
+    if not part_aware:
+        candidates = candidates.unsqueeze(2)
+    flat = picked if part_aware else picked.unsqueeze(-1)
+    assert (flat[..., None] == candidates).any(-1).all()
+    assert (error(module, picked, x) <= error(module, nearest, x) + 1e-6).all()
+    assert not torch.equal(picked, nearest)
+
+
+def test_search_codes_needs_joints_in_the_tokenizers_frame():
+    module = tokenizer(candidates=2)
+    x = motion(batch=2, frames=16)
+    joints_of = []
+
+    def joints(features):
+        joints_of.append(features.shape[0])
+        return module.joints(features)
+
+    search_codes(module.tokenizer, x, joints, CodeSearchConfig(candidates=2))
+    # the motion, the nearest codes' decoding, then one call per position on 2 copies of the batch
+    assert joints_of == [2, 2] + [4] * 4
+
+
+def test_the_setting_lives_in_the_checkpoint_and_old_checkpoints_get_the_default(tmp_path):
+    module = tokenizer(candidates=3, sweeps=2)
+    assert module.hparams["encode"] == {"candidates": 3, "sweeps": 2}
+    path = tmp_path / "tok.ckpt"
+
+    def save(hparams):
+        state = module.state_dict()
+        torch.save(
+            {"state_dict": state, "hyper_parameters": hparams, FINGERPRINT_KEY: tensors_fingerprint(state)},
+            path,
+        )
+
+    save(dict(module.hparams))
+    assert load_tokenizer_checkpoint(path).encode_cfg == CodeSearchConfig(3, 2)
+    old = dict(module.hparams)
+    del old["encode"]
+    save(old)
+    assert load_tokenizer_checkpoint(path).encode_cfg == CodeSearchConfig()
+
+
+def test_reconstruction_metrics_report_the_search_and_the_nearest_codes():
+    module = tokenizer(candidates=4)
+    mean, std = module.mean.numpy(), module.std.numpy()
+    clips = {
+        f"{i:03d}": (motion(batch=1, frames=20 + 4 * i, seed=i)[0].numpy() * std + mean) for i in range(3)
+    }
+    result = reconstruction_metrics(module, None, clips)
+    assert result["encoding"] == "search4x1" and result["clips"] == 3
+    searched = result["mpjpe_global_mm"] + result["mpjpe_root_aligned_mm"]
+    nearest = result["mpjpe_global_mm_nearest"] + result["mpjpe_root_aligned_mm_nearest"]
+    assert searched < nearest
+    # By hand: the nearest codes' global error of the clips, frame-weighted, in mm.
+    total, frames = 0.0, 0
+    for features in clips.values():
+        x = torch.from_numpy(features.astype(np.float32))[None]
+        rec = module.tokenizer.decode(module.tokenizer.encode((x - module.mean) / module.std)) * module.std
+        j, jr = recover_from_ric(x), recover_from_ric(rec + module.mean)
+        total += float((j - jr).norm(dim=-1).mean(-1).sum()) * module.skeleton.unit_scale * 1000
+        frames += x.shape[1]
+    assert result["mpjpe_global_mm_nearest"] == pytest.approx(total / frames, rel=1e-4)
+    module.encode_cfg = CodeSearchConfig(candidates=1)
+    plain = reconstruction_metrics(module, None, clips)
+    assert plain["encoding"] == "nearest" and "mpjpe_global_mm_nearest" not in plain
+    assert plain["mpjpe_global_mm"] == pytest.approx(result["mpjpe_global_mm_nearest"], rel=1e-5)
+
+
+def test_text_to_motion_encodes_each_source_once_and_gives_the_codes_of_encoding_it_alone(monkeypatch):
+    from mmm.generation.model import TextToMotion
+    from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
+    from tests.test_generation import FakeText
+
+    module = tokenizer(candidates=3)
+    transformer = MaskedMotionTransformer(
+        module.tokenizer.codebook.detach(), TransformerConfig(embed_dim=32, num_heads=4, num_layers=2), 6, 5
+    )
+    model = TextToMotion(module, transformer.eval(), FakeText(), {"reference": "test"})
+    mean, std = module.mean.numpy(), module.std.numpy()
+    a, b = (motion(batch=1, frames=n, seed=n)[0].numpy() * std + mean for n in (22, 16))
+    alone = [model.encode_motion(a), model.encode_motion(b)]
+    assert alone[0].shape == (5,) and alone[1].shape == (4,)  # 22 frames: the usable 20
+    calls = []
+    encode = module.encode
+    monkeypatch.setattr(module, "encode", lambda x: calls.append(x.shape) or encode(x))
+    again = model.encode_motions([b, a, b])
+    assert calls == []  # both seen before: no tokenizer call
+    assert [c.tolist() for c in again] == [alone[1].tolist(), alone[0].tolist(), alone[1].tolist()]
+    again[0][:] = -1  # a copy: the memo is untouched
+    c = a + 0.01
+    assert model.encode_motion(b).tolist() == alone[1].tolist()
+    model.encode_motions([c, c])
+    assert calls == [(1, 20, 263)]  # new content, given twice: encoded once
