@@ -133,7 +133,8 @@ def reconstruction_metrics(
             x = torch.from_numpy(np.stack([f for _, f in group[i : i + batch]]).astype(np.float32)).to(
                 mean.device
             )
-            rec = tokenizer.tokenizer.decode(tokenizer.encode((x - mean) / std)) * std + mean
+            normalized = (x - mean) / std
+            rec = tokenizer.tokenizer.decode(tokenizer.encode(normalized)) * std + mean
             lengths = torch.full((len(x),), n)
             if evaluator is not None:
                 real_emb.append(evaluator.embed_motions(x, lengths).cpu())
@@ -141,9 +142,7 @@ def reconstruction_metrics(
             j_real, j_rec = recover_from_ric(x.cpu()), recover_from_ric(rec.cpu())
             add_errors(j_real, j_rec)
             if searched:
-                nearest = (
-                    tokenizer.tokenizer.decode(tokenizer.tokenizer.encode((x - mean) / std)) * std + mean
-                )
+                nearest = tokenizer.tokenizer.decode(tokenizer.tokenizer.encode(normalized)) * std + mean
                 add_errors(j_real, recover_from_ric(nearest.cpu()), "_nearest")
             frames += j_real.shape[0] * j_real.shape[1]
             if labels is not None:
