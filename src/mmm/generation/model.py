@@ -441,9 +441,9 @@ class TextToMotion:
         if len(self._source_codes) > 50_000:  # a long-lived server: bounded, not grown forever
             self._source_codes.clear()
         groups: dict[int, list[int]] = defaultdict(list)
-        queued = set(self._source_codes)
+        queued: set[bytes] = set()  # new contents of this call, each encoded once
         for i, (f, key) in enumerate(zip(features, keys)):
-            if key not in queued:
+            if key not in self._source_codes and key not in queued:
                 queued.add(key)
                 groups[f.shape[0] // self.unit * self.unit].append(i)
         for usable, members in groups.items():
