@@ -121,7 +121,7 @@ def test_the_searched_codes_are_candidates_and_decode_no_worse_than_the_nearest(
     assert not torch.equal(picked, nearest)
 
 
-def test_search_codes_needs_joints_in_the_tokenizers_frame():
+def test_the_search_decodes_once_per_position_on_candidates_copies_of_the_batch():
     module = tokenizer(candidates=2)
     x = motion(batch=2, frames=16)
     joints_of = []
