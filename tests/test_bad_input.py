@@ -133,6 +133,10 @@ BEFORE_MODEL = {
         ["data", "synth", "--out", "{out}", "--seed", "-5", "--num-clips", "2"],
         ["--seed -5", "0 to 2^63-1"],
     ),
+    "synth extra clips negative": (
+        ["data", "synth", "--out", "{out}", "--num-clips", "2", "--extra-train-clips", "-3"],
+        ["--extra-train-clips -3", "0 or more"],
+    ),
     "preview count zero": (["data", "preview", "{dataset}", "--out", "{out}", "--count", "0"], ["--count 0"]),
     "render fps nan": (["render", "{joints}", "--out", "{out}/x.gif", "--fps", "nan"], ["--fps nan"]),
     "render fps zero": (["render", "{joints}", "--out", "{out}/x.gif", "--fps", "0"], ["--fps 0.0"]),

@@ -128,9 +128,23 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
     assert list(pipeline.overrides.stage1) == ["recipe=quality"]
     assert list(pipeline.overrides.stage2) == ["recipe=quality"]
     assert "adherence_max_items" not in str(pipeline.overrides.evaluate)  # every test caption
+    # Every step trains and measures on the larger synthetic set (the default's val and test clips);
+    # a dataset named on the command line replaces it whole.
+    assert pipeline.data.name == "synthetic_large" and pipeline.data.root == "data/synthetic-large"
+    assert pipeline.data.synthesize.extra_train_clips == 4500 and pipeline.data.synthesize.num_clips == 1500
+    own = load_pipeline_config(["recipe=quality", "data=humanml3d", "data.root=/data/HumanML3D"]).data
+    assert (own.name, own.root, own.synthesize) == ("humanml3d", "/data/HumanML3D", None)
 
     def changed(load):
         demo, quality = _flat(load([])), _flat(load(["recipe=quality"]))
+        large = {"data.name": "synthetic_large", "data.root": "data/synthetic-large"}
+        large["data.synthesize.extra_train_clips"] = 4500
+        assert {k: quality.pop(k) for k in large} == large
+        assert {k: demo.pop(k) for k in large} == {
+            "data.name": "synthetic",
+            "data.root": "data/synthetic",
+            "data.synthesize.extra_train_clips": 0,
+        }
         assert demo.keys() == quality.keys()
         return {k: quality[k] for k in demo if demo[k] != quality[k]}
 

@@ -260,3 +260,30 @@ def test_parts_pipeline_trains_and_promotes_the_part_aware_model(workdir, monkey
         assert {r.data.tags["step.status"] for r in steps_of(client, parent).values()} == {"skipped"}
     finally:
         mlflow.set_tracking_uri(previous)
+
+
+def test_stage2_trains_on_the_champion_tokenizer_only_when_it_was_measured_on_the_pipelines_data(tmp_path):
+    from mmm.config import to_object
+    from mmm.pipeline.runner import Context
+    from mmm.pipeline.steps import _stage2_options, load_pipeline_config
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    client = MlflowClient(uri)
+    cfg = to_object(load_pipeline_config([f"logger.tracking_uri={uri}", f"data.root={tmp_path}/data"]))
+    ctx = Context(cfg, uri)
+    ctx.outputs["data_fingerprint"] = {"value": "fp-of-this-data"}  # what the data step measured
+    ctx.outputs["stage1"] = {"run_id": "run-of-this-pipeline"}
+    # No champion yet: this pipeline's own stage-1 run.
+    assert "stage1=run-of-this-pipeline" in _stage2_options(ctx)
+    client.create_registered_model("mmm-tokenizer")
+    version = client.create_model_version(
+        "mmm-tokenizer", source=str(tmp_path), tags={"data.fingerprint": "other"}
+    )
+    client.set_registered_model_alias("mmm-tokenizer", "champion", version.version)
+    # A champion measured on other data (a recipe with a dataset of its own): still its own run.
+    assert "stage1=run-of-this-pipeline" in _stage2_options(ctx)
+    client.set_model_version_tag("mmm-tokenizer", version.version, "data.fingerprint", "fp-of-this-data")
+    # The champion measured on this data: the champion.
+    options = _stage2_options(ctx)
+    assert "stage1=models:/mmm-tokenizer@champion" in options
+    assert not any(o.startswith("stage1=run-") for o in options)

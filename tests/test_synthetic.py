@@ -365,6 +365,7 @@ def test_extra_train_paraphrases_leave_motions_and_held_out_splits_as_the_defaul
         "num_clips": NUM_CLIPS,
         "seed": SEED,
         "train_paraphrases": 8,
+        "extra_train_clips": 0,
     }
     train = set(ids_of(root, "train"))
     whole_counts = []
@@ -396,9 +397,42 @@ def test_extra_train_paraphrases_leave_motions_and_held_out_splits_as_the_defaul
     assert mirrored == [mirror_caption_line(line) for line in lines]
 
 
+@pytest.mark.slow
+def test_extra_train_clips_add_training_clips_and_leave_the_held_out_splits_alone(dataset, tmp_path):
+    root, _ = dataset
+    more = tmp_path / "more"
+    summary = gen.generate_dataset(more, num_clips=NUM_CLIPS, seed=SEED, progress=False, extra_train_clips=5)
+    assert summary["clips"] == NUM_CLIPS + 5 and summary["extra_train_clips"] == 5
+    assert json.loads((more / "synthesis.json").read_text())["extra_train_clips"] == 5
+    extra = [f"{i:06d}" for i in range(NUM_CLIPS, NUM_CLIPS + 5)]
+    for split in ("val", "test"):
+        assert ids_of(more, split) == ids_of(root, split)
+    assert ids_of(more, "train") == sorted(ids_of(root, "train") + extra + ["M" + i for i in extra])
+    assert summary["splits"]["train"] == len(ids_of(root, "train")) + 10
+    # The default's clips are byte for byte the same; the extra ones are the clips a larger
+    # dataset draws at those indices (each clip has its own stream).
+    for motion_id in ids_of(root):
+        for name in (f"new_joint_vecs/{motion_id}.npy", f"texts/{motion_id}.txt", f"labels/{motion_id}.json"):
+            assert (more / name).read_bytes() == (root / name).read_bytes(), name
+    alone = gen.generate_clip(SEED, NUM_CLIPS + 2)
+    np.testing.assert_array_equal(np.load(more / "new_joint_vecs" / f"{extra[2]}.npy"), alone.features)
+    # The statistics include the extra clips.
+    assert not np.array_equal(np.load(more / "Mean.npy"), np.load(root / "Mean.npy"))
+    with pytest.raises(ValueError, match=r"extra_train_clips 5 \(asked 0\)"):
+        gen.check_synthesis(more, NUM_CLIPS, SEED, 3)
+    gen.check_synthesis(more, NUM_CLIPS, SEED, 3, extra_train_clips=5)
+    with pytest.raises(ValueError, match="extra_train_clips must be >= 0"):
+        gen.generate_dataset(tmp_path / "x", num_clips=3, seed=0, progress=False, extra_train_clips=-1)
+
+
 def test_a_synthetic_folder_made_with_other_settings_is_refused(tmp_path):
     gen.generate_dataset(tmp_path / "ds", num_clips=3, seed=0, progress=False)
     gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # the same settings: accepted
+    made = tmp_path / "ds" / "synthesis.json"
+    made.write_text(
+        json.dumps({k: v for k, v in json.loads(made.read_text()).items() if k != "extra_train_clips"})
+    )
+    gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # written before extra_train_clips existed: none
     from mmm.data.datamodule import DataConfig, SynthConfig, TokenizerDataModule
 
     asked = SynthConfig(num_clips=3, seed=0, train_paraphrases=12)

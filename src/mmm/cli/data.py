@@ -36,6 +36,13 @@ def add_data(sub) -> None:
         default=3,
         help="whole-clip captions per training clip (3, every clip's own, or more: extra paraphrases)",
     )
+    synth.add_argument(
+        "--extra-train-clips",
+        type=int,
+        default=0,
+        help="more clips after --num-clips, all in the training split: val and test stay those of "
+        "--num-clips alone",
+    )
     synth.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     synth.set_defaults(func=cmd_data_synth)
 
@@ -115,12 +122,15 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         raise option_error(e) from None
     if args.train_paraphrases < 3:
         raise CLIError(f"--train-paraphrases {args.train_paraphrases}: every clip has three; give 3 or more")
+    if args.extra_train_clips < 0:
+        raise CLIError(f"--extra-train-clips {args.extra_train_clips}: give 0 or more")
     summary = generate_dataset(
         args.out,
         num_clips=args.num_clips,
         seed=args.seed,
         overwrite=args.overwrite,
         train_paraphrases=args.train_paraphrases,
+        extra_train_clips=args.extra_train_clips,
     )
     print(summary)
 

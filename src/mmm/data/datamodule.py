@@ -36,6 +36,7 @@ class SynthConfig:
     num_clips: int = 1500
     seed: int = 0
     train_paraphrases: int = 3  # whole-clip captions per training clip (3 = every clip's own)
+    extra_train_clips: int = 0  # more clips, all in the training split (val and test unchanged)
 
 
 @dataclass
@@ -111,7 +112,9 @@ class _DatasetFolder(L.LightningDataModule):
         synth = self.cfg.synthesize
         if self.root.exists():
             if synth is not None:
-                check_synthesis(self.root, synth.num_clips, synth.seed, synth.train_paraphrases)
+                check_synthesis(
+                    self.root, synth.num_clips, synth.seed, synth.train_paraphrases, synth.extra_train_clips
+                )
             return
         if synth is None:
             raise DataError(
@@ -121,11 +124,16 @@ class _DatasetFolder(L.LightningDataModule):
             )
 
         rank_zero_info(
-            f"{self.root} is missing: generating the synthetic dataset ({synth.num_clips} clips, seed "
-            f"{synth.seed}, {synth.train_paraphrases} captions per training clip)"
+            f"{self.root} is missing: generating the synthetic dataset ({synth.num_clips} clips and "
+            f"{synth.extra_train_clips} more for training, seed {synth.seed}, {synth.train_paraphrases} "
+            "captions per training clip)"
         )
         generate_dataset(
-            self.root, num_clips=synth.num_clips, seed=synth.seed, train_paraphrases=synth.train_paraphrases
+            self.root,
+            num_clips=synth.num_clips,
+            seed=synth.seed,
+            train_paraphrases=synth.train_paraphrases,
+            extra_train_clips=synth.extra_train_clips,
         )
 
     def _stats(self) -> None:

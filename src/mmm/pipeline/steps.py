@@ -9,8 +9,10 @@
     parts:     stage1-parts -> stage2-parts -> promote-upperbody (the part-aware model for
                upper-body editing; overrides.stage1_parts / overrides.stage2_parts)
 
-Stage 2 tokenizes with the tokenizer champion (the promoted one), so the transformer and the
-champion tokenizer always agree. Every step writes to the same tracking store and data.
+Stage 2 tokenizes with the tokenizer champion (the promoted one) when it was measured on the
+pipeline's data, so the transformer and the champion tokenizer agree; on other data (a recipe with
+a dataset of its own) with the pipeline's own stage-1 run. Every step writes to the same tracking
+store and data.
 """
 
 from __future__ import annotations
@@ -216,10 +218,23 @@ def _promote_step(kind: str, source_step: str | None) -> Step:
     return Step(f"promote-{kind}", inputs, run, lambda ctx, outputs: _champion(ctx, name) is not None)
 
 
+def _champion_tokenizer(ctx: Context) -> str | None:
+    """'<name> v<version>' of the tokenizer champion when it was measured on the pipeline's data, or
+    None: stage 2 then trains on this pipeline's own stage-1 run, so a recipe on other data
+    (recipe=quality) keeps its own tokenizer instead of one normalized for another dataset."""
+    try:
+        version = MlflowClient(ctx.tracking_uri).get_model_version_by_alias(TOKENIZER, "champion")
+    except MlflowException:
+        return None
+    if version.tags.get("data.fingerprint") != _data_fingerprint(ctx):
+        return None
+    return f"{TOKENIZER} v{version.version}"
+
+
 def _stage2_options(ctx) -> list[str]:
     tokenizer = (
         f"models:/{TOKENIZER}@champion"
-        if _champion(ctx, TOKENIZER)
+        if _champion_tokenizer(ctx)
         else ctx.outputs.get("stage1", {}).get("run_id")
     )
     return [*_common(ctx), *([f"stage1={tokenizer}"] if tokenizer else [])]
@@ -255,7 +270,7 @@ def step_tokenize() -> Step:
         lambda ctx: _key(
             ctx,
             config(ctx),
-            tokenizer=_champion(ctx, TOKENIZER) or ctx.outputs.get("stage1", {}).get("run_id"),
+            tokenizer=_champion_tokenizer(ctx) or ctx.outputs.get("stage1", {}).get("run_id"),
         ),
         run,
         lambda ctx, outputs: Path(outputs.get("tokens", "")).is_dir(),

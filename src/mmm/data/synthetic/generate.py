@@ -5,11 +5,18 @@
     <out>/texts/<id>.txt           caption lines `caption#tokens#start#end`
     <out>/labels/<id>.json         {"fps": 20, "num_frames": T, "parts": [{action, params, start, end}]}
     <out>/train.txt val.txt test.txt train_val.txt all.txt, Mean.npy, Std.npy
-    <out>/synthesis.json           {"num_clips", "seed", "train_paraphrases"}: what made it
+    <out>/synthesis.json           {"num_clips", "seed", "train_paraphrases", "extra_train_clips"}
 
 Ids are 000000, 000001, ... and M<id> for the left/right mirrored copy (same split). Clip i is
 drawn from its own random stream seeded by (seed, i), so a dataset is a pure function of
-(num_clips, seed, train_paraphrases): the same arguments give byte-identical files.
+(num_clips, seed, train_paraphrases, extra_train_clips): the same arguments give byte-identical
+files.
+
+`extra_train_clips` > 0 draws that many more clips after the first `num_clips` (their own streams,
+ids num_clips, num_clips + 1, ...) and puts them all in the training split: the val and test
+splits, and every file of the first `num_clips` clips, stay those of the dataset without them, so
+models trained on more data are measured on the same held-out clips. Mean.npy/Std.npy are over all
+clips, as always.
 
 Every clip has three whole-clip paraphrases; `train_paraphrases` > 3 gives the training split's
 clips more, drawn from a second stream seeded by (seed, i, 1) and appended after the clip's own
@@ -266,7 +273,9 @@ class _Moments:
         return mean, std
 
 
-def check_synthesis(root, num_clips: int, seed: int, train_paraphrases: int) -> None:
+def check_synthesis(
+    root, num_clips: int, seed: int, train_paraphrases: int, extra_train_clips: int = 0
+) -> None:
     """Refuse a synthetic dataset folder generated with other settings than the config asks for
     (a folder without synthesis.json predates it, or is not synthetic: nothing to compare)."""
     path = Path(root) / SYNTHESIS_FILE
@@ -276,7 +285,13 @@ def check_synthesis(root, num_clips: int, seed: int, train_paraphrases: int) -> 
         made = json.loads(path.read_text())
     except ValueError as e:
         raise DataError(path, f"unreadable ({e})", "delete the dataset folder to regenerate it") from None
-    asked = {"num_clips": int(num_clips), "seed": int(seed), "train_paraphrases": int(train_paraphrases)}
+    asked = {
+        "num_clips": int(num_clips),
+        "seed": int(seed),
+        "train_paraphrases": int(train_paraphrases),
+        "extra_train_clips": int(extra_train_clips),
+    }
+    made.setdefault("extra_train_clips", 0)  # written before the option existed
     differ = {k: (made.get(k), v) for k, v in asked.items() if made.get(k) != v}
     if differ:
         what = ", ".join(f"{k} {m} (asked {a})" for k, (m, a) in differ.items())
@@ -317,8 +332,10 @@ def generate_dataset(
     progress: bool = True,
     overwrite: bool = False,
     train_paraphrases: int = 3,
+    extra_train_clips: int = 0,
 ) -> dict:
-    """Generate `num_clips` clips plus their mirrors into out_dir; returns a summary.
+    """Generate `num_clips` clips plus their mirrors into out_dir, and `extra_train_clips` more
+    that all go to the training split; returns a summary.
 
     Written into a temporary sibling folder that replaces out_dir only when complete, so a crash
     never leaves a half-written dataset. Refuses a non-empty out_dir unless overwrite=True.
@@ -327,6 +344,11 @@ def generate_dataset(
         raise ValueError(f"num_clips must be >= 1, got {num_clips}")
     if int(train_paraphrases) < 3:
         raise ValueError(f"train_paraphrases must be >= 3 (every clip has three), got {train_paraphrases}")
+    if int(extra_train_clips) < 0:
+        raise ValueError(f"extra_train_clips must be >= 0, got {extra_train_clips}")
+    total = int(num_clips) + int(extra_train_clips)
+    splits = split_ids(int(num_clips), seed)
+    splits["train"] = splits["train"] + [f"{i:06d}" for i in range(int(num_clips), total)]
     out = Path(out_dir)
     _prepare_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -342,14 +364,13 @@ def generate_dataset(
         moments = _Moments(T2M_SKELETON.feature_dim)
         actions: Counter = Counter()
         composites = attempts = frames = short = 0
-        train = set(split_ids(int(num_clips), seed)["train"])
-        bar = tqdm(total=int(num_clips), desc="synthesizing clips", unit="clip", disable=not progress)
+        train = set(splits["train"])
+        bar = tqdm(total=total, desc="synthesizing clips", unit="clip", disable=not progress)
         for i, clip in (
             (i, c)
-            for lo in range(0, int(num_clips), CHUNK)
+            for lo in range(0, total, CHUNK)
             for i, c in zip(
-                range(lo, min(lo + CHUNK, int(num_clips))),
-                _generate_chunk(seed, range(lo, min(lo + CHUNK, int(num_clips)))),
+                range(lo, min(lo + CHUNK, total)), _generate_chunk(seed, range(lo, min(lo + CHUNK, total)))
             )
         ):
             bar.update(1)
@@ -373,13 +394,17 @@ def generate_dataset(
         mean, std = moments.stats()
         np.save(tmp / "Mean.npy", mean.astype(np.float32))
         np.save(tmp / "Std.npy", std.astype(np.float32))
-        splits = split_ids(int(num_clips), seed)
         with_mirrors = {k: sorted(v + ["M" + i for i in v]) for k, v in splits.items()}
         with_mirrors["train_val"] = sorted(with_mirrors["train"] + with_mirrors["val"])
         with_mirrors["all"] = sorted(with_mirrors["train_val"] + with_mirrors["test"])
         for name, ids in with_mirrors.items():
             (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in ids))
-        made = {"num_clips": int(num_clips), "seed": int(seed), "train_paraphrases": int(train_paraphrases)}
+        made = {
+            "num_clips": int(num_clips),
+            "seed": int(seed),
+            "train_paraphrases": int(train_paraphrases),
+            "extra_train_clips": int(extra_train_clips),
+        }
         (tmp / SYNTHESIS_FILE).write_text(json.dumps(made) + "\n")
         _prepare_out(out, overwrite)
         if out.exists():
@@ -396,14 +421,15 @@ def generate_dataset(
         torch.set_num_threads(threads)
     return {
         "out": str(out),
-        "clips": int(num_clips),
-        "motions": 2 * int(num_clips),
+        "clips": total,
+        "motions": 2 * total,
         "composites": composites,
         "frames": 2 * frames,
         "actions": dict(sorted(actions.items())),
         "splits": {k: len(v) for k, v in with_mirrors.items() if k in ("train", "val", "test")},
         "retries": attempts,
         "train_paraphrases": int(train_paraphrases),
+        "extra_train_clips": int(extra_train_clips),
         "paraphrases_short": short,
         "seconds": round(time.perf_counter() - start, 2),
     }
