@@ -137,8 +137,11 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
 
     def changed(load):
         demo, quality = _flat(load([])), _flat(load(["recipe=quality"]))
-        large = {"data.name": "synthetic_large", "data.root": "data/synthetic-large"}
-        large["data.synthesize.extra_train_clips"] = 4500
+        large = {
+            "data.name": "synthetic_large",
+            "data.root": "data/synthetic-large",
+            "data.synthesize.extra_train_clips": 4500,
+        }
         assert {k: quality.pop(k) for k in large} == large
         assert {k: demo.pop(k) for k in large} == {
             "data.name": "synthetic",

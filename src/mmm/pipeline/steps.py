@@ -149,13 +149,18 @@ def _dataset(ctx: Context) -> tuple[str, str, str]:
     return ctx.cfg.data.name, ctx.cfg.data.root, _data_fingerprint(ctx)
 
 
-def _champion(ctx: Context, name: str) -> str | None:
-    """'<name> v<version>' of the current champion, or None."""
+def _champion_version(ctx: Context, name: str):
+    """The registered model's current champion version, or None."""
     try:
-        version = MlflowClient(ctx.tracking_uri).get_model_version_by_alias(name, "champion")
+        return MlflowClient(ctx.tracking_uri).get_model_version_by_alias(name, "champion")
     except MlflowException:
         return None
-    return f"{name} v{version.version}"
+
+
+def _champion(ctx: Context, name: str) -> str | None:
+    """'<name> v<version>' of the current champion, or None."""
+    version = _champion_version(ctx, name)
+    return None if version is None else f"{name} v{version.version}"
 
 
 def _run_exists(ctx: Context, outputs: dict) -> bool:
@@ -222,11 +227,8 @@ def _champion_tokenizer(ctx: Context) -> str | None:
     """'<name> v<version>' of the tokenizer champion when it was measured on the pipeline's data, or
     None: stage 2 then trains on this pipeline's own stage-1 run, so a recipe on other data
     (recipe=quality) keeps its own tokenizer instead of one normalized for another dataset."""
-    try:
-        version = MlflowClient(ctx.tracking_uri).get_model_version_by_alias(TOKENIZER, "champion")
-    except MlflowException:
-        return None
-    if version.tags.get("data.fingerprint") != _data_fingerprint(ctx):
+    version = _champion_version(ctx, TOKENIZER)
+    if version is None or version.tags.get("data.fingerprint") != _data_fingerprint(ctx):
         return None
     return f"{TOKENIZER} v{version.version}"
 

@@ -273,6 +273,16 @@ class _Moments:
         return mean, std
 
 
+def _settings(num_clips: int, seed: int, train_paraphrases: int, extra_train_clips: int) -> dict:
+    """What makes a synthetic dataset, as synthesis.json records it."""
+    return {
+        "num_clips": int(num_clips),
+        "seed": int(seed),
+        "train_paraphrases": int(train_paraphrases),
+        "extra_train_clips": int(extra_train_clips),
+    }
+
+
 def check_synthesis(
     root, num_clips: int, seed: int, train_paraphrases: int, extra_train_clips: int = 0
 ) -> None:
@@ -285,12 +295,7 @@ def check_synthesis(
         made = json.loads(path.read_text())
     except ValueError as e:
         raise DataError(path, f"unreadable ({e})", "delete the dataset folder to regenerate it") from None
-    asked = {
-        "num_clips": int(num_clips),
-        "seed": int(seed),
-        "train_paraphrases": int(train_paraphrases),
-        "extra_train_clips": int(extra_train_clips),
-    }
+    asked = _settings(num_clips, seed, train_paraphrases, extra_train_clips)
     made.setdefault("extra_train_clips", 0)  # written before the option existed
     differ = {k: (made.get(k), v) for k, v in asked.items() if made.get(k) != v}
     if differ:
@@ -399,12 +404,7 @@ def generate_dataset(
         with_mirrors["all"] = sorted(with_mirrors["train_val"] + with_mirrors["test"])
         for name, ids in with_mirrors.items():
             (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in ids))
-        made = {
-            "num_clips": int(num_clips),
-            "seed": int(seed),
-            "train_paraphrases": int(train_paraphrases),
-            "extra_train_clips": int(extra_train_clips),
-        }
+        made = _settings(num_clips, seed, train_paraphrases, extra_train_clips)
         (tmp / SYNTHESIS_FILE).write_text(json.dumps(made) + "\n")
         _prepare_out(out, overwrite)
         if out.exists():
