@@ -177,7 +177,7 @@ def main() -> None:
     parser.add_argument("--model", default="models:/mmm-text2motion@champion")
     parser.add_argument("--data", default="data/synthetic")
     parser.add_argument("--split", default="test")
-    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
     parser.add_argument("--out", default="outputs/bench/adherence_diagnosis.json")
     args = parser.parse_args()
     root = Path(args.data)

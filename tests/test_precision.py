@@ -108,3 +108,35 @@ def test_cli_and_evaluate_take_a_precision():
 
     assert load_evaluate_config(["precision=bf16"]).precision == "bf16"
     assert load_evaluate_config([]).precision is None
+
+
+# -- training precision -----------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "precision, has_bf16, warned",
+    [
+        ("bf16-mixed", False, True),
+        ("bf16-mixed", True, False),
+        ("bf16-mixed", None, False),
+        ("32-true", False, False),
+    ],
+)
+def test_bf16_training_on_a_cpu_without_bf16_units_warns_with_the_fix(
+    tmp_path, monkeypatch, caplog, precision, has_bf16, warned
+):
+    from mmm.training import common
+    from mmm.training.configs import TrainerConfig
+
+    monkeypatch.setattr(common, "cpu_has_bf16_matmul", lambda: has_bf16)
+    cfg = TrainerConfig(max_steps=1, enable_progress_bar=False, precision=precision)
+    with caplog.at_level("WARNING", logger=common.__name__):
+        trainer = common.build_trainer(cfg, [], None, str(tmp_path))
+    assert trainer.precision == precision
+    messages = [r.getMessage() for r in caplog.records if r.name == common.__name__]
+    assert messages == (
+        [
+            "trainer.precision=bf16-mixed on a CPU without bfloat16 matrix units (AVX-512 BF16 or AMX) "
+            "trains slower than float32; set trainer.precision=32-true"
+        ]
+        if warned
+        else []
+    )
