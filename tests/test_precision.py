@@ -134,7 +134,7 @@ def test_bf16_training_on_a_cpu_without_bf16_units_warns_with_the_fix(
     messages = [r.getMessage() for r in caplog.records if r.name == common.__name__]
     assert messages == (
         [
-            "trainer.precision=bf16-mixed on a CPU without bfloat16 matrix units (AVX-512 BF16 or AMX) "
+            "trainer.precision=bf16-mixed on a CPU without bfloat16 kernels (AVX-512 or newer) "
             "trains slower than float32; set trainer.precision=32-true"
         ]
         if warned

@@ -81,8 +81,8 @@ def build_logger(
 
 
 def cpu_has_bf16_matmul() -> bool | None:
-    """Whether this CPU multiplies bfloat16 matrices natively (AVX-512 BF16 or AMX); None when
-    this build of PyTorch cannot tell."""
+    """Whether oneDNN has bfloat16 kernels for this CPU (AVX-512 and newer: AVX-512 BF16, AMX);
+    None when this build of PyTorch cannot tell."""
     try:
         return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
@@ -91,9 +91,9 @@ def cpu_has_bf16_matmul() -> bool | None:
 
 def build_trainer(cfg: TrainerConfig, callbacks: list, logger, default_root_dir: str) -> L.Trainer:
     if cfg.accelerator == "cpu" and str(cfg.precision).startswith("bf16") and cpu_has_bf16_matmul() is False:
-        # Without the bfloat16 units the autocast emulates each matmul: slower than float32, not faster.
+        # Without oneDNN's bfloat16 kernels the autocast emulates each matmul: slower than float32.
         log.warning(
-            "trainer.precision=%s on a CPU without bfloat16 matrix units (AVX-512 BF16 or AMX) trains "
+            "trainer.precision=%s on a CPU without bfloat16 kernels (AVX-512 or newer) trains "
             "slower than float32; set trainer.precision=32-true",
             cfg.precision,
         )
