@@ -47,7 +47,7 @@ class TrackingConfig:
 
     enabled: bool = True
     tracking_uri: str = "sqlite:///mlflow.db"
-    artifact_root: str = "mlartifacts"  # for experiments this package creates on a sqlite store
+    artifact_root: str = "mlartifacts"  # new experiments on a sqlite store; relative: beside the database
     experiment: str = "mmm"
     run_name: str | None = None
     log_checkpoints: bool = True
@@ -64,12 +64,19 @@ def resolve_tracking_uri(uri: str) -> str:
 def artifact_location(tracking_uri: str, artifact_root: str) -> str | None:
     """Where a new experiment keeps its artifacts: artifact_root as given when it is a URI
     (s3://...), None against a tracking server (the server's own store, which it serves to every
-    client), else the local folder (the embedded store)."""
+    client), else a local folder. A relative folder sits beside a sqlite store's database file, so
+    the store is one self-contained folder wherever the command runs (and a store in a temporary
+    folder never writes into the working directory)."""
     if "://" in artifact_root or artifact_root.startswith("mlflow-artifacts:"):
         return artifact_root
     if tracking_uri.split(":", 1)[0] in ("http", "https", "databricks"):
         return None
-    return Path(artifact_root).resolve().as_uri()
+    root = Path(artifact_root)
+    prefix = "sqlite:///"
+    database = tracking_uri[len(prefix) :].split("?", 1)[0] if tracking_uri.startswith(prefix) else ""
+    if not root.is_absolute() and database not in ("", ":memory:"):
+        root = Path(database).parent / root
+    return root.resolve().as_uri()
 
 
 def run_link(experiment_id: str, run_id: str, text: str | None = None) -> str:
