@@ -22,6 +22,7 @@ from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
 from mmm.atomic import atomic_write  # noqa: E402
+from mmm.cli.common import DEFAULT_TRACKING_URI  # noqa: E402
 from mmm.tracking import resolve_tracking_uri  # noqa: E402
 
 
@@ -61,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", help="RUN_ID or RUN_ID=LABEL (the panel's title)")
     parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
-    parser.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    parser.add_argument("--tracking-uri", default=DEFAULT_TRACKING_URI)
     parser.add_argument("--metric", choices=("ordered", "strict"), default="ordered")
     args = parser.parse_args(argv)
 

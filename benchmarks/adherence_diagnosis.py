@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mmm.cli.common import DEFAULT_TRACKING_URI
 from mmm.data.datamodule import DataConfig
 from mmm.data.synthetic.adherence import check_in_order, check_motion
 from mmm.evaluation.adherence import item_parts
@@ -177,7 +178,7 @@ def main() -> None:
     parser.add_argument("--model", default="models:/mmm-text2motion@champion")
     parser.add_argument("--data", default="data/synthetic")
     parser.add_argument("--split", default="test")
-    parser.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    parser.add_argument("--tracking-uri", default=DEFAULT_TRACKING_URI)
     parser.add_argument("--out", default="outputs/bench/adherence_diagnosis.json")
     args = parser.parse_args()
     root = Path(args.data)

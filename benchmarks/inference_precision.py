@@ -44,6 +44,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mmm.cli.common import DEFAULT_TRACKING_URI
+
 VARIANTS = ("before", "fp32", "bf16", "int8")
 # torch.compile with static length buckets (mmm.generation.compiled): opt-in, each compiles its
 # shapes in the warm-up (which then runs every call of the case once).
@@ -312,7 +314,7 @@ def main() -> None:
     parser.add_argument(
         "--model", default=None, help="a trained model (models:/..., run id, path): faithfulness"
     )
-    parser.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    parser.add_argument("--tracking-uri", default=DEFAULT_TRACKING_URI)
     parser.add_argument("--out", default="outputs/bench/inference_precision.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
