@@ -12,13 +12,6 @@ REFERENCE = _ref if _ref.is_dir() else None
 os.environ.setdefault("MMM_CONF_DIR", str(REPO / "conf"))
 
 
-@pytest.fixture(autouse=True)
-def _bundle_cache_in_the_temporary_folder(tmp_path_factory, monkeypatch):
-    """Registered bundles a test resolves are cached under pytest's temporary folder, never in the
-    working copy's outputs/ (the package's default, relative to where a command runs)."""
-    monkeypatch.setattr("mmm.resolve.BUNDLE_CACHE", str(tmp_path_factory.getbasetemp() / "bundles"))
-
-
 @pytest.fixture
 def reference_dir():
     if REFERENCE is None:
