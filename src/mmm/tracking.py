@@ -53,11 +53,19 @@ class TrackingConfig:
     log_checkpoints: bool = True
 
 
+SQLITE = "sqlite:///"
+
+
+def sqlite_database(uri: str) -> str | None:
+    """The database file of a sqlite:/// URI as written (relative or absolute, without its query
+    string), None for any other store."""
+    return uri[len(SQLITE) :].split("?", 1)[0] if uri.startswith(SQLITE) else None
+
+
 def resolve_tracking_uri(uri: str) -> str:
     """Make a relative sqlite path absolute, so every process and the dashboard agree on it."""
-    prefix = "sqlite:///"
-    if uri.startswith(prefix) and not uri[len(prefix) :].startswith("/"):
-        return prefix + str(Path(uri[len(prefix) :]).resolve())
+    if uri.startswith(SQLITE) and not uri[len(SQLITE) :].startswith("/"):
+        return SQLITE + str(Path(uri[len(SQLITE) :]).resolve())
     return uri
 
 
@@ -72,9 +80,8 @@ def artifact_location(tracking_uri: str, artifact_root: str) -> str | None:
     if tracking_uri.split(":", 1)[0] in ("http", "https", "databricks"):
         return None
     root = Path(artifact_root)
-    prefix = "sqlite:///"
-    database = tracking_uri[len(prefix) :].split("?", 1)[0] if tracking_uri.startswith(prefix) else ""
-    if not root.is_absolute() and database not in ("", ":memory:"):
+    database = sqlite_database(tracking_uri)
+    if not root.is_absolute() and database not in (None, "", ":memory:"):
         root = Path(database).parent / root
     return root.resolve().as_uri()
 

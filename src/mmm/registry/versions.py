@@ -38,7 +38,7 @@ from mmm import __version__
 from mmm.atomic import sha256_file
 from mmm.kinds import PROMOTABLE
 from mmm.resolve import log_artifact_with_digest
-from mmm.tracking import git_commit, run_link, version_link
+from mmm.tracking import git_commit, run_link, sqlite_database, version_link
 
 # The registered models, by what `mmm promote` calls them (kinds.py holds the names).
 TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY = (
@@ -350,8 +350,9 @@ def promote_version(
 def _store_folder(client) -> Path | None:
     """The folder of a local tracking/registry store (sqlite file, file store), None for a server."""
     uri = getattr(client, "_registry_uri", None) or client.tracking_uri
-    if uri.startswith("sqlite:///"):
-        return Path(uri[len("sqlite:///") :]).resolve().parent
+    database = sqlite_database(uri)
+    if database is not None:
+        return Path(database).resolve().parent
     parsed = urlparse(uri)
     if parsed.scheme == "file":
         return Path(parsed.path).resolve()
