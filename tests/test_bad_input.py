@@ -137,6 +137,10 @@ BEFORE_MODEL = {
         ["data", "synth", "--out", "{out}", "--num-clips", "2", "--extra-train-clips", "-3"],
         ["--extra-train-clips -3", "0 or more"],
     ),
+    "synth composite fraction above one": (
+        ["data", "synth", "--out", "{out}", "--num-clips", "2", "--extra-composite-fraction", "1.5"],
+        ["--extra-composite-fraction 1.5", "between 0 and 1"],
+    ),
     "preview count zero": (["data", "preview", "{dataset}", "--out", "{out}", "--count", "0"], ["--count 0"]),
     "render fps nan": (["render", "{joints}", "--out", "{out}/x.gif", "--fps", "nan"], ["--fps nan"]),
     "render fps zero": (["render", "{joints}", "--out", "{out}/x.gif", "--fps", "0"], ["--fps 0.0"]),

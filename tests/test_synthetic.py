@@ -366,6 +366,7 @@ def test_extra_train_paraphrases_leave_motions_and_held_out_splits_as_the_defaul
         "seed": SEED,
         "train_paraphrases": 8,
         "extra_train_clips": 0,
+        "extra_composite_fraction": gen.COMPOSITE_FRACTION,
     }
     train = set(ids_of(root, "train"))
     whole_counts = []
@@ -425,14 +426,54 @@ def test_extra_train_clips_add_training_clips_and_leave_the_held_out_splits_alon
         gen.generate_dataset(tmp_path / "x", num_clips=3, seed=0, progress=False, extra_train_clips=-1)
 
 
+@pytest.mark.slow
+def test_extra_composite_fraction_sets_the_share_of_two_action_extra_clips_only(dataset, tmp_path):
+    root, _ = dataset
+    n_extra = 6
+    extra = [f"{i:06d}" for i in range(NUM_CLIPS, NUM_CLIPS + n_extra)]
+    parts = {}
+    for fraction in (0.0, 1.0):
+        out = tmp_path / f"c{fraction}"
+        summary = gen.generate_dataset(
+            out,
+            num_clips=NUM_CLIPS,
+            seed=SEED,
+            progress=False,
+            extra_train_clips=n_extra,
+            extra_composite_fraction=fraction,
+        )
+        assert summary["extra_composite_fraction"] == fraction
+        assert json.loads((out / "synthesis.json").read_text())["extra_composite_fraction"] == fraction
+        for motion_id in ids_of(root):  # the first NUM_CLIPS clips are the default's, byte for byte
+            for name in (f"new_joint_vecs/{motion_id}.npy", f"labels/{motion_id}.json"):
+                assert (out / name).read_bytes() == (root / name).read_bytes(), name
+        parts[fraction] = [
+            len(json.loads((out / "labels" / f"{i}.json").read_text())["parts"]) for i in extra
+        ]
+        gen.check_synthesis(out, NUM_CLIPS, SEED, 3, n_extra, fraction)
+        with pytest.raises(ValueError, match=rf"extra_composite_fraction {fraction} \(asked 0.5\)"):
+            gen.check_synthesis(out, NUM_CLIPS, SEED, 3, n_extra, 0.5)
+    assert parts == {0.0: [1] * n_extra, 1.0: [2] * n_extra}
+    with pytest.raises(ValueError, match=r"extra_composite_fraction must be within \[0, 1\], got 1.5"):
+        gen.generate_dataset(
+            tmp_path / "x", num_clips=3, seed=0, progress=False, extra_composite_fraction=1.5
+        )
+
+
 def test_a_synthetic_folder_made_with_other_settings_is_refused(tmp_path):
     gen.generate_dataset(tmp_path / "ds", num_clips=3, seed=0, progress=False)
     gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # the same settings: accepted
     made = tmp_path / "ds" / "synthesis.json"
     made.write_text(
-        json.dumps({k: v for k, v in json.loads(made.read_text()).items() if k != "extra_train_clips"})
+        json.dumps(
+            {
+                k: v
+                for k, v in json.loads(made.read_text()).items()
+                if k not in ("extra_train_clips", "extra_composite_fraction")
+            }
+        )
     )
-    gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # written before extra_train_clips existed: none
+    gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # written before the extra options existed: defaults
     from mmm.data.datamodule import DataConfig, SynthConfig, TokenizerDataModule
 
     asked = SynthConfig(num_clips=3, seed=0, train_paraphrases=12)

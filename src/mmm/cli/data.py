@@ -43,6 +43,12 @@ def add_data(sub) -> None:
         help="more clips after --num-clips, all in the training split: val and test stay those of "
         "--num-clips alone",
     )
+    synth.add_argument(
+        "--extra-composite-fraction",
+        type=float,
+        default=None,
+        help="share of two-action clips among the --extra-train-clips (default: a third, as in the others)",
+    )
     synth.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     synth.set_defaults(func=cmd_data_synth)
 
@@ -113,7 +119,7 @@ def cmd_convert(args: argparse.Namespace) -> None:
 
 def cmd_data_synth(args: argparse.Namespace) -> None:
     # imported here: keeps `mmm --help` fast
-    from mmm.data.synthetic.generate import generate_dataset
+    from mmm.data.synthetic.generate import COMPOSITE_FRACTION, generate_dataset
     from mmm.generation.sampler import SamplingValueError, check_seed
 
     try:
@@ -124,6 +130,9 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         raise CLIError(f"--train-paraphrases {args.train_paraphrases}: every clip has three; give 3 or more")
     if args.extra_train_clips < 0:
         raise CLIError(f"--extra-train-clips {args.extra_train_clips}: give 0 or more")
+    fraction = COMPOSITE_FRACTION if args.extra_composite_fraction is None else args.extra_composite_fraction
+    if not 0.0 <= fraction <= 1.0:
+        raise CLIError(f"--extra-composite-fraction {fraction}: give a share between 0 and 1")
     summary = generate_dataset(
         args.out,
         num_clips=args.num_clips,
@@ -131,6 +140,7 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
         train_paraphrases=args.train_paraphrases,
         extra_train_clips=args.extra_train_clips,
+        extra_composite_fraction=fraction,
     )
     print(summary)
 

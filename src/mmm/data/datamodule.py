@@ -21,7 +21,7 @@ from mmm.data.datasets import (
 from mmm.data.humanml3d import DataError, LoadReport, load_clips, load_items, load_stats
 from mmm.data.normalization import tokenizer_statistics
 from mmm.data.resumable import ResumableDataLoader
-from mmm.data.synthetic.generate import check_synthesis, generate_dataset
+from mmm.data.synthetic.generate import COMPOSITE_FRACTION, check_synthesis, generate_dataset
 from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
 from mmm.fingerprint import dataset_fingerprint
 from mmm.motion.skeleton import SKELETONS, Skeleton
@@ -37,6 +37,7 @@ class SynthConfig:
     seed: int = 0
     train_paraphrases: int = 3  # whole-clip captions per training clip (3 = every clip's own)
     extra_train_clips: int = 0  # more clips, all in the training split (val and test unchanged)
+    extra_composite_fraction: float = COMPOSITE_FRACTION  # share of two-action clips among those
 
 
 @dataclass
@@ -113,7 +114,12 @@ class _DatasetFolder(L.LightningDataModule):
         if self.root.exists():
             if synth is not None:
                 check_synthesis(
-                    self.root, synth.num_clips, synth.seed, synth.train_paraphrases, synth.extra_train_clips
+                    self.root,
+                    synth.num_clips,
+                    synth.seed,
+                    synth.train_paraphrases,
+                    synth.extra_train_clips,
+                    synth.extra_composite_fraction,
                 )
             return
         if synth is None:
@@ -125,7 +131,8 @@ class _DatasetFolder(L.LightningDataModule):
 
         rank_zero_info(
             f"{self.root} is missing: generating the synthetic dataset ({synth.num_clips} clips and "
-            f"{synth.extra_train_clips} more for training, seed {synth.seed}, {synth.train_paraphrases} "
+            f"{synth.extra_train_clips} more for training ({synth.extra_composite_fraction:.2f} of them two "
+            f"actions), seed {synth.seed}, {synth.train_paraphrases} "
             "captions per training clip)"
         )
         generate_dataset(
@@ -134,6 +141,7 @@ class _DatasetFolder(L.LightningDataModule):
             seed=synth.seed,
             train_paraphrases=synth.train_paraphrases,
             extra_train_clips=synth.extra_train_clips,
+            extra_composite_fraction=synth.extra_composite_fraction,
         )
 
     def _stats(self) -> None:

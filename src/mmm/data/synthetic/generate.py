@@ -5,18 +5,21 @@
     <out>/texts/<id>.txt           caption lines `caption#tokens#start#end`
     <out>/labels/<id>.json         {"fps": 20, "num_frames": T, "parts": [{action, params, start, end}]}
     <out>/train.txt val.txt test.txt train_val.txt all.txt, Mean.npy, Std.npy
-    <out>/synthesis.json           {"num_clips", "seed", "train_paraphrases", "extra_train_clips"}
+    <out>/synthesis.json           {"num_clips", "seed", "train_paraphrases", "extra_train_clips",
+                                    "extra_composite_fraction"}
 
 Ids are 000000, 000001, ... and M<id> for the left/right mirrored copy (same split). Clip i is
 drawn from its own random stream seeded by (seed, i), so a dataset is a pure function of
-(num_clips, seed, train_paraphrases, extra_train_clips): the same arguments give byte-identical
-files.
+(num_clips, seed, train_paraphrases, extra_train_clips, extra_composite_fraction): the same
+arguments give byte-identical files.
 
 `extra_train_clips` > 0 draws that many more clips after the first `num_clips` (their own streams,
 ids num_clips, num_clips + 1, ...) and puts them all in the training split: the val and test
 splits, and every file of the first `num_clips` clips, stay those of the dataset without them, so
 models trained on more data are measured on the same held-out clips. Mean.npy/Std.npy are over all
-clips, as always.
+clips, as always. `extra_composite_fraction` is the share of two-action clips among those extra
+clips (a third, as in the first `num_clips`, by default): more compositions to learn from without
+changing a held-out clip.
 
 Every clip has three whole-clip paraphrases; `train_paraphrases` > 3 gives the training split's
 clips more, drawn from a second stream seeded by (seed, i, 1) and appended after the clip's own
@@ -68,9 +71,11 @@ def duration_range(action: str, params: dict, options: dict | None = None) -> tu
     return ACTIONS[action].duration(params, options or {})
 
 
-def sample_clip_spec(rng: np.random.Generator) -> list[PartSpec]:
-    """One or two parts (about a third of clips chain two different actions)."""
-    composite = rng.random() < COMPOSITE_FRACTION
+def sample_clip_spec(
+    rng: np.random.Generator, composite_fraction: float = COMPOSITE_FRACTION
+) -> list[PartSpec]:
+    """One or two parts (two different actions chained with probability `composite_fraction`)."""
+    composite = rng.random() < composite_fraction
     for _ in range(50):
         actions = [str(rng.choice(_ACTIONS, p=_P)) for _ in range(2 if composite else 1)]
         if composite and actions[0] == actions[1]:
@@ -146,9 +151,9 @@ def _recover(feats: np.ndarray) -> np.ndarray:
     return recover_from_ric(torch.from_numpy(feats)).numpy().astype(np.float32)
 
 
-def _attempt(rng: np.random.Generator):
+def _attempt(rng: np.random.Generator, composite_fraction: float):
     """One try at a clip: its specification and pose, or None when it cannot be animated."""
-    specs = sample_clip_spec(rng)
+    specs = sample_clip_spec(rng, composite_fraction)
     try:
         quats, root, parts = make_pose(specs, rng)
     except Infeasible:
@@ -189,7 +194,14 @@ def _finish(rng: np.random.Generator, specs, world: np.ndarray, parts, attempts:
 
 
 def _complete(
-    rng: np.random.Generator, first, first_world, attempts: int, index: int, seed: int, max_attempts: int
+    rng: np.random.Generator,
+    first,
+    first_world,
+    attempts: int,
+    index: int,
+    seed: int,
+    max_attempts: int,
+    composite_fraction: float,
 ) -> Clip:
     """Finish a clip from its first try (already posed); retry from the same stream if needed."""
     clip = _finish(rng, first[0], first_world, first[3], attempts) if first is not None else None
@@ -197,26 +209,31 @@ def _complete(
         attempts += 1
         if attempts > max_attempts:
             raise RuntimeError(f"clip {index} (seed {seed}) failed its own labels {max_attempts} times")
-        tried = _attempt(rng)
+        tried = _attempt(rng, composite_fraction)
         if tried is not None:
             specs, quats, root, parts = tried
             clip = _finish(rng, specs, pose_to_joints(quats, root), parts, attempts)
     return clip
 
 
-def generate_clip(seed: int, index: int, max_attempts: int = 30) -> Clip:
+def generate_clip(
+    seed: int, index: int, max_attempts: int = 30, composite_fraction: float = COMPOSITE_FRACTION
+) -> Clip:
     """Clip `index` of the dataset with this seed (deterministic); retried until it satisfies its
     labels (also mirrored, on the joints recovered from the saved features)."""
     rng = np.random.default_rng([int(seed), int(index)])
-    first = _attempt(rng)
+    first = _attempt(rng, composite_fraction)
     world = pose_to_joints(first[1], first[2]) if first is not None else None
-    return _complete(rng, first, world, 1, index, seed, max_attempts)
+    return _complete(rng, first, world, 1, index, seed, max_attempts, composite_fraction)
 
 
-def _generate_chunk(seed: int, indices: range, max_attempts: int = 30) -> list[Clip]:
-    """generate_clip for several indices, with one forward-kinematics call for all first tries."""
+def _generate_chunk(
+    seed: int, indices: range, composite_fractions: list[float], max_attempts: int = 30
+) -> list[Clip]:
+    """generate_clip for several indices (one composite fraction each), with one forward-kinematics
+    call for all first tries."""
     rngs = [np.random.default_rng([int(seed), int(i)]) for i in indices]
-    firsts = [_attempt(rng) for rng in rngs]
+    firsts = [_attempt(rng, f) for rng, f in zip(rngs, composite_fractions)]
     posed = [f for f in firsts if f is not None]
     worlds = iter([])
     if posed:
@@ -224,9 +241,9 @@ def _generate_chunk(seed: int, indices: range, max_attempts: int = 30) -> list[C
         cuts = np.cumsum([f[1].shape[0] for f in posed])[:-1]
         worlds = iter(np.split(joints, cuts))
     clips = []
-    for rng, first, index in zip(rngs, firsts, indices):
+    for rng, first, index, fraction in zip(rngs, firsts, indices, composite_fractions):
         world = next(worlds) if first is not None else None
-        clips.append(_complete(rng, first, world, 1, index, seed, max_attempts))
+        clips.append(_complete(rng, first, world, 1, index, seed, max_attempts, fraction))
     return clips
 
 
@@ -273,18 +290,26 @@ class _Moments:
         return mean, std
 
 
-def _settings(num_clips: int, seed: int, train_paraphrases: int, extra_train_clips: int) -> dict:
+def _settings(
+    num_clips: int, seed: int, train_paraphrases: int, extra_train_clips: int, extra_composite_fraction: float
+) -> dict:
     """What makes a synthetic dataset, as synthesis.json records it."""
     return {
         "num_clips": int(num_clips),
         "seed": int(seed),
         "train_paraphrases": int(train_paraphrases),
         "extra_train_clips": int(extra_train_clips),
+        "extra_composite_fraction": float(extra_composite_fraction),
     }
 
 
 def check_synthesis(
-    root, num_clips: int, seed: int, train_paraphrases: int, extra_train_clips: int = 0
+    root,
+    num_clips: int,
+    seed: int,
+    train_paraphrases: int,
+    extra_train_clips: int = 0,
+    extra_composite_fraction: float = COMPOSITE_FRACTION,
 ) -> None:
     """Refuse a synthetic dataset folder generated with other settings than the config asks for
     (a folder without synthesis.json predates it, or is not synthetic: nothing to compare)."""
@@ -295,8 +320,9 @@ def check_synthesis(
         made = json.loads(path.read_text())
     except ValueError as e:
         raise DataError(path, f"unreadable ({e})", "delete the dataset folder to regenerate it") from None
-    asked = _settings(num_clips, seed, train_paraphrases, extra_train_clips)
-    made.setdefault("extra_train_clips", 0)  # written before the option existed
+    asked = _settings(num_clips, seed, train_paraphrases, extra_train_clips, extra_composite_fraction)
+    made.setdefault("extra_train_clips", 0)  # written before the options existed
+    made.setdefault("extra_composite_fraction", COMPOSITE_FRACTION)
     differ = {k: (made.get(k), v) for k, v in asked.items() if made.get(k) != v}
     if differ:
         what = ", ".join(f"{k} {m} (asked {a})" for k, (m, a) in differ.items())
@@ -338,9 +364,11 @@ def generate_dataset(
     overwrite: bool = False,
     train_paraphrases: int = 3,
     extra_train_clips: int = 0,
+    extra_composite_fraction: float = COMPOSITE_FRACTION,
 ) -> dict:
     """Generate `num_clips` clips plus their mirrors into out_dir, and `extra_train_clips` more
-    that all go to the training split; returns a summary.
+    (a share `extra_composite_fraction` of them two-action clips) that all go to the training
+    split; returns a summary.
 
     Written into a temporary sibling folder that replaces out_dir only when complete, so a crash
     never leaves a half-written dataset. Refuses a non-empty out_dir unless overwrite=True.
@@ -351,7 +379,11 @@ def generate_dataset(
         raise ValueError(f"train_paraphrases must be >= 3 (every clip has three), got {train_paraphrases}")
     if int(extra_train_clips) < 0:
         raise ValueError(f"extra_train_clips must be >= 0, got {extra_train_clips}")
+    if not 0.0 <= float(extra_composite_fraction) <= 1.0:
+        raise ValueError(f"extra_composite_fraction must be within [0, 1], got {extra_composite_fraction}")
     total = int(num_clips) + int(extra_train_clips)
+    extra = [float(extra_composite_fraction)] * int(extra_train_clips)
+    fractions = [COMPOSITE_FRACTION] * int(num_clips) + extra  # per clip index
     splits = split_ids(int(num_clips), seed)
     splits["train"] = splits["train"] + [f"{i:06d}" for i in range(int(num_clips), total)]
     out = Path(out_dir)
@@ -375,7 +407,8 @@ def generate_dataset(
             (i, c)
             for lo in range(0, total, CHUNK)
             for i, c in zip(
-                range(lo, min(lo + CHUNK, total)), _generate_chunk(seed, range(lo, min(lo + CHUNK, total)))
+                range(lo, min(lo + CHUNK, total)),
+                _generate_chunk(seed, range(lo, min(lo + CHUNK, total)), fractions[lo : lo + CHUNK]),
             )
         ):
             bar.update(1)
@@ -404,7 +437,7 @@ def generate_dataset(
         with_mirrors["all"] = sorted(with_mirrors["train_val"] + with_mirrors["test"])
         for name, ids in with_mirrors.items():
             (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in ids))
-        made = _settings(num_clips, seed, train_paraphrases, extra_train_clips)
+        made = _settings(num_clips, seed, train_paraphrases, extra_train_clips, extra_composite_fraction)
         (tmp / SYNTHESIS_FILE).write_text(json.dumps(made) + "\n")
         _prepare_out(out, overwrite)
         if out.exists():
@@ -430,6 +463,7 @@ def generate_dataset(
         "retries": attempts,
         "train_paraphrases": int(train_paraphrases),
         "extra_train_clips": int(extra_train_clips),
+        "extra_composite_fraction": float(extra_composite_fraction),
         "paraphrases_short": short,
         "seconds": round(time.perf_counter() - start, 2),
     }
