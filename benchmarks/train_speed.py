@@ -2,6 +2,7 @@
 
     python benchmarks/train_speed.py [--stages 1 2] [--sizes tiny paper] [--batch1 64] [--batch2 64]
                                      [--steps 10] [--precisions 32-true bf16-mixed]
+                                     [--set model.transformer.embed_dim=256 ...]
                                      [--out outputs/bench/train_speed.json]
 
 Each (stage, size) runs in its own process (clean peak-memory figures): a full training step
@@ -14,6 +15,8 @@ Precisions as Lightning names them (`trainer.precision`): 32-true, and bf16-mixe
 and loss under bfloat16 autocast, float32 weights and optimizer, as Lightning runs it). Several
 precisions are timed in one process, their steps interleaved, so that a busy machine slows them
 alike and their ratio (`speedup_vs_32-true`) holds; peak memory is then the process's, for all.
+`--set` changes the sizes' configs (the quality recipe's transformer: `--sizes tiny --set
+model.transformer.embed_dim=256 model.transformer.num_heads=8`); the rows record it.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ def _device_name(device: str) -> str:
     return f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)"
 
 
-def _stage1(size: str, batch: int, device: str):
+def _stage1(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
@@ -47,7 +50,7 @@ def _stage1(size: str, batch: int, device: str):
     from mmm.tokenizer.network import TokenizerConfig
     from mmm.training.optim import OptimConfig
 
-    cfg = compose("train_stage1", [f"model={size}"]).model.tokenizer
+    cfg = compose("train_stage1", [f"model={size}", *overrides]).model.tokenizer
     module = (
         TokenizerModule(263, TokenizerConfig(**cfg), OptimConfig(), TokenizerLossConfig()).to(device).train()
     )
@@ -61,7 +64,7 @@ def _stage1(size: str, batch: int, device: str):
     return module, loss, {"window": 64, "codes": module.quantizer.num_codes}
 
 
-def _stage2(size: str, batch: int, device: str):
+def _stage2(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
@@ -69,7 +72,7 @@ def _stage2(size: str, batch: int, device: str):
     from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt
     from mmm.transformer.network import TransformerConfig
 
-    cfg = compose("train_stage2", [f"model={size}"]).model
+    cfg = compose("train_stage2", [f"model={size}", *overrides]).model
     K, C = cfg.tokenizer.num_codes, cfg.tokenizer.code_dim
     module = MaskedTransformerModule(
         torch.randn(K, C),
@@ -103,12 +106,14 @@ def _stage2(size: str, batch: int, device: str):
     return module, loss, {"tokens": M, "codes": K}
 
 
-def measure(stage: int, size: str, batch: int, steps: int, warmup: int, device: str, precisions) -> list:
+def measure(
+    stage: int, size: str, batch: int, steps: int, warmup: int, device: str, precisions, overrides=()
+) -> list:
     import contextlib
 
     import torch
 
-    module, loss_fn, extra = (_stage1 if stage == 1 else _stage2)(size, batch, device)
+    module, loss_fn, extra = (_stage1 if stage == 1 else _stage2)(size, batch, device, list(overrides))
     optimizer = torch.optim.AdamW([p for p in module.parameters() if p.requires_grad], lr=2e-4, foreach=True)
 
     def sync():
@@ -148,6 +153,7 @@ def measure(stage: int, size: str, batch: int, steps: int, warmup: int, device: 
             {
                 "stage": stage,
                 "size": size,
+                "overrides": list(overrides),
                 "device": _device_name(device),
                 "dtype": "float32" if precision == "32-true" else "bfloat16 autocast, float32 weights",
                 "precision": precision,
@@ -181,6 +187,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--device", default=None)
     parser.add_argument("--precisions", nargs="+", default=["32-true"])
+    parser.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", help="config overrides")
     parser.add_argument("--out", default="outputs/bench/train_speed.json")
     parser.add_argument(
         "--one", nargs=3, default=None, help=argparse.SUPPRESS
@@ -191,7 +198,8 @@ def main() -> None:
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     if args.one:
         stage, size, batch = int(args.one[0]), args.one[1], int(args.one[2])
-        print(json.dumps(measure(stage, size, batch, args.steps, args.warmup, device, args.precisions)))
+        rows = measure(stage, size, batch, args.steps, args.warmup, device, args.precisions, args.set)
+        print(json.dumps(rows))
         return
     results = []
     for stage in args.stages:
@@ -214,6 +222,7 @@ def main() -> None:
                 device,
                 "--precisions",
                 *args.precisions,
+                *(["--set", *args.set] if args.set else []),
             ]
             out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=REPO)
             for r in json.loads(out.stdout.strip().splitlines()[-1]):

@@ -135,8 +135,38 @@ def test_bf16_training_on_a_cpu_without_bf16_units_warns_with_the_fix(
     assert messages == (
         [
             "trainer.precision=bf16-mixed on a CPU without bfloat16 kernels (AVX-512 or newer) "
-            "trains slower than float32; set trainer.precision=32-true"
+            "trains slower than float32; set trainer.precision=32-true (or auto)"
         ]
         if warned
         else []
     )
+
+
+@pytest.mark.parametrize(
+    "accelerator, has_bf16, cuda_bf16, expected",
+    [
+        ("cpu", True, None, "bf16-mixed"),  # AVX-512 BF16 / AMX
+        ("cpu", False, None, "32-true"),  # AVX2 only: the autocast would emulate every matmul
+        ("cpu", None, None, "32-true"),  # this build of torch cannot tell: the safe choice
+        ("gpu", False, True, "bf16-mixed"),  # the GPU's own support decides, not the host CPU's
+        ("gpu", True, False, "32-true"),
+    ],
+)
+def test_auto_precision_trains_in_bf16_only_where_the_device_has_bf16_kernels(
+    tmp_path, monkeypatch, caplog, accelerator, has_bf16, cuda_bf16, expected
+):
+    from mmm.training import common
+    from mmm.training.configs import TrainerConfig
+
+    monkeypatch.setattr(common, "cpu_has_bf16_matmul", lambda: has_bf16)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda_bf16 is not None)
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: bool(cuda_bf16))
+    assert common.training_precision("auto", accelerator) == expected
+    assert common.training_precision("16-mixed", accelerator) == "16-mixed"  # other names are kept
+    if accelerator == "cpu":
+        cfg = TrainerConfig(max_steps=1, enable_progress_bar=False, precision="auto")
+        with caplog.at_level("INFO", logger=common.__name__):
+            trainer = common.build_trainer(cfg, [], None, str(tmp_path))
+        assert trainer.precision == expected
+        messages = [r.getMessage() for r in caplog.records if r.name == common.__name__]
+        assert messages == [f"trainer.precision=auto: {expected} (bfloat16 kernels on this cpu: {has_bf16})"]

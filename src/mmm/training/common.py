@@ -89,20 +89,34 @@ def cpu_has_bf16_matmul() -> bool | None:
         return None
 
 
+def training_precision(precision: str, accelerator: str) -> str:
+    """Lightning's precision for `trainer.precision`: `auto` is bf16-mixed where the device has
+    bfloat16 kernels (a CPU with AVX-512 BF16 or AMX, a GPU that supports bfloat16) and 32-true
+    elsewhere, where the autocast would emulate every matmul; any other name is kept."""
+    if precision != "auto":
+        return precision
+    on_gpu = accelerator in ("gpu", "cuda") or (accelerator == "auto" and torch.cuda.is_available())
+    fast = torch.cuda.is_available() and torch.cuda.is_bf16_supported() if on_gpu else cpu_has_bf16_matmul()
+    chosen = "bf16-mixed" if fast else "32-true"
+    log.info("trainer.precision=auto: %s (bfloat16 kernels on this %s: %s)", chosen, accelerator, fast)
+    return chosen
+
+
 def build_trainer(cfg: TrainerConfig, callbacks: list, logger, default_root_dir: str) -> L.Trainer:
-    if cfg.accelerator == "cpu" and str(cfg.precision).startswith("bf16") and cpu_has_bf16_matmul() is False:
+    precision = training_precision(str(cfg.precision), cfg.accelerator)
+    if cfg.accelerator == "cpu" and precision.startswith("bf16") and cpu_has_bf16_matmul() is False:
         # Without oneDNN's bfloat16 kernels the autocast emulates each matmul: slower than float32.
         log.warning(
             "trainer.precision=%s on a CPU without bfloat16 kernels (AVX-512 or newer) trains "
-            "slower than float32; set trainer.precision=32-true",
-            cfg.precision,
+            "slower than float32; set trainer.precision=32-true (or auto)",
+            precision,
         )
     return L.Trainer(
         accelerator=cfg.accelerator,
         devices=cfg.devices,
         num_nodes=cfg.num_nodes,
         strategy=build_strategy(cfg),
-        precision=cfg.precision,
+        precision=precision,
         max_steps=cfg.max_steps,
         val_check_interval=cfg.val_check_interval,
         check_val_every_n_epoch=None,  # validate every val_check_interval steps across epochs

@@ -26,7 +26,7 @@ class TrainerConfig:
     num_nodes: int = 1
     strategy: str = "auto"  # auto | ddp | ddp_spawn (ddp strategies use the codebook-safe settings)
     process_group_backend: str | None = None  # gloo on CPU, nccl on GPUs by default
-    precision: str = "32-true"
+    precision: str = "32-true"  # Lightning's names, or auto: bf16-mixed where the device has bfloat16 kernels
     max_steps: int = 2000
     val_check_interval: int = 500  # optimizer steps between validations
     limit_val_batches: float = 1.0
