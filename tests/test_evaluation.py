@@ -468,3 +468,112 @@ def test_best_checkpoint_can_be_the_most_followed_validation(synthetic_small, tm
     top = max(m.value for m in history)
     assert float(state["best_model_score"]) == pytest.approx(top)
     assert best["global_step"] == min(m.step for m in history if m.value == top)
+
+
+@pytest.mark.slow
+def test_best_of_adherence_keeps_the_draw_the_judge_prefers(synthetic_small):
+    from mmm.motion.features import recover_from_ric
+
+    items, _ = load_items(synthetic_small, "train", feature_dim=263, fps=20, min_length=40)
+    oracle = prompt_adherence(Replay(items), synthetic_small, items)
+    still = next(
+        i
+        for i in items
+        if item_parts(i, json.loads((synthetic_small / "labels" / f"{i.motion_id}.json").read_text()))[0][
+            "action"
+        ]
+        == "stand"
+    )
+
+    def standing(n):
+        return np.resize(still.features, (n, 263))
+
+    class StillThenReal(Replay):
+        """Of two candidates per caption, the first stands still and the second is the real motion."""
+
+        feature_dim = 263
+
+        def generate(self, texts, frames, sampling=None, seed=None, check_lengths=True):
+            half = len(texts) // 2
+            features = [standing(n) for n in frames[:half]]
+            features += [self.pool[(t, n)].pop(0).features[:n] for t, n in zip(texts[half:], frames[half:])]
+            codes = [np.zeros(n // 4, np.int64) for n in frames]
+            return Generated(
+                list(texts), features, [recover_from_ric(f) for f in features], codes, [1] * len(texts), 1
+            )
+
+    class MovementJudge:
+        """Rates any motion above standing still (texts (1, 0); motions (1, 0) or (0, 1))."""
+
+        info = {"feature_dim": 263}
+
+        def sentence_embeddings(self, texts):
+            raise AssertionError("not called")
+
+        def embed_texts(self, texts):
+            return torch.tensor([[1.0, 0.0]] * len(texts))
+
+        def embed_motions(self, features, lengths):
+            moves = [not np.allclose(f[:n], standing(int(n))) for f, n in zip(np.asarray(features), lengths)]
+            return torch.tensor([[1.0, 0.0] if m else [0.0, 1.0] for m in moves])
+
+    best = prompt_adherence(StillThenReal(items), synthetic_small, items, candidates=2, judge=MovementJudge())
+    assert best["count"] == oracle["count"]
+    assert best["rate"] == oracle["rate"] and best["groups"] == oracle["groups"]
+
+
+@pytest.mark.slow
+def test_mmm_evaluate_best_of_adherence_is_logged_under_its_own_keys(
+    trained, own_evaluator, synthetic_small, tmp_path
+):
+    from mmm.evaluation.run import evaluate, load_evaluate_config
+
+    common = [
+        f"data.root={synthetic_small}",
+        "data.synthesize=null",
+        "split=train",
+        "what=[adherence]",
+        "adherence_max_items=6",
+        f"text2motion={trained['checkpoint']}",
+        f"logger.tracking_uri={trained['uri']}",
+        f"logger.artifact_root={trained['out']}/art",
+        f"output_dir={tmp_path}/eval",
+    ]
+    with pytest.raises(ValueError, match="adherence_candidates 0 is not allowed"):
+        evaluate(load_evaluate_config([*common, "adherence_candidates=0"]))
+    results = evaluate(
+        load_evaluate_config(
+            [*common, "adherence_candidates=2", f"adherence_judge={own_evaluator.best_checkpoint}"]
+        )
+    )
+    metrics = MlflowClient(trained["uri"]).get_run(results["run_id"]).data.metrics
+    assert 0.0 <= metrics["adherence_best2/ordered_rate"] <= 1.0 and "adherence/ordered_rate" not in metrics
+    assert results["adherence"]["count"] == 6
+    assert results["adherence_judge"]["candidates"] == 2
+    assert results["adherence_judge"]["identity"].startswith("contrastive-")
+    assert "**Prompt adherence** (best of 2 by contrastive-" in (tmp_path / "eval/evaluation.md").read_text()
+
+
+@pytest.mark.slow
+def test_cli_generate_best_of_keeps_the_top_scored_candidate(trained, own_evaluator, tmp_path, capsys):
+    from mmm.cli import main
+
+    dest = tmp_path / "gen"
+    argv = ["generate", "--text", "a person walks forward", "--length", "80", "--num-samples", "2"]
+    argv += ["--model", trained["checkpoint"], "--tracking-uri", trained["uri"], "--out", str(dest)]
+    assert main([*argv, "--candidates", "3", "--judge", own_evaluator.best_checkpoint]) == 0, (
+        capsys.readouterr().err
+    )
+    for k in (0, 1):
+        meta = json.loads((dest / str(k) / "meta.json").read_text())
+        assert meta["candidates"] == 3 and meta["judge"].startswith("contrastive-")
+        assert len(meta["judge_scores"]) == 3 and all(-1 <= s <= 1 for s in meta["judge_scores"])
+        assert np.load(dest / str(k) / "features.npy").shape == (80, 263)
+    # The kept motion is the one its recorded score belongs to: the judge rates it at the maximum.
+    from mmm.evaluation.evaluators import load_judge
+    from mmm.generation.best_of import judge_scores
+
+    judge = load_judge(own_evaluator.best_checkpoint, trained["uri"])
+    kept = [np.load(dest / str(k) / "features.npy") for k in (0, 1)]
+    maxima = [max(json.loads((dest / str(k) / "meta.json").read_text())["judge_scores"]) for k in (0, 1)]
+    np.testing.assert_allclose(judge_scores(judge, ["a person walks forward"] * 2, kept), maxima, atol=2e-3)

@@ -42,6 +42,19 @@ def add_generate(sub) -> None:
     gen.add_argument(
         "--trace", action="store_true", help="also plot the decoding (confidence and mask per iteration)"
     )
+    gen.add_argument(
+        "--candidates",
+        type=int,
+        default=1,
+        help="best of N: draw N motions per sample and keep the one the judge puts closest to the text "
+        "(4 follows the most prompts; about N times the decoding time; default 1: one draw)",
+    )
+    gen.add_argument(
+        "--judge",
+        default=None,
+        help="the evaluator that picks among --candidates: a checkpoint, run id or models:/... "
+        "(default: models:/mmm-evaluator@champion, else the newest `make train-evaluator` result)",
+    )
     add_generation_options(gen)
     gen.set_defaults(func=cmd_generate)
 
@@ -97,16 +110,34 @@ def add_generate_long(sub) -> None:
 
 def cmd_generate(args: argparse.Namespace) -> None:
     # imported here: keeps `mmm --help` fast
+    from mmm.evaluation.evaluators import load_judge
+    from mmm.generation.best_of import check_candidates, generate_best_of
     from mmm.generation.outputs import write_samples
 
     check_generation_args(args)
     check_texts([args.text])
+    try:
+        check_candidates(args.candidates, "--candidates")
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+    if args.candidates > 1 and args.trace:
+        raise CLIError(
+            "--trace plots one draw's decoding: leave it out with --candidates, or use --candidates 1"
+        )
     model = load_model(args)
     if args.length is not None:
         model.check_frames(args.length, "--length")
     texts = [args.text] * args.num_samples
     lengths = [args.length] * args.num_samples if args.length else None
-    out = model.generate(texts, lengths, sampling_config(args), args.seed, trace=bool(args.trace))
+    judged = {}
+    if args.candidates > 1:
+        judge = load_judge(args.judge, args.tracking_uri, args.device)
+        out = generate_best_of(
+            model, judge, texts, lengths, args.candidates, sampling_config(args), args.seed
+        )
+        judged = {"candidates": args.candidates, "judge": judge.identity}
+    else:
+        out = model.generate(texts, lengths, sampling_config(args), args.seed, trace=bool(args.trace))
     samples = [
         {
             "features": f,
@@ -122,6 +153,8 @@ def cmd_generate(args: argparse.Namespace) -> None:
                     "length_frames": int(f.shape[0]),
                     "sample": k,
                     "iterations": out.iterations[k],
+                    **judged,
+                    **({"judge_scores": [round(float(v), 4) for v in out.scores[k]]} if judged else {}),
                 },
             ),
         }

@@ -22,6 +22,7 @@ import numpy as np
 
 from mmm.data.humanml3d import MotionItem
 from mmm.data.synthetic.adherence import check_in_order, check_motion
+from mmm.generation.best_of import generate_best_of
 
 # The shortest piece the order-aware check gives an action: the dataset's shortest labelled part
 # (2 s at 20 fps), or the clip's share when the clip is shorter than one per action.
@@ -53,22 +54,12 @@ def item_groups(parts: list[dict]) -> list[str]:
     return groups
 
 
-def prompt_adherence(
-    model,
-    root: str | Path,
-    items: list[MotionItem],
-    sampling=None,
-    seed: int = 0,
-    batch_size: int = 32,
-    max_items: int | None = None,
-) -> dict:
-    """Prompt adherence of a TextToMotion `model` on `items`:
-
-    rate, per_action {actions: (satisfied, total)}: strict; ordered_rate, per_action_ordered: the
-    order-aware check; groups {"single" | "composition" | "counts": {"count", "strict", "ordered"}}
-    (see item_groups); count:
-    items checked; skipped: items without a label or covered part. Actions of a composition are
-    joined with "+" in the label's order."""
+def labelled_captions(
+    model, root: str | Path, items: list[MotionItem], max_items: int | None = None
+) -> tuple[list[tuple[str, int, list[dict]]], int]:
+    """([(caption, frames, label parts)], skipped) of the first `max_items` items: each item's first
+    caption at its length (cut to the model's maximum and unit); skipped counts items without a
+    label or a covered part."""
     root = Path(root)
     if not (root / "labels").is_dir():
         raise FileNotFoundError(
@@ -84,23 +75,53 @@ def prompt_adherence(
             skipped += 1
             continue
         checks.append((item.captions[0].text, frames, parts))
+    return checks, skipped
+
+
+def ordered_pass(joints, frames: int, parts: list[dict]) -> bool:
+    """The order-aware check of one generated motion (T, J, 3) of `frames` frames."""
+    joints = np.asarray(joints)
+    return check_in_order(joints, parts, min_frames=min(_MIN_PART_FRAMES, frames // len(parts))) is not None
+
+
+def prompt_adherence(
+    model,
+    root: str | Path,
+    items: list[MotionItem],
+    sampling=None,
+    seed: int = 0,
+    batch_size: int = 32,
+    max_items: int | None = None,
+    candidates: int = 1,
+    judge=None,
+) -> dict:
+    """Prompt adherence of a TextToMotion `model` on `items` (candidates > 1: each motion the best
+    of that many draws by `judge`, mmm.generation.best_of):
+
+    rate, per_action {actions: (satisfied, total)}: strict; ordered_rate, per_action_ordered: the
+    order-aware check; groups {"single" | "composition" | "counts": {"count", "strict", "ordered"}}
+    (see item_groups); count:
+    items checked; skipped: items without a label or covered part. Actions of a composition are
+    joined with "+" in the label's order."""
+    checks, skipped = labelled_captions(model, root, items, max_items)
     per_action: dict[str, list[int]] = defaultdict(lambda: [0, 0])
     per_action_ordered: dict[str, list[int]] = defaultdict(lambda: [0, 0])
     groups: dict[str, list[int]] = defaultdict(lambda: [0, 0, 0])  # count, strict, ordered
     satisfied = satisfied_ordered = 0
     for b in range(0, len(checks), batch_size):
         chunk = checks[b : b + batch_size]
-        out = model.generate(
-            [c[0] for c in chunk], [c[1] for c in chunk], sampling, seed=seed + b, check_lengths=False
-        )
+        texts, frames = [c[0] for c in chunk], [c[1] for c in chunk]
+        if candidates > 1:
+            out = generate_best_of(
+                model, judge, texts, frames, candidates, sampling, seed=seed + b, check_lengths=False
+            )
+        else:
+            out = model.generate(texts, frames, sampling, seed=seed + b, check_lengths=False)
         for joints, (_, frames, parts) in zip(out.joints, chunk):
             clipped = [{**p, "end": min(p["end"], frames)} for p in parts]
             joints = np.asarray(joints)
             ok = check_motion(joints, clipped).passed
-            in_order = (
-                check_in_order(joints, parts, min_frames=min(_MIN_PART_FRAMES, frames // len(parts)))
-                is not None
-            )
+            in_order = ordered_pass(joints, frames, parts)
             satisfied += ok
             satisfied_ordered += in_order
             key = "+".join(p["action"] for p in parts)

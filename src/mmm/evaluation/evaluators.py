@@ -20,7 +20,7 @@ from mmm.evaluation.contrastive import EvaluatorEmbedder
 from mmm.evaluation.t2m import T2MEvaluator, load_mean_std
 from mmm.fingerprint import tensors_fingerprint
 from mmm.kinds import EVALUATOR
-from mmm.resolve import resolve_model
+from mmm.resolve import champion_reference, resolve_model
 
 EVALUATOR_EXPERIMENT = EVALUATOR.experiment
 
@@ -79,3 +79,16 @@ def load_evaluator(
     embedder.identity = "contrastive-" + tensors_fingerprint(embedder.evaluator.state_dict())
     embedder.name = "contrastive"
     return embedder
+
+
+def load_judge(reference: str | None, tracking_uri: str, device: str = "cpu"):
+    """The package's evaluator as the judge of best of N (mmm.generation.best_of): a checkpoint
+    path, run id or models:/ reference; by default the evaluator champion, else the newest run."""
+    if reference is not None and reference.startswith("t2m:"):
+        raise ValueError(
+            f"judge {reference}: the standard T2M evaluator reads tagged captions, not strings; best of N "
+            "needs the package's own evaluator (a path, run id or models:/mmm-evaluator@champion)"
+        )
+    if reference is None:
+        reference = champion_reference(tracking_uri, EVALUATOR.registered)
+    return load_evaluator(reference, tracking_uri, device)

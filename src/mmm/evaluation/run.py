@@ -6,7 +6,8 @@ One MLflow run per evaluation (experiment mmm-evaluation), named `evaluate-<data
 when it raises). Metrics: `generated/<metric>` and `real/<metric>` (the mean over replications),
 `recon/fid`, `recon/mpjpe_root_aligned_mm`, `recon/mpjpe_global_mm`, `recon/adherence_rate` (labelled
 clips whose actions survive the tokenizer's round trip), `adherence/rate` (strict),
-`adherence/ordered_rate` and per group `adherence/{single,composition,counts}_{strict,ordered}`; the
+`adherence/ordered_rate` and per group `adherence/{single,composition,counts}_{strict,ordered}`
+(`adherence_best<N>/...` with adherence_candidates=N: each motion the best of N by the judge); the
 intervals (1.96·std/sqrt(n)) are in the table and evaluation.json, not charted. The run's
 description holds the table with links to the model's run and registered version; artifacts
 `evaluation.md` (the table) and `evaluation.json`; tags: the model's and evaluator's identities,
@@ -43,10 +44,11 @@ from mmm.data.humanml3d import load_stats
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
 from mmm.evaluation.editing import TASKS, EditingConfig, check_task_model, evaluate_editing, task_label
-from mmm.evaluation.evaluators import load_evaluator
+from mmm.evaluation.evaluators import load_evaluator, load_judge
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.fingerprint import dataset_fingerprint
+from mmm.generation.best_of import check_candidates
 from mmm.generation.model import TextToMotion
 from mmm.motion.features import recover_from_ric
 from mmm.tokenizer.load import load_tokenizer
@@ -85,6 +87,11 @@ class EvaluateConfig:
     split: str = "test"
     what: list[str] = field(default_factory=lambda: ["text2motion", "reconstruction", "adherence"])
     adherence_max_items: int | None = None
+    # Best of N for adherence (mmm.generation.best_of): each motion the best of this many draws by
+    # the judge (path, run id, models:/...; null: the evaluator champion, else the newest run).
+    # The text2motion protocol always draws one: its evaluator would be judging its own choice.
+    adherence_candidates: int = 1
+    adherence_judge: str | None = None
     output_dir: str = "outputs/evaluation"
     device: str = "cpu"
     precision: str | None = None  # fp32 | bf16 | int8 decoding passes; null: the device's default
@@ -195,6 +202,7 @@ def evaluate(cfg_node: DictConfig) -> dict:
 
 def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | None") -> dict:
     editing = cfg.task != "text2motion"
+    check_candidates(cfg.adherence_candidates, "adherence_candidates")
     # parts=True: with no model named, upper-body edits default to the part-aware champion.
     model = TextToMotion.load(
         cfg.text2motion,
@@ -274,17 +282,33 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             + (f"; the labelled actions still there after the round trip: {kept['rate']:.3f}" if kept else "")
         )
     if "adherence" in cfg.what and (root / "labels").is_dir():
+        candidates = cfg.adherence_candidates
+        judge = load_judge(cfg.adherence_judge, tracking_uri, cfg.device) if candidates > 1 else None
         adherence = prompt_adherence(
-            model, root, items, cfg.protocol.sampling, cfg.protocol.seed, max_items=cfg.adherence_max_items
+            model,
+            root,
+            items,
+            cfg.protocol.sampling,
+            cfg.protocol.seed,
+            max_items=cfg.adherence_max_items,
+            candidates=candidates,
+            judge=judge,
         )
+        if judge is not None:
+            results["adherence_judge"] = {"candidates": candidates, "identity": judge.identity}
         results["adherence"] = adherence
-        metrics.update(adherence_metrics(adherence))
+        # Best of N gets its own keys: a plain run and a judged one are not the same measurement.
+        metrics.update(
+            adherence_metrics(adherence, "adherence" if judge is None else f"adherence_best{candidates}")
+        )
         groups = ", ".join(
             f"{name} {g['strict']:.3f} strict / {g['ordered']:.3f} in order ({g['count']})"
             for name, g in adherence["groups"].items()
         )
         lines = [
-            f"**Prompt adherence**: {adherence['rate']:.3f} strict (each action inside its labelled span), "
+            "**Prompt adherence**"
+            + (f" (best of {candidates} by {judge.identity})" if judge is not None else "")
+            + f": {adherence['rate']:.3f} strict (each action inside its labelled span), "
             f"{adherence['ordered_rate']:.3f} order-aware (the actions in the caption's order, wherever they "
             f"meet) of {adherence['count']} {cfg.split} captions ({adherence['skipped']} without a checkable "
             f"label); {groups}",

@@ -1,0 +1,112 @@
+"""Best of N: draw several motions per prompt and keep the one a text-motion judge puts closest to it.
+
+The judge is the package's contrastive evaluator (mmm.evaluation.contrastive), trained on the same
+data: it embeds a caption and a motion in one space, and their cosine says how well the motion does
+what the text says. The N candidates of every prompt are decoded in one batch, so a call costs
+about N times the decoding of one sample, plus one pass of the judge.
+
+Why: one draw of the sampler often misses a detail its next draw gets right (the second action of
+"walks, then jumps", the third of "jumps three times"); the judge sees the difference. More
+candidates are not better without end: the maximum over many draws finds motions the judge rates
+above what they do (README, "Best of N").
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from mmm.generation.model import Generated, TextToMotion
+from mmm.generation.sampler import SamplingConfig
+
+MAX_CANDIDATES = 16
+
+
+def check_candidates(candidates: int, name: str = "candidates") -> int:
+    if (
+        isinstance(candidates, bool)
+        or not isinstance(candidates, int)
+        or not 1 <= candidates <= MAX_CANDIDATES
+    ):
+        raise ValueError(
+            f"{name} {candidates!r} is not allowed: a whole number of motions drawn per prompt, "
+            f"1 to {MAX_CANDIDATES} (1: no judge; 4 follows the most prompts, README 'Best of N')"
+        )
+    return candidates
+
+
+def check_judge(model: TextToMotion, judge) -> None:
+    """Refuse a judge that cannot read this model's motions: another feature layout, or no caption
+    strings (the standard T2M evaluator needs tagged captions)."""
+    if not hasattr(judge, "sentence_embeddings"):
+        raise ValueError(
+            f"the judge {getattr(judge, 'identity', type(judge).__name__)} does not embed caption strings; "
+            "best of N needs the package's own evaluator (`make train-evaluator`, or a path, run id or "
+            "models:/mmm-evaluator@champion)"
+        )
+    dim = (getattr(judge, "info", None) or {}).get("feature_dim")
+    if dim is not None and int(dim) != model.feature_dim:
+        raise ValueError(
+            f"the judge was trained on {dim}-dimensional motion features but the model makes "
+            f"{model.feature_dim}; use an evaluator trained on the model's dataset"
+        )
+
+
+@torch.no_grad()
+def judge_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndarray:
+    """Cosine (B,) of each text with its motion (un-normalized (T_i, D)) in the judge's space."""
+    lengths = [len(f) for f in features]
+    batch = np.zeros((len(features), max(lengths), features[0].shape[-1]), dtype=np.float32)
+    for i, f in enumerate(features):
+        batch[i, : len(f)] = f
+    unique = sorted(set(texts))
+    text = F.normalize(judge.embed_texts(unique).float(), dim=-1)
+    text = text[torch.tensor([unique.index(t) for t in texts])]
+    motion = F.normalize(judge.embed_motions(batch, lengths).float(), dim=-1).to(text.device)
+    return (text * motion).sum(-1).cpu().numpy()
+
+
+def generate_best_of(
+    model: TextToMotion,
+    judge,
+    texts: list[str],
+    frames: list[int] | None = None,
+    candidates: int = 4,
+    sampling: SamplingConfig | None = None,
+    seed: int | None = None,
+    check_lengths: bool = True,
+) -> Generated:
+    """One motion per text (as `model.generate`), the best of `candidates` by the judge's cosine.
+
+    The candidates of a text share its length (estimated once when `frames` is None). The result's
+    `scores` (B, candidates) holds every candidate's cosine; the kept one is each row's maximum.
+    candidates=1 is `model.generate` with the scores added."""
+    check_candidates(candidates)
+    check_judge(model, judge)
+    started = time.perf_counter()
+    frames = list(frames) if frames is not None else model.estimate_frames(texts)
+    if len(frames) != len(texts):
+        raise ValueError(f"{len(texts)} texts but {len(frames)} lengths")
+    n = len(texts)
+    # Candidate-major rows: row k * n + i is candidate k of text i.
+    drawn = model.generate(
+        texts * candidates, frames * candidates, sampling, seed, check_lengths=check_lengths
+    )
+    t0 = time.perf_counter()
+    scores = judge_scores(judge, texts * candidates, drawn.features).reshape(candidates, n).T
+    rows = [int(k) * n + i for i, k in enumerate(scores.argmax(1))]
+    seconds = {**drawn.seconds, "judge": time.perf_counter() - t0}
+    seconds["total"] = time.perf_counter() - started
+    return Generated(
+        list(texts),
+        [drawn.features[r] for r in rows],
+        [drawn.joints[r] for r in rows],
+        [drawn.codes[r] for r in rows],
+        [drawn.iterations[r] for r in rows],
+        drawn.forward_passes,
+        seconds,
+        scores=scores,
+    )

@@ -1,0 +1,109 @@
+"""Best of N (mmm.generation.best_of): the judge's choice among candidates, and what it refuses."""
+
+import numpy as np
+import pytest
+import torch
+
+from mmm.generation.best_of import check_candidates, check_judge, generate_best_of, judge_scores
+from mmm.generation.model import Generated
+
+
+class Draws:
+    """Candidate motions whose every frame holds the draw's number: row r of a call is filled with
+    `values[r]` (a stand-in for the sampler's randomness), so the judge's choice can be read back."""
+
+    feature_dim = 3
+
+    def __init__(self, values):
+        self.values, self.calls = values, []
+
+    def estimate_frames(self, texts):
+        return [40 + 4 * len(t) for t in texts]
+
+    def generate(self, texts, frames, sampling=None, seed=None, check_lengths=True):
+        self.calls.append((list(texts), list(frames)))
+        features = [np.full((n, 3), self.values[r], np.float32) for r, n in enumerate(frames)]
+        codes = [np.full(n // 4, r) for r, n in enumerate(frames)]
+        return Generated(list(texts), features, [f[:, None] for f in features], codes, [1] * len(texts), 1)
+
+
+class ValueJudge:
+    """Texts embed as (1, 0); a motion as (cos a, sin a) with a = |its value - the text's target|,
+    so the candidate nearest each text's target value has the highest cosine."""
+
+    info = {"feature_dim": 3}
+    identity = "value-judge"
+
+    def __init__(self, targets):
+        self.targets = targets
+
+    def sentence_embeddings(self, texts):
+        raise AssertionError("not called: embed_texts is")
+
+    def embed_texts(self, texts):
+        self.texts = list(texts)
+        return torch.tensor([[1.0, 0.0]] * len(texts))
+
+    def embed_motions(self, features, lengths):
+        features = torch.as_tensor(features)
+        value = torch.stack([features[i, : int(n)].mean() for i, n in enumerate(lengths)])
+        # Padding past each length must not count: the mean above reads only the valid frames.
+        target = torch.tensor([self.targets[i % len(self.targets)] for i in range(len(value))])
+        angle = (value - target).abs()
+        return torch.stack([angle.cos(), angle.sin()], -1)
+
+
+def test_keeps_each_texts_candidate_the_judge_rates_highest():
+    # Two texts, three candidates each; rows are candidate-major (k * 2 + i).
+    values = [0.9, 0.0, 0.1, 0.5, 0.6, 1.4]
+    model, judge = Draws(values), ValueJudge(targets=[0.5, 1.5])
+    out = generate_best_of(model, judge, ["walk", "jump twice"], [40, 48], candidates=3, seed=0)
+    ((texts, frames),) = model.calls
+    assert texts == ["walk", "jump twice"] * 3 and frames == [40, 48] * 3  # one batch, lengths shared
+    assert out.scores.shape == (2, 3)
+    np.testing.assert_allclose(
+        out.scores, np.cos(np.abs(np.array([[0.9, 0.1, 0.6], [0.0, 0.5, 1.4]]) - [[0.5], [1.5]])), atol=1e-6
+    )
+    # Nearest each target: 0.6 (candidate 2 of text 0, row 4) and 1.4 (candidate 2 of text 1, row 5).
+    assert [float(f[0, 0]) for f in out.features] == [pytest.approx(0.6), pytest.approx(1.4)]
+    assert [len(f) for f in out.features] == [40, 48]
+    assert [int(c[0]) for c in out.codes] == [4, 5]  # the kept rows' own codes
+    assert judge.texts == ["jump twice", "walk"]  # each distinct text embedded once
+    assert "judge" in out.seconds and out.texts == ["walk", "jump twice"]
+
+
+def test_one_candidate_is_the_plain_draw_and_lengths_are_estimated_once():
+    model = Draws([0.3, 0.7])
+    out = generate_best_of(model, ValueJudge([0.0]), ["a", "bb"], None, candidates=1)
+    assert model.calls == [(["a", "bb"], [44, 48])]
+    assert out.scores.shape == (2, 1) and [float(f[0, 0]) for f in out.features] == pytest.approx([0.3, 0.7])
+
+
+def test_judge_scores_ignore_padding_past_each_length():
+    judge = ValueJudge([0.0])
+    short, long = np.full((8, 3), 0.2, np.float32), np.full((20, 3), 0.2, np.float32)
+    np.testing.assert_allclose(judge_scores(judge, ["x", "x"], [short, long]), [np.cos(0.2)] * 2, atol=1e-6)
+
+
+@pytest.mark.parametrize("bad", [0, 17, -1, 2.5, True, "4"])
+def test_candidates_outside_one_to_sixteen_are_refused(bad):
+    with pytest.raises(ValueError, match=r"--candidates .* is not allowed: .* 1 to 16"):
+        check_candidates(bad, "--candidates")
+    assert check_candidates(16) == 16
+
+
+def test_a_judge_that_cannot_read_the_model_is_refused():
+    model = Draws([0.0])
+
+    class OtherLayout(ValueJudge):
+        info = {"feature_dim": 251}
+
+    with pytest.raises(ValueError, match="trained on 251-dimensional motion features but the model makes 3"):
+        check_judge(model, OtherLayout([0.0]))
+
+    class TaggedCaptionsOnly:
+        identity = "t2m-evaluator"
+
+    with pytest.raises(ValueError, match="t2m-evaluator does not embed caption strings"):
+        generate_best_of(model, TaggedCaptionsOnly(), ["walk"], [40], candidates=2)
+    assert model.calls == []  # refused before anything is drawn
