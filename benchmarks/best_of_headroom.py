@@ -1,10 +1,10 @@
 """How much best of N can gain, and how much of it the judge takes (README, "Best of N").
 
 Every caption of a labelled split is drawn N times at its true length (one batch per chunk, as
-`mmm.generation.best_of` draws them); each draw is checked order-aware. Printed per group: one
-draw (the first: what `mmm evaluate` measures with one candidate, from another random stream), the
-judge's pick (what it measures with N), and the share where any of the N passes (what a perfect
-judge would reach).
+`mmm.generation.best_of` draws them); each draw is checked order-aware. Printed per group, on the
+same draws: one draw (the mean over the N: what `mmm evaluate` measures with one candidate, with
+less of one seed's noise), the judge's pick (what it measures with N), and the share where any of
+the N passes (what a perfect judge would reach).
 
     python benchmarks/best_of_headroom.py --data data/synthetic-large --candidates 4 [--model REF]
         [--judge REF] [--seed 0] [--max-items N]
@@ -47,7 +47,7 @@ def main() -> None:
     checks, skipped = labelled_captions(model, root, items, args.max_items)
     print(f"{len(checks)} captions of {root} {args.split} ({skipped} without a checkable label)")
     started = time.perf_counter()
-    tally: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(4))  # captions, first, judge, any
+    tally: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(4))  # captions, one draw, judge, any
     for b in range(0, len(checks), args.batch):
         chunk = checks[b : b + args.batch]
         texts, frames = [c[0] for c in chunk], [c[1] for c in chunk]
@@ -59,12 +59,12 @@ def main() -> None:
         picked = passed[scores.argmax(0), np.arange(len(chunk))]
         for i, (_, _, parts) in enumerate(chunk):
             for group in ["all", *item_groups(parts)]:
-                tally[group] += [1, passed[0, i], picked[i], passed[:, i].any()]
+                tally[group] += [1, passed[:, i].mean(), picked[i], passed[:, i].any()]
     print(f"best of {n}, seed {args.seed}: {time.perf_counter() - started:.0f} s")
     print("| group | captions | one draw | the judge's pick | any of the draws |")
     print("|---|---|---|---|---|")
-    for group, (count, first, picked, any_) in tally.items():
-        print(f"| {group} | {int(count)} | {first / count:.3f} | {picked / count:.3f} | {any_ / count:.3f} |")
+    for group, (count, one, picked, any_) in tally.items():
+        print(f"| {group} | {int(count)} | {one / count:.3f} | {picked / count:.3f} | {any_ / count:.3f} |")
 
 
 if __name__ == "__main__":

@@ -68,7 +68,7 @@ def test_keeps_each_texts_candidate_the_judge_rates_highest():
     assert [float(f[0, 0]) for f in out.features] == [pytest.approx(0.6), pytest.approx(1.4)]
     assert [len(f) for f in out.features] == [40, 48]
     assert [int(c[0]) for c in out.codes] == [4, 5]  # the kept rows' own codes
-    assert judge.texts == ["jump twice", "walk"]  # each distinct text embedded once
+    assert judge.texts == ["walk", "jump twice"]  # each distinct text embedded once
     assert "judge" in out.seconds and out.texts == ["walk", "jump twice"]
 
 

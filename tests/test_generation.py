@@ -416,7 +416,6 @@ def test_cli_edit_and_long(trained, tmp_path, capsys):
             "inbetween keeps a start and an end",
         ),
         (["generate-long", "--lengths", "80"], "give the prompts either as --text"),
-        (["generate", "--text", "walk", "--candidates", "0"], "--candidates 0 is not allowed"),
         (["generate", "--text", "walk", "--candidates", "2", "--trace"], "--trace plots one draw's decoding"),
     ],
 )

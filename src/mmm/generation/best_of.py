@@ -62,9 +62,9 @@ def judge_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndar
     batch = np.zeros((len(features), max(lengths), features[0].shape[-1]), dtype=np.float32)
     for i, f in enumerate(features):
         batch[i, : len(f)] = f
-    unique = sorted(set(texts))
-    text = F.normalize(judge.embed_texts(unique).float(), dim=-1)
-    text = text[torch.tensor([unique.index(t) for t in texts])]
+    unique = {t: i for i, t in enumerate(dict.fromkeys(texts))}  # each distinct text embedded once
+    text = F.normalize(judge.embed_texts(list(unique)).float(), dim=-1)
+    text = text[torch.tensor([unique[t] for t in texts])]
     motion = F.normalize(judge.embed_motions(batch, lengths).float(), dim=-1).to(text.device)
     return (text * motion).sum(-1).cpu().numpy()
 
