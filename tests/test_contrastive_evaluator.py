@@ -316,6 +316,7 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
         "logger.tracking_uri": uri,
         "logger.artifact_root": f"{tmp_path}/art",
         "registry.name": "test-evaluator",
+        "loss.counterfactuals": "[count,speed]",  # every caption "<action> twice" has three
     }
     result = train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
     client = MlflowClient(uri)
@@ -346,6 +347,8 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
         "test/matching_distance",
         "test/items",
         "baseline/shuffled_r_precision_top1",
+        "test/counterfactual_count_first",
+        "test/counterfactual_count_captions",
         "time/fit_s",
         "time/total_s",
     }
@@ -358,6 +361,11 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
         0.0 <= m["test/r_precision_top1"] <= m["test/r_precision_top2"] <= m["test/r_precision_top3"] <= 1.0
     )
     assert 0.0 < m["test/matching_distance"] <= 2.0  # unit-length embeddings
+    # Each of the 40 test items has one "twice" caption; no caption names a speed.
+    assert (
+        m["test/counterfactual_count_captions"] == 40 and 0.0 <= m["test/counterfactual_count_first"] <= 1.0
+    )
+    assert "test/counterfactual_speed_first" not in m
     assert m["test/r_precision_top1"] == pytest.approx(result.metrics["test/r_precision_top1"])
     assert {f.path for f in client.list_artifacts(result.run_id)} >= {"config.yaml", "checkpoints"}
     assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {

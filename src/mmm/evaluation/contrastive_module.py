@@ -11,7 +11,7 @@ load with torch.load(weights_only=True); the network sits under `evaluator.`, wh
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import lightning as L
 import numpy as np
@@ -30,6 +30,10 @@ class ContrastiveLossConfig:
     # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
     # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
     false_negative_threshold: float | None = 0.95
+    # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
+    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
+    # negatives only.
+    counterfactuals: list[str] = field(default_factory=list)
 
 
 def false_negative_mask(sentences: torch.Tensor, threshold: float | None) -> torch.Tensor | None:
@@ -47,24 +51,35 @@ def info_nce_loss(
     motion: torch.Tensor,
     logit_scale: torch.Tensor | float,
     exclude: torch.Tensor | None = None,
+    hard_text: torch.Tensor | None = None,
+    hard_mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Symmetric InfoNCE: text i's positive is motion i and vice versa, the other rows negatives.
 
     text, motion: (B, E), L2-normalized here; logits = scale * cosine (B, B). The loss is the mean
     of the text->motion cross-entropy (rows) and the motion->text one (columns). `exclude` (B, B)
     bool removes off-diagonal pairs from the negatives (the diagonal is always kept).
+    hard_text (B, K, E) with hard_mask (B, K) bool (True: a real one): captions that only motion i
+    must rank below its own (its caption's counterfactuals), added to motion i's candidates.
     """
     t, m = F.normalize(text.float(), dim=-1), F.normalize(motion.float(), dim=-1)
-    logits = torch.as_tensor(logit_scale, dtype=t.dtype, device=t.device) * (t @ m.T)
+    scale = torch.as_tensor(logit_scale, dtype=t.dtype, device=t.device)
+    logits = scale * (t @ m.T)
     if exclude is not None:
         exclude = exclude & ~torch.eye(len(t), dtype=torch.bool, device=t.device)
         logits = logits.masked_fill(exclude, float("-inf"))
     target = torch.arange(len(t), device=t.device)
-    return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target))
+    motion_to_text = logits.T
+    if hard_text is not None and hard_text.shape[1] > 0:
+        hard = scale * torch.einsum("be,bke->bk", m, F.normalize(hard_text.float(), dim=-1))
+        hard = hard.masked_fill(~hard_mask, float("-inf"))
+        motion_to_text = torch.cat([motion_to_text, hard], dim=1)
+    return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(motion_to_text, target))
 
 
 class ContrastiveEvaluatorModule(L.LightningModule):
-    """Trains a ContrastiveEvaluator on {"motion" (B, T, D) normalized, "lengths" (B,), "sentence" (B, Ds)}.
+    """Trains a ContrastiveEvaluator on {"motion" (B, T, D) normalized, "lengths" (B,), "sentence" (B, Ds)},
+    with hard negatives when the batch holds "counterfactual" (B, K, Ds) and "counterfactual_mask" (B, K).
 
     text_encoder: the frozen encoder whose sentence embeddings it reads ({"name", "identity", ...});
     data: what it was trained on ({"name", "root", "fingerprint"}). Both go into the checkpoint.
@@ -117,7 +132,11 @@ class ContrastiveEvaluatorModule(L.LightningModule):
         motion = ev.motion_features(batch["motion"], batch["lengths"])
         text = ev.text_features(batch["sentence"])
         exclude = false_negative_mask(batch["sentence"], self.loss_cfg.false_negative_threshold)
-        return info_nce_loss(text, motion, ev.scale(), exclude), text, motion
+        hard = batch.get("counterfactual")
+        if hard is not None:
+            hard = ev.text_features(hard.flatten(0, 1)).unflatten(0, hard.shape[:2])
+        loss = info_nce_loss(text, motion, ev.scale(), exclude, hard, batch.get("counterfactual_mask"))
+        return loss, text, motion
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         loss, text, motion = self._loss(batch)

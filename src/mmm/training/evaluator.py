@@ -39,10 +39,12 @@ from mmm.data.resumable import ResumableDataLoader
 from mmm.evaluation.contrastive import (
     ContrastiveEvaluator,
     ContrastiveModelConfig,
+    EvaluatorEmbedder,
     load_contrastive_evaluator,
     retrieval_metrics,
 )
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule, ContrastiveLossConfig
+from mmm.evaluation.counterfactuals import counterfactual_captions, counterfactual_ranking
 from mmm.fingerprint import dataset_fingerprint
 from mmm.kinds import EVALUATOR
 from mmm.registry.versions import WEIGHTS_SHA256, freeze_weights
@@ -121,14 +123,32 @@ class EvaluatorTrainResult(TrainResult):
 
 class CaptionedMotionCollator:
     """collate_motions plus the captions' cached sentence embeddings: {"motion" (B, T, D),
-    "lengths" (B,), "sentence" (B, Ds), "captions", "names"}. Picklable (loader workers)."""
+    "lengths" (B,), "sentence" (B, Ds), "captions", "names"}. With `counterfactuals` (kinds, see
+    mmm.evaluation.counterfactuals) also each caption's counterfactuals, the hard negatives:
+    "counterfactual" (B, K, Ds) zero-padded and "counterfactual_mask" (B, K), K the most any caption
+    has (0 when none has one). Picklable (loader workers)."""
 
-    def __init__(self, caption_cache):
+    def __init__(self, caption_cache, counterfactuals: list[str] | tuple[str, ...] = ()):
         self.caption_cache = caption_cache
+        self.counterfactuals = tuple(counterfactuals)
 
     def __call__(self, batch: list[dict]) -> dict:
         out = collate_motions(batch)
         out["sentence"] = self.caption_cache.lookup(out["captions"]).sentence
+        if self.counterfactuals:
+            variants = [counterfactual_captions(c, self.counterfactuals) for c in out["captions"]]
+            K = max(map(len, variants))
+            hard = torch.zeros(len(variants), K, out["sentence"].shape[-1])
+            mask = torch.zeros(len(variants), K, dtype=torch.bool)
+            flat = [v for vs in variants for v in vs]
+            if flat:
+                sentences = self.caption_cache.lookup(flat).sentence
+                row = 0
+                for i, vs in enumerate(variants):
+                    hard[i, : len(vs)] = sentences[row : row + len(vs)]
+                    mask[i, : len(vs)] = True
+                    row += len(vs)
+            out["counterfactual"], out["counterfactual_mask"] = hard, mask
         return out
 
 
@@ -271,6 +291,8 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
     captions = sorted(
         {c.text for split_items in items.values() for item in split_items for c in item.captions}
     )
+    # Every caption's counterfactuals: the hard negatives in training, and the test ranking below.
+    captions += sorted({v for c in captions for v in counterfactual_captions(c)} - set(captions))
     counts = caption_cache.build(text_encoder, captions, progress=cfg.trainer.enable_progress_bar)
     cache_seconds = time.perf_counter() - cache_started
     log.info(
@@ -286,7 +308,7 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
         seeded_order(len(items["val"]), cfg.seed + 1),
     )
     val_batch = min(cfg.retrieval.batch_size, len(val))
-    collate = CaptionedMotionCollator(caption_cache)
+    collate = CaptionedMotionCollator(caption_cache, cfg.loss.counterfactuals)
 
     text = text_record(text_encoder, cfg.text)
     data = {
@@ -366,6 +388,12 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
         evaluator, test, sentences_of, cfg.retrieval.batch_size, cfg.retrieval.seed, shuffle_captions=True
     )
     evaluation = {f"test/{k}": v for k, v in scores.items()}
+    # Does it read how often and how fast: the real test motion's own caption against the same
+    # caption with its count or speed changed.
+    embedder = EvaluatorEmbedder(evaluator, text_encoder=text_encoder, caption_cache=caption_cache)
+    for kind, row in counterfactual_ranking(embedder, items["test"]).items():
+        evaluation[f"test/counterfactual_{kind}_first"] = row["first"]
+        evaluation[f"test/counterfactual_{kind}_captions"] = float(row["captions"])
     evaluation.update(
         {f"baseline/shuffled_{k}": v for k, v in chance.items() if k not in ("items", "batch_size")}
     )
