@@ -147,6 +147,77 @@ def test_module_learns_a_known_length_and_checkpoint_loads_weights_only(tmp_path
         load_length_estimator(tmp_path / "other.ckpt")
 
 
+def test_word_pooling_shapes_padding_and_refusals():
+    torch.manual_seed(0)
+    net = LengthEstimator(
+        12, LengthModelConfig(hidden_dim=32, dropout=0.0, pooling="words"), word_dim=8
+    ).eval()
+    sentence, words = torch.randn(3, 12), torch.randn(3, 5, 8)
+    mask = torch.tensor([[True] * 5, [True] * 2 + [False] * 3, [True] + [False] * 4])
+    logits = net(sentence, words, mask)
+    assert logits.shape == (3, 49)
+    # What sits at padded positions never reaches the prediction.
+    noisy = words.clone()
+    noisy[~mask] = 100.0
+    assert torch.allclose(net(sentence, noisy, mask), logits, atol=1e-6)
+    assert net.predict(sentence, words=words, word_mask=mask).shape == (3,)
+    with pytest.raises(ValueError, match="reads the caption's words"):
+        net(sentence)
+    with pytest.raises(ValueError, match=r"\(B=3, L, 8\)"):
+        net(sentence, torch.randn(3, 5, 9), mask)
+    with pytest.raises(ValueError, match="needs the text encoder's word_dim"):
+        LengthEstimator(12, LengthModelConfig(pooling="words"))
+    with pytest.raises(ValueError, match="pooling must be one of sentence, words"):
+        LengthModelConfig(pooling="tokens")
+    # A sentence-pooled estimator ignores words given to it (one call site serves both).
+    plain = small()
+    x = torch.randn(3, 12)
+    assert torch.equal(plain(x), plain(x, words, mask))
+
+
+def test_word_pooling_learns_what_the_sentence_embedding_hides():
+    """Two captions with the same sentence embedding, one with a second verb token (the second
+    action of "walks forward and jumps"): 10 and 30 tokens. Only the word pool can tell them apart."""
+    torch.manual_seed(0)
+    n, dw = 256, 8
+    second = torch.rand(n) < 0.5
+    sentence = torch.ones(n, 12)
+    words = torch.zeros(n, 3, dw)
+    words[:, 0, 0] = 1.0  # the first verb, in every caption
+    words[second, 1, 1] = 1.0  # the second verb
+    mask = torch.ones(n, 3, dtype=torch.bool)
+    mask[~second, 1:] = False
+    codes = torch.where(second, 30, 10)
+    accuracy = {}
+    for pooling in ("sentence", "words"):
+        torch.manual_seed(0)
+        net = LengthEstimator(12, LengthModelConfig(hidden_dim=32, dropout=0.0, pooling=pooling), word_dim=dw)
+        optimizer = torch.optim.Adam(net.parameters(), lr=1e-2)
+        for _ in range(150):
+            loss = torch.nn.functional.cross_entropy(net(sentence, words, mask), codes - 1)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        net.eval()
+        predicted = net.predict(sentence, words=words, word_mask=mask)
+        accuracy[pooling] = float((predicted == codes).float().mean())
+    assert accuracy["words"] == 1.0
+    assert accuracy["sentence"] <= 0.6  # one count for both: the share of the more frequent one
+
+
+def test_a_checkpoint_without_pooling_reads_the_sentence_only(tmp_path):
+    """Estimators trained before the word pool record neither `pooling` nor `word_dim`."""
+    module = LengthEstimatorModule(12, LengthModelConfig(hidden_dim=16))
+    hp = dict(module.hparams)
+    hp["model"] = {k: v for k, v in hp["model"].items() if k != "pooling"}
+    hp.pop("word_dim")
+    state = {f"estimator.{k}": v for k, v in module.estimator.state_dict().items()}
+    torch.save({"hyper_parameters": hp, "state_dict": state}, tmp_path / "old.ckpt")
+    loaded = load_length_estimator(tmp_path / "old.ckpt")
+    x = torch.randn(4, 12)
+    assert not loaded.reads_words and torch.allclose(loaded(x), module.estimator.eval()(x), atol=1e-6)
+
+
 def _train_stage1(root, out):
     return train_tiny_stage1(root, out)
 
@@ -212,8 +283,11 @@ def test_train_length_end_to_end_is_tracked(walker_dataset, tmp_path):
     estimator = load_length_estimator(result.best_checkpoint)
     from mmm.text import CaptionEmbeddingCache
 
-    sentence = (
-        CaptionEmbeddingCache(f"{tmp_path}/text", tags["text_encoder"]).lookup(["a person turns"]).sentence
-    )
-    frames = estimator.frames(sentence)
+    text = CaptionEmbeddingCache(f"{tmp_path}/text", tags["text_encoder"]).lookup(["a person turns"])
+    # The default pools the caption's words beside its sentence embedding: both are recorded and needed.
+    assert estimator.reads_words and ckpt["hyper_parameters"]["word_dim"] == text.words.shape[-1]
+    assert run.data.params["model.pooling"] == "words"
+    frames = estimator.frames(text.sentence, words=text.words, word_mask=text.word_mask)
     assert frames.shape == (1,) and 4 <= int(frames) <= 196 and int(frames) % 4 == 0
+    with pytest.raises(ValueError, match="reads the caption's words"):
+        estimator.frames(text.sentence)

@@ -1,10 +1,14 @@
 """Motion length from text: a small classifier over token counts, as MoMask's length estimator.
 
 Generation needs a target length. When the user gives none, `LengthEstimator` predicts it from the
-caption's sentence embedding (the same frozen text encoder as stage 2): an MLP gives logits over
-token counts 1..max_codes (49 = 196 frames / 4), trained with cross-entropy. `predict` takes the
-most likely count or samples one (MoMask samples); `frames` multiplies by the tokenizer's
-downsampling (4).
+caption (the same frozen text encoder as stage 2): an MLP gives logits over token counts
+1..max_codes (49 = 196 frames / 4), trained with cross-entropy. `predict` takes the most likely
+count or samples one (MoMask samples); `frames` multiplies by the tokenizer's downsampling (4).
+
+What the MLP reads (`pooling`): MoMask's "sentence" is the sentence embedding alone; "words" adds
+an attention-weighted mean of the caption's per-token features. A sentence embedding of "a man
+walks forward and jumps" lies near "a man jumps", so the first estimator gives it a single
+action's length; the word pool sees the second verb (README, "Generating and editing").
 
 This file is the network and its inference side (no Lightning): `LengthEstimator`, its config,
 `length_metrics` and `load_length_estimator(path)`, which gives the network of a training
@@ -22,6 +26,8 @@ import torch.nn as nn
 from mmm.checkpoints import CheckpointError, load_checkpoint, load_state
 from mmm.config import as_config
 
+POOLINGS = ("sentence", "words")
+
 
 @dataclass
 class LengthModelConfig:
@@ -30,8 +36,15 @@ class LengthModelConfig:
     dropout: float = 0.1
     max_codes: int = 49  # counts 1..max_codes are the classes (196 frames / 4)
     unit_length: int = 4  # frames per token (the tokenizer's temporal downsampling)
+    # "sentence": the sentence embedding only (MoMask's; checkpoints without the key); "words": an
+    # attention pool over the per-token features beside it.
+    pooling: str = "sentence"
 
     def __post_init__(self):
+        if self.pooling not in POOLINGS:
+            raise ValueError(
+                f"length model: pooling must be one of {', '.join(POOLINGS)}, got {self.pooling!r}"
+            )
         if self.num_layers < 1 or self.hidden_dim < 1 or self.max_codes < 1 or self.unit_length < 1:
             raise ValueError(
                 "length model: num_layers, hidden_dim, max_codes and unit_length must be positive, got "
@@ -51,14 +64,28 @@ def median_count(logits: torch.Tensor) -> torch.Tensor:
 
 
 class LengthEstimator(nn.Module):
-    """Sentence embedding (B, Ds) -> logits (B, max_codes); class c is a count of c + 1 tokens."""
+    """Caption -> logits (B, max_codes); class c is a count of c + 1 tokens.
 
-    def __init__(self, sentence_dim: int, cfg: LengthModelConfig | dict | None = None):
+    Reads the sentence embedding (B, Ds), and with pooling "words" also the per-token features
+    (B, L, Dw) with their mask (B, L) (True at real tokens): each token is projected to hidden_dim,
+    scored, and the softmax-weighted mean joins the sentence embedding at the MLP's input.
+    """
+
+    def __init__(
+        self, sentence_dim: int, cfg: LengthModelConfig | dict | None = None, word_dim: int | None = None
+    ):
         super().__init__()
         cfg = as_config(LengthModelConfig, cfg) if cfg is not None else LengthModelConfig()
         self.cfg, self.sentence_dim = cfg, int(sentence_dim)
-        layers: list[nn.Module] = []
         width = self.sentence_dim
+        if cfg.pooling == "words":
+            if not word_dim:
+                raise ValueError("length model: pooling 'words' needs the text encoder's word_dim")
+            self.word_dim = int(word_dim)
+            self.word_proj = nn.Linear(self.word_dim, cfg.hidden_dim)
+            self.word_score = nn.Linear(cfg.hidden_dim, 1)
+            width += cfg.hidden_dim
+        layers: list[nn.Module] = []
         for _ in range(cfg.num_layers):
             layers += [
                 nn.Linear(width, cfg.hidden_dim),
@@ -78,15 +105,34 @@ class LengthEstimator(nn.Module):
     def unit_length(self) -> int:
         return self.cfg.unit_length
 
-    def forward(self, sentence: torch.Tensor) -> torch.Tensor:
-        return self.logits(sentence)
+    @property
+    def reads_words(self) -> bool:
+        return self.cfg.pooling == "words"
 
-    def logits(self, sentence: torch.Tensor) -> torch.Tensor:
+    def forward(self, sentence, words=None, word_mask=None) -> torch.Tensor:
+        return self.logits(sentence, words, word_mask)
+
+    def logits(
+        self, sentence: torch.Tensor, words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
         if sentence.dim() != 2 or sentence.shape[1] != self.sentence_dim:
             raise ValueError(
                 f"expected sentence embeddings (B, {self.sentence_dim}), got {tuple(sentence.shape)}"
             )
-        return self.head(self.mlp(sentence.to(self.head.weight.dtype)))
+        x = sentence.to(self.head.weight.dtype)
+        if self.reads_words:
+            if words is None or word_mask is None:
+                raise ValueError("this length estimator reads the caption's words: pass words and word_mask")
+            if words.dim() != 3 or words.shape[0] != len(sentence) or words.shape[2] != self.word_dim:
+                raise ValueError(
+                    f"expected word features (B={len(sentence)}, L, {self.word_dim}), "
+                    f"got {tuple(words.shape)}"
+                )
+            tokens = torch.tanh(self.word_proj(words.to(x.dtype)))
+            weight = self.word_score(tokens).squeeze(-1).masked_fill(~word_mask.bool(), float("-inf"))
+            pooled = (weight.softmax(-1).unsqueeze(-1) * tokens).sum(1)
+            x = torch.cat([x, pooled], dim=-1)
+        return self.head(self.mlp(x))
 
     @torch.no_grad()
     def predict(
@@ -97,8 +143,11 @@ class LengthEstimator(nn.Module):
         temperature: float = 1.0,
         min_codes: int = 1,
         max_codes: int | None = None,
+        words: torch.Tensor | None = None,
+        word_mask: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """(B,) int64 token counts in [min_codes, max_codes] (default 1..self.max_codes).
+        """(B,) int64 token counts in [min_codes, max_codes] (default 1..self.max_codes); words and
+        word_mask for an estimator that reads them.
 
         mode="mode": the most likely count; mode="sample": a draw from softmax(logits / temperature)
         (what MoMask does), reproducible with `generator`; mode="median": the median of the
@@ -111,7 +160,7 @@ class LengthEstimator(nn.Module):
             raise ValueError(
                 f"predict: need 1 <= min_codes ({min_codes}) <= max_codes ({high}) <= {self.max_codes}"
             )
-        logits = self.logits(sentence).float()
+        logits = self.logits(sentence, words, word_mask).float()
         counts = torch.arange(1, self.max_codes + 1, device=logits.device)
         allowed = (counts >= min_codes) & (counts <= high)
         logits = logits.masked_fill(~allowed, float("-inf"))  # at least one class stays finite
@@ -151,7 +200,7 @@ def load_length_estimator(path: str | Path, map_location: str | torch.device = "
     ckpt = load_checkpoint(path, "length", map_location=map_location)
     hp = ckpt["hyper_parameters"]
     try:
-        estimator = LengthEstimator(hp["sentence_dim"], hp["model"])
+        estimator = LengthEstimator(hp["sentence_dim"], hp["model"], hp.get("word_dim"))
     except (TypeError, ValueError, KeyError) as e:
         raise CheckpointError(
             f"{path}: its hyper-parameters do not describe a length estimator ({e}); use the checkpoint as "

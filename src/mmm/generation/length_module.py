@@ -23,7 +23,9 @@ from mmm.training.optim import OptimConfig, build_optimizer
 
 
 class LengthEstimatorModule(L.LightningModule):
-    """Trains a LengthEstimator on batches {"sentence" (B, Ds) float, "codes" (B,) int token counts}.
+    """Trains a LengthEstimator on batches {"sentence" (B, Ds) float, "codes" (B,) int token counts},
+    plus "words" (B, L, Dw) and "word_mask" (B, L) for an estimator with pooling "words" (word_dim:
+    the text encoder's per-token feature size).
 
     text_encoder / stage1: identities recorded with the model (the estimator is only valid with the
     text encoder it was trained on; stage 1 defines what a token count is).
@@ -37,6 +39,7 @@ class LengthEstimatorModule(L.LightningModule):
         label_smoothing: float = 0.0,
         text_encoder: dict | None = None,
         stage1: dict | None = None,
+        word_dim: int | None = None,
     ):
         super().__init__()
         model = as_config(LengthModelConfig, model) if model is not None else LengthModelConfig()
@@ -44,6 +47,7 @@ class LengthEstimatorModule(L.LightningModule):
         self.save_hyperparameters(
             {
                 "sentence_dim": int(sentence_dim),
+                "word_dim": None if word_dim is None else int(word_dim),
                 "model": asdict(model),
                 "optim": asdict(optim),
                 "label_smoothing": float(label_smoothing),
@@ -53,7 +57,7 @@ class LengthEstimatorModule(L.LightningModule):
             logger=False,
         )
         self.model_cfg, self.optim_cfg, self.label_smoothing = model, optim, float(label_smoothing)
-        self.estimator = LengthEstimator(sentence_dim, model)
+        self.estimator = LengthEstimator(sentence_dim, model, word_dim)
         self.val_metrics = nn.ModuleDict(
             {
                 name: MeanMetric()
@@ -61,12 +65,15 @@ class LengthEstimatorModule(L.LightningModule):
             }
         )
 
+    def _logits(self, batch: dict) -> torch.Tensor:
+        return self.estimator.logits(batch["sentence"], batch.get("words"), batch.get("word_mask"))
+
     def _loss(self, logits: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
         target = codes.long().clamp(1, self.model_cfg.max_codes) - 1
         return F.cross_entropy(logits.float(), target, label_smoothing=self.label_smoothing)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        logits = self.estimator.logits(batch["sentence"])
+        logits = self._logits(batch)
         loss = self._loss(logits, batch["codes"])
         hits = length_metrics(logits.argmax(-1) + 1, batch["codes"], self.model_cfg.unit_length)
         self.log_dict(
@@ -78,7 +85,7 @@ class LengthEstimatorModule(L.LightningModule):
         return loss
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
-        logits = self.estimator.logits(batch["sentence"])
+        logits = self._logits(batch)
         n = len(batch["codes"])
         self.val_metrics["loss"].update(
             F.cross_entropy(logits.float(), batch["codes"].long().clamp(1, self.model_cfg.max_codes) - 1),

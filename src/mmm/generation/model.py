@@ -412,7 +412,11 @@ class TextToMotion:
             )
         emb = self.encode_text(texts)
         codes = self.length_estimator.predict(
-            emb.sentence, mode="median", min_codes=self.min_frames // self.unit
+            emb.sentence,
+            mode="median",
+            min_codes=self.min_frames // self.unit,
+            words=emb.words,
+            word_mask=emb.word_mask,
         )
         return [int(min(c * self.unit, self.max_frames)) for c in codes.tolist()]
 

@@ -3,8 +3,8 @@
 It reads what stage 2 reads: the dataset's items tokenized by a stage-1 model (`stage1=`: a
 checkpoint, an MLflow run id, a models:/ URI; the newest finished stage-1 run when none is named)
 and the cached caption embeddings of the configured text encoder, both through
-`prepare_stage2_data`. Every caption of an item gives one pair (sentence embedding, the item's
-token count). The run is tracked like the stages: resolved config, per-step loss, validation
+`prepare_stage2_data`. Every caption of an item gives one pair (the caption's embeddings, the
+item's token count). The run is tracked like the stages: resolved config, per-step loss, validation
 metrics, best/last checkpoints as artifacts, tags naming the text encoder, the data and the
 stage-1 model; it also logs, as `baseline/*`, what always predicting the training set's most
 frequent count (and, for the error in frames, its median count) scores on validation.
@@ -100,22 +100,37 @@ def stage2_view(cfg_node: DictConfig) -> DictConfig:
 
 
 class LengthPairs(Dataset):
-    """(sentence embedding, token count) pairs held in memory: {"sentence" (Ds,), "codes" ()}."""
+    """(caption, token count) pairs: {"caption", "codes" ()}; `LengthBatch` embeds a batch of them."""
 
-    def __init__(self, sentences: torch.Tensor, codes: torch.Tensor):
-        self.sentences, self.codes = sentences.float(), codes.long()
+    def __init__(self, captions: list[str], codes: torch.Tensor):
+        self.captions, self.codes = list(captions), codes.long()
 
     def __len__(self) -> int:
         return len(self.codes)
 
     def __getitem__(self, index: int) -> dict:
         index = index % len(self.codes)  # ShardedRandomSampler tags indices with the epoch
-        return {"sentence": self.sentences[index], "codes": self.codes[index]}
+        return {"caption": self.captions[index], "codes": self.codes[index]}
 
 
-def build_length_pairs(datamodule, split: str, max_codes: int, chunk: int = 512) -> LengthPairs:
+class LengthBatch:
+    """Collates LengthPairs items into {"sentence" (B, Ds), "codes" (B,)} from the caption cache,
+    with "words" (B, L, Dw) and "word_mask" (B, L) when `words` is set. Picklable (loader workers)."""
+
+    def __init__(self, caption_cache, words: bool):
+        self.caption_cache, self.words = caption_cache, bool(words)
+
+    def __call__(self, batch: list[dict]) -> dict:
+        text = self.caption_cache.lookup([b["caption"] for b in batch])
+        out = {"sentence": text.sentence, "codes": torch.stack([b["codes"] for b in batch])}
+        if self.words:
+            out["words"], out["word_mask"] = text.words, text.word_mask
+        return out
+
+
+def build_length_pairs(datamodule, split: str, max_codes: int) -> LengthPairs:
     """Every caption of every item of `split` with the item's token count (items without a code are
-    left out); the sentence embeddings come from the datamodule's caption cache."""
+    left out); their embeddings come from the datamodule's caption cache, a batch at a time."""
     items, _ = datamodule._items(split)
     codes_of = TokenTextDataset(
         items, datamodule.tokens, unit_length=datamodule.cfg.unit_length, max_codes=max_codes, augment=False
@@ -132,13 +147,7 @@ def build_length_pairs(datamodule, split: str, max_codes: int, chunk: int = 512)
         raise ValueError(
             f"{datamodule.root}: no {split} item has a token; the length estimator has nothing to learn from"
         )
-    sentences = torch.cat(
-        [
-            datamodule.caption_cache.lookup(captions[i : i + chunk]).sentence
-            for i in range(0, len(captions), chunk)
-        ]
-    )
-    return LengthPairs(sentences, torch.tensor(counts, dtype=torch.long))
+    return LengthPairs(captions, torch.tensor(counts, dtype=torch.long))
 
 
 def constant_baseline(train: LengthPairs, val: LengthPairs, unit_length: int) -> dict[str, float]:
@@ -179,7 +188,9 @@ def train_length(cfg_node: DictConfig) -> TrainResult:
         cfg.label_smoothing,
         text_record(text_encoder, cfg.text),
         stage1_record(source),
+        word_dim=text_encoder.word_dim,
     )
+    collate = LengthBatch(datamodule.caption_cache, words=module.estimator.reads_words)
     run = TrackedRun(
         LENGTH,
         cfg_node,
@@ -194,7 +205,8 @@ def train_length(cfg_node: DictConfig) -> TrainResult:
         dataset=(cfg.data.name, cfg.data.root, datamodule.data_fingerprint),
         metrics=baseline,
         description=(
-            f"Length estimator (caption -> codes) over {text_encoder.identity} sentence embeddings, on the "
+            f"Length estimator (caption -> codes) over {text_encoder.identity} embeddings "
+            f"(pooling {cfg.model.pooling}), on the "
             "tokens of "
             f"`{source.reference}`; {len(train)} training pairs. "
             "`baseline/*`: always the most frequent length."
@@ -207,8 +219,11 @@ def train_length(cfg_node: DictConfig) -> TrainResult:
             shuffle=True,
             seed=cfg.seed,
             drop_last=len(train) > cfg.data.batch_size,
+            collate_fn=collate,
         ),
-        "val_dataloaders": ResumableDataLoader(val, cfg.data.batch_size, shuffle=False, seed=cfg.seed),
+        "val_dataloaders": ResumableDataLoader(
+            val, cfg.data.batch_size, shuffle=False, seed=cfg.seed, collate_fn=collate
+        ),
     }
     fit_started = time.perf_counter()
     result, trainer, logger = tracked_fit(run, cfg, module, run_target(cfg), [], loaders=loaders)
