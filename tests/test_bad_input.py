@@ -121,6 +121,14 @@ BEFORE_MODEL = {
         ["--text is empty"],
     ),
     "edit with empty text": (OUTPAINT + ["--text", "  "], ["--text is empty"]),
+    "edit candidates without text": (
+        OUTPAINT + ["--candidates", "4"],
+        ["--candidates", "judges the edited frames against --text"],
+    ),
+    "edit candidates above bound": (
+        OUTPAINT + ["--text", "a person jumps", "--candidates", "17"],
+        ["--candidates 17", "1 to 16"],
+    ),
     # README: a source of the wrong shape
     "source wrong shape": (
         ["edit", "inbetween", "--source", "{bad_shape}", "--keep", "0:40,60:80", "--out", "{out}"],

@@ -4,7 +4,15 @@ import numpy as np
 import pytest
 import torch
 
-from mmm.generation.best_of import check_candidates, check_judge, generate_best_of, judge_scores
+from mmm.generation.best_of import (
+    MIN_JUDGED_FRAMES,
+    check_candidates,
+    check_judge,
+    edit_best_of,
+    edited_span,
+    generate_best_of,
+    judge_scores,
+)
 from mmm.generation.model import Generated
 
 
@@ -107,3 +115,77 @@ def test_a_judge_that_cannot_read_the_model_is_refused():
     with pytest.raises(ValueError, match="t2m-evaluator does not embed caption strings"):
         generate_best_of(model, TaggedCaptionsOnly(), ["walk"], [40], candidates=2)
     assert model.calls == []  # refused before anything is drawn
+
+
+class Edit:
+    """A stand-in EditRequest: every draw keeps codes 0-4 and 15-19 of a 20-code (80-frame) motion,
+    whose frames hold 9.0 there (the source), and fills the generated frames 20:60 with the draw's
+    value. upper=True: an upper-body edit, kept_codes one row per draw."""
+
+    def __init__(self, values, text="a person jumps", upper=False):
+        self.values, self.text, self.upper, self.kind = values, text, upper, "inbetween"
+        self.calls = []
+
+    def run(self, model, source, sampling=None, seed=None, num_samples=1):
+        self.calls.append(num_samples)
+        features = []
+        for r in range(num_samples):
+            f = np.full((80, 3), 9.0, np.float32)
+            f[20:60] = self.values[r]
+            features.append(f)
+        kept = np.zeros(20, bool)
+        kept[:5] = kept[15:] = True
+        if self.upper:
+            kept = np.stack([np.full(20, r % 2 == 0) for r in range(num_samples)])
+        codes = [np.full(20, r) for r in range(num_samples)]
+        return Generated(
+            [self.text] * num_samples,
+            features,
+            [f[:, None] for f in features],
+            codes,
+            [1] * num_samples,
+            1,
+            kept_codes=kept,
+        )
+
+
+class EditModel:
+    feature_dim, unit = 3, 4
+
+
+def test_edit_best_of_judges_the_edited_frames_only():
+    # Two samples, three candidates (candidate-major rows k * 2 + i); the source frames (9.0) would
+    # swamp every candidate's mean if they were judged.
+    values = [0.9, 0.0, 0.1, 0.5, 0.6, 1.4]
+    request = Edit(values)
+    out, span = edit_best_of(request, EditModel(), ValueJudge([0.5]), None, candidates=3, num_samples=2)
+    assert request.calls == [6] and span == (20, 60)
+    assert out.scores.shape == (2, 3)
+    expected = np.cos(np.abs(np.array([[0.9, 0.1, 0.6], [0.0, 0.5, 1.4]]) - 0.5))
+    np.testing.assert_allclose(out.scores, expected, atol=1e-6)
+    # Nearest 0.5: 0.6 for sample 0 (row 4), 0.5 for sample 1 (row 3).
+    assert [float(f[40, 0]) for f in out.features] == [pytest.approx(0.6), pytest.approx(0.5)]
+    assert [int(c[0]) for c in out.codes] == [4, 3] and out.kept_codes.shape == (20,)
+
+
+def test_upper_body_edits_are_judged_whole_and_keep_their_rows_kept_codes():
+    request = Edit([0.0, 5.0, 9.0, 1.0], upper=True)  # whole motions: mean 9.0 * 0.5 + value * 0.5
+    out, span = edit_best_of(request, EditModel(), ValueJudge([9.0]), None, candidates=2, num_samples=2)
+    assert span == (0, 80)
+    # Sample 0: rows 0 (0.0) and 2 (9.0) -> row 2; sample 1: rows 1 (5.0) and 3 (1.0) -> row 1.
+    assert [int(c[0]) for c in out.codes] == [2, 1]
+    assert out.kept_codes.tolist() == [[True] * 20, [False] * 20]  # rows 2 and 1 of the draws
+
+
+def test_edited_span_and_what_edits_best_of_refuses():
+    kept = np.array([True] * 5 + [False] * 10 + [True] * 5)
+    assert edited_span(kept, 80, 4) == (20, 60)
+    assert edited_span(np.array([False] * 10 + [True] * 10), 80, 4) == (0, 40)  # complete: the start new
+    assert edited_span(kept, 58, 4) == (20, 58)  # never past the motion
+    short = np.array([True] * 9 + [False] * 2 + [True] * 9)  # 8 frames < MIN_JUDGED_FRAMES
+    assert MIN_JUDGED_FRAMES == 16 and edited_span(short, 80, 4) == (0, 80)
+    assert edited_span(np.ones(20, bool), 80, 4) == (0, 80) and edited_span(None, 80, 4) == (0, 80)
+    with pytest.raises(ValueError, match="judges the edited part against its text"):
+        edit_best_of(Edit([0.0], text=None), EditModel(), ValueJudge([0.0]), None, candidates=2)
+    with pytest.raises(ValueError, match="candidates 0 is not allowed"):
+        edit_best_of(Edit([0.0]), EditModel(), ValueJudge([0.0]), None, candidates=0)

@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -577,3 +578,28 @@ def test_cli_generate_best_of_keeps_the_top_scored_candidate(trained, own_evalua
     kept = [np.load(dest / str(k) / "features.npy") for k in (0, 1)]
     maxima = [max(json.loads((dest / str(k) / "meta.json").read_text())["judge_scores"]) for k in (0, 1)]
     np.testing.assert_allclose(judge_scores(judge, ["a person walks forward"] * 2, kept), maxima, atol=2e-3)
+
+
+@pytest.mark.slow
+def test_cli_edit_best_of_judges_the_generated_frames(trained, own_evaluator, tmp_path, capsys):
+    from mmm.cli import main
+    from mmm.evaluation.evaluators import load_judge
+    from mmm.generation.best_of import judge_scores
+
+    source = next((Path(trained["walker"]) / "new_joint_vecs").glob("*.npy"))
+    dest = tmp_path / "edit"
+    argv = ["edit", "inbetween", "--source", str(source), "--keep", "0:20,60:80", "--length", "80"]
+    argv += ["--text", "a person walks forward", "--model", trained["checkpoint"]]
+    argv += ["--tracking-uri", trained["uri"], "--out", str(dest)]
+    assert main([*argv, "--candidates", "3", "--judge", own_evaluator.best_checkpoint]) == 0, (
+        capsys.readouterr().err
+    )
+    meta = json.loads((dest / "0" / "meta.json").read_text())
+    assert meta["candidates"] == 3 and meta["judge"].startswith("contrastive-")
+    assert meta["judged_frames"] == [20, 60] and len(meta["judge_scores"]) == 3
+    kept = np.load(dest / "0" / "features.npy")
+    assert kept.shape == (80, 263)
+    # The kept draw is the one the judge rates highest on the generated frames 20:60.
+    judge = load_judge(own_evaluator.best_checkpoint, trained["uri"])
+    score = judge_scores(judge, ["a person walks forward"], [kept[20:60]])
+    np.testing.assert_allclose(score, [max(meta["judge_scores"])], atol=2e-3)

@@ -29,6 +29,31 @@ EDIT_OPTIONS = {
 }
 
 
+def add_best_of_options(parser, kept: str) -> None:
+    parser.add_argument(
+        "--candidates",
+        type=int,
+        default=1,
+        help=f"best of N: draw N motions per sample and keep {kept} "
+        "(4 follows the most prompts; about N times the decoding time; default 1: one draw)",
+    )
+    parser.add_argument(
+        "--judge",
+        default=None,
+        help="the evaluator that picks among --candidates: a checkpoint, run id or models:/... "
+        "(default: models:/mmm-evaluator@champion, else the newest `make train-evaluator` result)",
+    )
+
+
+def check_best_of_args(args: argparse.Namespace) -> None:
+    from mmm.generation.best_of import check_candidates
+
+    try:
+        check_candidates(args.candidates, "--candidates")
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+
+
 def add_generate(sub) -> None:
     gen = sub.add_parser("generate", help="text to motion")
     gen.add_argument("--text", required=True)
@@ -42,19 +67,7 @@ def add_generate(sub) -> None:
     gen.add_argument(
         "--trace", action="store_true", help="also plot the decoding (confidence and mask per iteration)"
     )
-    gen.add_argument(
-        "--candidates",
-        type=int,
-        default=1,
-        help="best of N: draw N motions per sample and keep the one the judge puts closest to the text "
-        "(4 follows the most prompts; about N times the decoding time; default 1: one draw)",
-    )
-    gen.add_argument(
-        "--judge",
-        default=None,
-        help="the evaluator that picks among --candidates: a checkpoint, run id or models:/... "
-        "(default: models:/mmm-evaluator@champion, else the newest `make train-evaluator` result)",
-    )
+    add_best_of_options(gen, "the one the judge puts closest to the text")
     add_generation_options(gen)
     gen.set_defaults(func=cmd_generate)
 
@@ -88,6 +101,7 @@ def add_edit(sub) -> None:
         "--place", type=int, default=0, help="output frame where the source starts (a multiple of 4)"
     )
     edit.add_argument("--num-samples", type=int, default=1)
+    add_best_of_options(edit, "the one whose edited frames the judge puts closest to --text")
     add_generation_options(edit)
     edit.set_defaults(func=cmd_edit)
 
@@ -111,15 +125,12 @@ def add_generate_long(sub) -> None:
 def cmd_generate(args: argparse.Namespace) -> None:
     # imported here: keeps `mmm --help` fast
     from mmm.evaluation.evaluators import load_judge
-    from mmm.generation.best_of import check_candidates, generate_best_of
+    from mmm.generation.best_of import generate_best_of
     from mmm.generation.outputs import write_samples
 
     check_generation_args(args)
     check_texts([args.text])
-    try:
-        check_candidates(args.candidates, "--candidates")
-    except ValueError as e:
-        raise CLIError(str(e)) from None
+    check_best_of_args(args)
     if args.candidates > 1 and args.trace:
         raise CLIError(
             "--trace plots one draw's decoding: leave it out with --candidates, or use --candidates 1"
@@ -172,11 +183,19 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 
 def cmd_edit(args: argparse.Namespace) -> None:
+    from mmm.evaluation.evaluators import load_judge
+    from mmm.generation.best_of import edit_best_of
     from mmm.generation.edits import EditRequest
     from mmm.generation.outputs import write_samples
     from mmm.motion.features import joints_to_features
 
     check_generation_args(args)
+    check_best_of_args(args)
+    if args.candidates > 1 and not args.text:
+        raise CLIError(
+            "--candidates: best of N judges the edited frames against --text; give --text, or leave "
+            "--candidates out"
+        )
     request = EditRequest.parse(
         args.kind,
         text=args.text,
@@ -197,9 +216,17 @@ def cmd_edit(args: argparse.Namespace) -> None:
     if not np.isfinite(source).all():
         raise CLIError(f"{args.source}: contains NaN/Inf values")
     model = load_model(args)
-    out = request.run(model, source.astype(np.float32), sampling_config(args), args.seed, args.num_samples)
-    caption = f"{args.kind}: {args.text or '(no text)'}"
+    source = source.astype(np.float32)
     extra = {"source": str(args.source)}
+    if args.candidates > 1:
+        judge = load_judge(args.judge, args.tracking_uri, args.device)
+        out, span = edit_best_of(
+            request, model, judge, source, args.candidates, sampling_config(args), args.seed, args.num_samples
+        )
+        extra |= {"candidates": args.candidates, "judge": judge.identity, "judged_frames": list(span)}
+    else:
+        out = request.run(model, source, sampling_config(args), args.seed, args.num_samples)
+    caption = f"{args.kind}: {args.text or '(no text)'}"
     if args.kind == UPPER_BODY:
         extra |= {
             "prompt": args.text,
@@ -222,7 +249,17 @@ def cmd_edit(args: argparse.Namespace) -> None:
                 model,
                 out,
                 args.kind,
-                {**extra, "kept_codes": kept[k], "length_frames": int(f.shape[0]), "sample": k},
+                {
+                    **extra,
+                    "kept_codes": kept[k],
+                    "length_frames": int(f.shape[0]),
+                    "sample": k,
+                    **(
+                        {"judge_scores": [round(float(v), 4) for v in out.scores[k]]}
+                        if out.scores is not None
+                        else {}
+                    ),
+                },
             ),
         }
         for k, (f, j) in enumerate(zip(out.features, out.joints))

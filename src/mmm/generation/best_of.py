@@ -5,6 +5,8 @@ data: it embeds a caption and a motion in one space, and their cosine says how w
 what the text says. The N candidates of every prompt are decoded in one batch, so a call costs
 about N times the decoding of one sample, plus one pass of the judge.
 
+Edits (`edit_best_of`) draw N edits of the source and judge only the frames the edit generated.
+
 Why: one draw of the sampler often misses a detail its next draw gets right (the second action of
 "walks, then jumps", the third of "jumps three times"); the judge sees the difference. More
 candidates are not better without end: the maximum over many draws finds motions the judge rates
@@ -57,7 +59,8 @@ def check_judge(model: TextToMotion, judge) -> None:
 
 @torch.no_grad()
 def judge_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndarray:
-    """Cosine (B,) of each text with its motion (un-normalized (T_i, D)) in the judge's space."""
+    """Cosine (B,) of each text with its motion (un-normalized (T_i, D)) in the judge's space
+    (for an edit, what `edited_span` cuts out)."""
     lengths = [len(f) for f in features]
     batch = np.zeros((len(features), max(lengths), features[0].shape[-1]), dtype=np.float32)
     for i, f in enumerate(features):
@@ -67,6 +70,23 @@ def judge_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndar
     text = text[torch.tensor([unique[t] for t in texts])]
     motion = F.normalize(judge.embed_motions(batch, lengths).float(), dim=-1).to(text.device)
     return (text * motion).sum(-1).cpu().numpy()
+
+
+def _keep_best(drawn: Generated, scores: np.ndarray, seconds: dict) -> Generated:
+    """Each row's best candidate of `drawn` (candidate-major rows, scores (n, candidates))."""
+    n = len(scores)
+    rows = [int(k) * n + i for i, k in enumerate(scores.argmax(1))]
+    return Generated(
+        [drawn.texts[r] for r in rows],
+        [drawn.features[r] for r in rows],
+        [drawn.joints[r] for r in rows],
+        [drawn.codes[r] for r in rows],
+        [drawn.iterations[r] for r in rows],
+        drawn.forward_passes,
+        seconds,
+        kept_codes=drawn.kept_codes,
+        scores=scores,
+    )
 
 
 def generate_best_of(
@@ -97,16 +117,56 @@ def generate_best_of(
     )
     t0 = time.perf_counter()
     scores = judge_scores(judge, texts * candidates, drawn.features).reshape(candidates, n).T
-    rows = [int(k) * n + i for i, k in enumerate(scores.argmax(1))]
     seconds = {**drawn.seconds, "judge": time.perf_counter() - t0}
     seconds["total"] = time.perf_counter() - started
-    return Generated(
-        list(texts),
-        [drawn.features[r] for r in rows],
-        [drawn.joints[r] for r in rows],
-        [drawn.codes[r] for r in rows],
-        [drawn.iterations[r] for r in rows],
-        drawn.forward_passes,
-        seconds,
-        scores=scores,
-    )
+    return _keep_best(drawn, scores, seconds)
+
+
+MIN_JUDGED_FRAMES = 16  # shorter edited spans are judged on the whole motion
+
+
+def edited_span(kept_codes: np.ndarray | None, frames: int, unit: int) -> tuple[int, int]:
+    """Frames [start, end) an edit generated: from its first to its last code not kept from the
+    source (kept_codes (L,) bool); the whole motion for an upper-body edit (kept_codes None or 2-D:
+    every frame is new above the hips) or a span under MIN_JUDGED_FRAMES."""
+    if kept_codes is None or np.ndim(kept_codes) != 1 or np.all(kept_codes):
+        return 0, frames
+    new = np.flatnonzero(~np.asarray(kept_codes, dtype=bool))
+    start, end = int(new[0]) * unit, min(int(new[-1] + 1) * unit, frames)
+    return (start, end) if end - start >= MIN_JUDGED_FRAMES else (0, frames)
+
+
+def edit_best_of(
+    request,
+    model: TextToMotion,
+    judge,
+    source: np.ndarray,
+    candidates: int = 4,
+    sampling: SamplingConfig | None = None,
+    seed: int | None = None,
+    num_samples: int = 1,
+) -> tuple[Generated, tuple[int, int]]:
+    """An edit (mmm.generation.edits.EditRequest) as best of `candidates`: every sample the draw
+    whose edited frames (`edited_span`) the judge puts closest to the request's text. Returns the
+    result (scores (num_samples, candidates)) and the span judged. An edit without text has
+    nothing to judge against and is refused."""
+    check_candidates(candidates)
+    check_judge(model, judge)
+    if not request.text:
+        raise ValueError(
+            f"best of N judges the edited part against its text: give {request.kind} a text, or draw one "
+            "candidate"
+        )
+    started = time.perf_counter()
+    drawn = request.run(model, source, sampling, seed, num_samples * candidates)
+    t0 = time.perf_counter()
+    start, end = edited_span(drawn.kept_codes, len(drawn.features[0]), model.unit)
+    spans = [f[start:end] for f in drawn.features]
+    scores = judge_scores(judge, [request.text] * len(spans), spans).reshape(candidates, num_samples).T
+    seconds = {**drawn.seconds, "judge": time.perf_counter() - t0}
+    seconds["total"] = time.perf_counter() - started
+    best = _keep_best(drawn, scores, seconds)
+    if best.kept_codes is not None and np.ndim(best.kept_codes) == 2:  # upper body: one row per draw
+        rows = [int(k) * num_samples + i for i, k in enumerate(scores.argmax(1))]
+        best.kept_codes = best.kept_codes[rows]
+    return best, (start, end)
