@@ -89,6 +89,7 @@ BEFORE_MODEL = {
     "seed negative": (GEN + ["--seed", "-1"], ["--seed -1", "0 to 2^63-1"]),
     "seed 2^63": (GEN + ["--seed", str(2**63)], [f"--seed {2**63}", "0 to 2^63-1"]),
     "long seed 2^64": (LONG + ["--seed", str(2**64)], [f"--seed {2**64}", "0 to 2^63-1"]),
+    "long candidates zero": (LONG + ["--candidates", "0"], ["--candidates 0", "1 to 16"]),
     "released decoding with top-k": (
         GEN + ["--decoding", "released", "--top-k", "0.5"],
         ["released decoding", "top_k=0.5"],

@@ -11,6 +11,7 @@ from mmm.generation.best_of import (
     edit_best_of,
     edited_span,
     generate_best_of,
+    generate_long_best_of,
     judge_scores,
 )
 from mmm.generation.model import Generated
@@ -189,3 +190,35 @@ def test_edited_span_and_what_edits_best_of_refuses():
         edit_best_of(Edit([0.0], text=None), EditModel(), ValueJudge([0.0]), None, candidates=2)
     with pytest.raises(ValueError, match="candidates 0 is not allowed"):
         edit_best_of(Edit([0.0]), EditModel(), ValueJudge([0.0]), None, candidates=0)
+
+
+class LongDraws(Draws):
+    """Draws whose generate_long joins the segments it is given (a stand-in for the transitions)."""
+
+    def generate_long(self, texts, frames, sampling=None, seed=None, transition_codes=2, segments=None):
+        self.long_call = (list(texts), frames, transition_codes)
+        features = np.concatenate(segments.features)
+        return Generated(
+            [" / ".join(texts)],
+            [features],
+            [features[:, None]],
+            [np.concatenate(segments.codes)],
+            [1],
+            1,
+            {"total": 0.5},
+            scores=segments.scores,
+        )
+
+
+def test_long_sequences_keep_each_prompts_best_segment():
+    values = [0.9, 0.0, 0.1, 0.5, 0.6, 1.4]  # two prompts, three candidates, candidate-major
+    model = LongDraws(values)
+    out = generate_long_best_of(
+        model, ValueJudge([0.5, 1.5]), ["walk", "jump"], [40, 48], 3, transition_codes=1
+    )
+    assert model.calls == [(["walk", "jump"] * 3, [40, 48] * 3)]  # every segment's candidates in one batch
+    assert model.long_call == (["walk", "jump"], None, 1)
+    # Segment 0: 0.6 nearest 0.5 (row 4); segment 1: 1.4 nearest 1.5 (row 5).
+    assert out.features[0][:40, 0].tolist() == pytest.approx([0.6] * 40)
+    assert out.features[0][40:, 0].tolist() == pytest.approx([1.4] * 48)
+    assert out.scores.shape == (2, 3) and out.seconds["total"] > 0.5 and "segments" in out.seconds

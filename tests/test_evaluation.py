@@ -603,3 +603,18 @@ def test_cli_edit_best_of_judges_the_generated_frames(trained, own_evaluator, tm
     judge = load_judge(own_evaluator.best_checkpoint, trained["uri"])
     score = judge_scores(judge, ["a person walks forward"], [kept[20:60]])
     np.testing.assert_allclose(score, [max(meta["judge_scores"])], atol=2e-3)
+
+
+@pytest.mark.slow
+def test_cli_generate_long_best_of_records_every_segments_scores(trained, own_evaluator, tmp_path, capsys):
+    from mmm.cli import main
+
+    dest = tmp_path / "long"
+    argv = ["generate-long", "--text", "a person walks forward", "--text", "a person turns left"]
+    argv += ["--lengths", "40,48", "--model", trained["checkpoint"], "--tracking-uri", trained["uri"]]
+    argv += ["--out", str(dest), "--candidates", "2", "--judge", own_evaluator.best_checkpoint]
+    assert main(argv) == 0, capsys.readouterr().err
+    meta = json.loads((dest / "0" / "meta.json").read_text())
+    assert meta["candidates"] == 2 and meta["judge"].startswith("contrastive-")
+    assert [len(row) for row in meta["judge_scores"]] == [2, 2]
+    assert meta["segments_frames"] == [[0, 40], [48, 96]] and meta["length_frames"] == 96

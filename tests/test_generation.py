@@ -223,6 +223,17 @@ def test_long_sequence_in_one_decode(model):
     assert np.array_equal(out.codes[0][:20], seg.codes[0]) and np.array_equal(
         out.codes[0][22:52], seg.codes[1]
     )
+    # Segments drawn elsewhere (best of N) are used as given: the same ones give the same motion,
+    # other ones (a later seed's) give their own codes between the same transitions' places.
+    again = model.generate_long(["walk", "jump", "wave"], seed=0, transition_codes=2, segments=seg)
+    assert np.array_equal(again.codes[0], out.codes[0]) and np.allclose(again.features[0], out.features[0])
+    other = model.generate(["walk", "jump", "wave"], frames=[80, 120, 40], seed=5)
+    mixed = model.generate_long(["walk", "jump", "wave"], seed=0, segments=other)
+    assert np.array_equal(mixed.codes[0][22:52], other.codes[1]) and mixed.segments == out.segments
+    with pytest.raises(ValueError, match="3 texts but 2 segments"):
+        model.generate_long(
+            ["walk", "jump", "wave"], seed=0, segments=model.generate(["a", "b"], frames=[40, 40], seed=0)
+        )
 
 
 def test_untrained_unconditional_branch_is_warned_about_once(model, caplog):

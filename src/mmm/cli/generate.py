@@ -118,6 +118,7 @@ def add_generate_long(sub) -> None:
     long.add_argument(
         "--transition-codes", type=int, default=2, help="codes generated between neighbouring segments"
     )
+    add_best_of_options(long, "for every prompt the segment the judge puts closest to it")
     add_generation_options(long)
     long.set_defaults(func=cmd_generate_long)
 
@@ -269,10 +270,13 @@ def cmd_edit(args: argparse.Namespace) -> None:
 
 
 def cmd_generate_long(args: argparse.Namespace) -> None:
+    from mmm.evaluation.evaluators import load_judge
+    from mmm.generation.best_of import generate_long_best_of
     from mmm.generation.outputs import write_samples
     from mmm.generation.prompts import split_paragraph
 
     check_generation_args(args)
+    check_best_of_args(args)
     if args.paragraph is not None and not args.paragraph.strip():
         raise CLIError(
             "--paragraph is empty: describe the motions in order, "
@@ -296,14 +300,27 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
     model = load_model(args)
     for n in lengths or []:
         model.check_frames(n, "segment length")
-    out = model.generate_long(texts, lengths, sampling_config(args), args.seed, args.transition_codes)
+    judged = {}
+    if args.candidates > 1:
+        judge = load_judge(args.judge, args.tracking_uri, args.device)
+        sampling = sampling_config(args)
+        out = generate_long_best_of(
+            model, judge, texts, lengths, args.candidates, sampling, args.seed, args.transition_codes
+        )
+        judged = {
+            "candidates": args.candidates,
+            "judge": judge.identity,
+            "judge_scores": [[round(float(v), 4) for v in row] for row in out.scores],
+        }
+    else:
+        out = model.generate_long(texts, lengths, sampling_config(args), args.seed, args.transition_codes)
     frames = int(out.features[0].shape[0])
     info = meta(
         args,
         model,
         out,
         "generate-long",
-        {"prompts": texts, "segments_frames": out.segments, "length_frames": frames},
+        {"prompts": texts, "segments_frames": out.segments, "length_frames": frames, **judged},
     )
     caption = " / ".join(texts)
     sample = {"features": out.features[0], "joints": out.joints[0], "caption": caption, "meta": info}

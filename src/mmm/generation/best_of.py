@@ -5,7 +5,8 @@ data: it embeds a caption and a motion in one space, and their cosine says how w
 what the text says. The N candidates of every prompt are decoded in one batch, so a call costs
 about N times the decoding of one sample, plus one pass of the judge.
 
-Edits (`edit_best_of`) draw N edits of the source and judge only the frames the edit generated.
+Edits (`edit_best_of`) draw N edits of the source and judge only the frames the edit generated;
+long sequences (`generate_long_best_of`) pick each prompt's segment before the transitions join them.
 
 Why: one draw of the sampler often misses a detail its next draw gets right (the second action of
 "walks, then jumps", the third of "jumps three times"); the judge sees the difference. More
@@ -170,3 +171,22 @@ def edit_best_of(
         rows = [int(k) * num_samples + i for i, k in enumerate(scores.argmax(1))]
         best.kept_codes = best.kept_codes[rows]
     return best, (start, end)
+
+
+def generate_long_best_of(
+    model: TextToMotion,
+    judge,
+    texts: list[str],
+    frames: list[int] | None = None,
+    candidates: int = 4,
+    sampling: SamplingConfig | None = None,
+    seed: int | None = None,
+    transition_codes: int = 2,
+) -> Generated:
+    """`model.generate_long` with each prompt's segment the best of `candidates` by the judge; the
+    transitions are drawn between the kept segments. `scores` (prompts, candidates)."""
+    segments = generate_best_of(model, judge, texts, frames, candidates, sampling, seed)
+    out = model.generate_long(texts, None, sampling, seed, transition_codes, segments=segments)
+    out.seconds = {**out.seconds, "segments": segments.seconds["total"]}
+    out.seconds["total"] += segments.seconds["total"]
+    return out

@@ -780,14 +780,19 @@ class TextToMotion:
         transition_codes: int = 2,
         context_codes: int = 6,
         check_lengths: bool = True,
+        segments: Generated | None = None,
     ) -> Generated:
         """One motion through all prompts: segments in one batch, then every transition between
         neighbours (`transition_codes` new codes between `context_codes` of each side, without
         text) in one single-iteration pass, then one decode of the concatenation.
-        check_lengths=False admits segments below the usual minimum length (as `generate`)."""
+        check_lengths=False admits segments below the usual minimum length (as `generate`).
+        segments: one already drawn per text (best of N: mmm.generation.best_of), used as they are."""
         sampling = sampling or SamplingConfig()
         started = time.perf_counter()
-        segments = self.generate(texts, frames, sampling, seed, check_lengths=check_lengths)
+        if segments is None:
+            segments = self.generate(texts, frames, sampling, seed, check_lengths=check_lengths)
+        elif len(segments.codes) != len(texts):
+            raise ValueError(f"{len(texts)} texts but {len(segments.codes)} segments")
         seconds = {"segments": time.perf_counter() - started}
         codes = segments.codes
         t0 = time.perf_counter()
@@ -851,5 +856,13 @@ class TextToMotion:
         seconds["total"] = time.perf_counter() - started
         passes = segments.forward_passes + (1 if transitions else 0)
         return Generated(
-            [" / ".join(texts)], [features], [joints], [sequence], [passes], passes, seconds, segments=bounds
+            [" / ".join(texts)],
+            [features],
+            [joints],
+            [sequence],
+            [passes],
+            passes,
+            seconds,
+            segments=bounds,
+            scores=segments.scores,
         )
