@@ -74,9 +74,13 @@ def judge_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndar
 
 
 def _keep_best(drawn: Generated, scores: np.ndarray, seconds: dict) -> Generated:
-    """Each row's best candidate of `drawn` (candidate-major rows, scores (n, candidates))."""
+    """Each row's best candidate of `drawn` (candidate-major rows, scores (n, candidates)); kept
+    codes with a row per draw (upper-body edits) keep the chosen rows'."""
     n = len(scores)
     rows = [int(k) * n + i for i, k in enumerate(scores.argmax(1))]
+    kept = drawn.kept_codes
+    if kept is not None and np.ndim(kept) == 2:
+        kept = kept[rows]
     return Generated(
         [drawn.texts[r] for r in rows],
         [drawn.features[r] for r in rows],
@@ -85,7 +89,7 @@ def _keep_best(drawn: Generated, scores: np.ndarray, seconds: dict) -> Generated
         [drawn.iterations[r] for r in rows],
         drawn.forward_passes,
         seconds,
-        kept_codes=drawn.kept_codes,
+        kept_codes=kept,
         scores=scores,
     )
 
@@ -166,11 +170,7 @@ def edit_best_of(
     scores = judge_scores(judge, [request.text] * len(spans), spans).reshape(candidates, num_samples).T
     seconds = {**drawn.seconds, "judge": time.perf_counter() - t0}
     seconds["total"] = time.perf_counter() - started
-    best = _keep_best(drawn, scores, seconds)
-    if best.kept_codes is not None and np.ndim(best.kept_codes) == 2:  # upper body: one row per draw
-        rows = [int(k) * num_samples + i for i, k in enumerate(scores.argmax(1))]
-        best.kept_codes = best.kept_codes[rows]
-    return best, (start, end)
+    return _keep_best(drawn, scores, seconds), (start, end)
 
 
 def generate_long_best_of(
