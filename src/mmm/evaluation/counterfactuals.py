@@ -1,13 +1,16 @@
-"""Counterfactual captions: a caption with one countable detail changed, the hard negatives that
-teach the contrastive evaluator to read how often and how fast.
+"""Counterfactual captions: a caption with one countable detail changed ("jumps twice" ->
+"jumps three times", "walks slowly" -> "walks quickly").
 
-In-batch negatives almost never hold the same action with another count or speed, so an evaluator
-trained on them alone ranks "jumps twice" and "jumps three times" alike, and a judge built on it
-cannot pick the draw that counts right (README, "Best of N"). `counterfactual_captions` rewrites
-the count ("once", "twice", "thrice", "<n> times", "<n> jumps") to each other count up to four, and a
-speed word to one of the opposite speed, one change per variant, keeping the rest of the caption
-as written. Plain English patterns, so they apply to any dataset's captions; a caption without a
-count or speed word has no counterfactual.
+Two uses. `counterfactual_ranking` asks whether an evaluator reads counts and speeds: how often a
+real motion's own caption scores above its counterfactuals (logged by `mmm train evaluator` as
+`test/counterfactual_*_first`). And `loss.counterfactuals` makes them hard negatives in the
+evaluator's training, since in-batch negatives rarely hold the same action at another count
+(measured in the README, "Best of N": it reads counts better and is not a better judge of draws).
+
+`counterfactual_captions` rewrites the count ("once", "twice", "thrice", "<n> times", "<n> jumps")
+to each other count up to four, and a speed word to one of the opposite speed, one change per
+variant, keeping the rest of the caption as written. Plain English patterns, so they apply to any
+dataset's captions; a caption without a count or speed word has no counterfactual.
 """
 
 from __future__ import annotations
@@ -99,9 +102,7 @@ def counterfactual_captions(caption: str, kinds: tuple[str, ...] = KINDS) -> lis
         for m in range(2, MAX_COUNT + 1):
             if m != n:
                 spelled = _match_case(str(m) if number.isdigit() else _NUMBER_WORDS[m], match["number"])
-                variants[
-                    caption[: match.start()] + spelled + caption[match.start("number") + len(number) :]
-                ] = None
+                variants[caption[: match.start()] + spelled + caption[match.end("number") :]] = None
     for match in _SPEED.finditer(caption) if "speed" in kinds else ():
         opposite = _match_case(_OPPOSITE_SPEED[match[0].lower()], match[0])
         variants[caption[: match.start()] + opposite + caption[match.end() :]] = None

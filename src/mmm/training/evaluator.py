@@ -291,8 +291,11 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
     captions = sorted(
         {c.text for split_items in items.values() for item in split_items for c in item.captions}
     )
-    # Every caption's counterfactuals: the hard negatives in training, and the test ranking below.
-    captions += sorted({v for c in captions for v in counterfactual_captions(c)} - set(captions))
+    # Counterfactuals: of the test captions for the ranking after training; of the others too when
+    # they are the hard negatives.
+    splits = ("train", "val", "test") if cfg.loss.counterfactuals else ("test",)
+    varied = {c.text for split in splits for item in items[split] for c in item.captions}
+    captions += sorted({v for c in varied for v in counterfactual_captions(c)} - set(captions))
     counts = caption_cache.build(text_encoder, captions, progress=cfg.trainer.enable_progress_bar)
     cache_seconds = time.perf_counter() - cache_started
     log.info(
