@@ -21,6 +21,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from mmm.motion.features import pad_motions
+
 MAX_COUNT = 4
 _COUNT_WORDS = {"one": 1, "two": 2, "three": 3, "four": 4, "five": 5, "six": 6}
 _NUMBER_WORDS = {n: w for w, n in _COUNT_WORDS.items()}
@@ -133,9 +135,7 @@ def counterfactual_ranking(judge, items, batch_size: int = 64) -> dict[str, dict
     for start in range(0, len(needed), batch_size):
         chunk = needed[start : start + batch_size]
         lengths = [items[i].length for i in chunk]
-        features = torch.zeros(len(chunk), max(lengths), items[chunk[0]].features.shape[-1])
-        for row, i in enumerate(chunk):
-            features[row, : lengths[row]] = torch.from_numpy(np.array(items[i].features[: lengths[row]]))
+        features = pad_motions([items[i].features[: items[i].length] for i in chunk])
         for i, z in zip(chunk, F.normalize(judge.embed_motions(features, lengths), dim=-1)):
             motions[i] = z
     texts = sorted({t for rows in pairs.values() for _, c, v in rows for t in (c, *v)})

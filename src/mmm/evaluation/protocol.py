@@ -31,6 +31,7 @@ from mmm.data.datasets import TextMotionDataset
 from mmm.data.humanml3d import MotionItem
 from mmm.evaluation.metrics import diversity, fid, matching_score, multimodality, r_precision_hits
 from mmm.generation.sampler import SamplingConfig
+from mmm.motion.features import pad_motions
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +117,7 @@ def evaluate_text_to_motion(
             out = produce(
                 [c.text for c in captions], lengths.tolist(), features.float(), seed * 7919 + len(texts)
             )
-            generated = torch.from_numpy(_stack(list(out), features.shape[1]))
+            generated = torch.from_numpy(pad_motions(out, features.shape[1]))
             texts.append(evaluator.embed_texts(captions).cpu())
             real.append(evaluator.embed_motions(features.float(), lengths).cpu())
             gen.append(evaluator.embed_motions(generated.float(), lengths).cpu())
@@ -138,15 +139,6 @@ def _pad(batch: list[dict]) -> list[dict]:
         if m.shape[0] < longest:
             m = torch.cat((m, torch.zeros(longest - m.shape[0], m.shape[1])))
         out.append({**b, "motion": m})
-    return out
-
-
-def _stack(features: list[np.ndarray], T: int) -> np.ndarray:
-    """(B, T, D): each motion cut or zero-padded to T frames."""
-    out = np.zeros((len(features), T, features[0].shape[1]), np.float32)
-    for i, f in enumerate(features):
-        f = np.asarray(f)[:T]
-        out[i, : f.shape[0]] = f
     return out
 
 

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 
 from mmm.generation.model import Generated, TextToMotion
 from mmm.generation.sampler import SamplingConfig
+from mmm.motion.features import pad_motions
 
 MAX_CANDIDATES = 16
 
@@ -63,9 +64,7 @@ def judge_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndar
     """Cosine (B,) of each text with its motion (un-normalized (T_i, D)) in the judge's space
     (for an edit, what `edited_span` cuts out)."""
     lengths = [len(f) for f in features]
-    batch = np.zeros((len(features), max(lengths), features[0].shape[-1]), dtype=np.float32)
-    for i, f in enumerate(features):
-        batch[i, : len(f)] = f
+    batch = pad_motions(features)
     unique = {t: i for i, t in enumerate(dict.fromkeys(texts))}  # each distinct text embedded once
     text = F.normalize(judge.embed_texts(list(unique)).float(), dim=-1)
     text = text[torch.tensor([unique[t] for t in texts])]

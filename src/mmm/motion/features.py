@@ -243,3 +243,14 @@ __all__ = [
     "reference_std",
     "T2M_SKELETON",
 ]
+
+
+def pad_motions(features, frames: int | None = None) -> np.ndarray:
+    """Motions of different lengths (each (T_i, D)) -> (B, frames, D) float32, each cut or
+    zero-padded to `frames` (default: the longest). Readers mask the padding by the lengths."""
+    features = [np.asarray(f) for f in features]
+    frames = max(len(f) for f in features) if frames is None else int(frames)
+    out = np.zeros((len(features), frames, features[0].shape[-1]), np.float32)
+    for i, f in enumerate(features):
+        out[i, : min(len(f), frames)] = f[:frames]
+    return out
