@@ -8,9 +8,9 @@ directions; another global batch is refused.
 """
 
 import os
-import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -18,10 +18,12 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from tests.helpers import stage2_overrides, tiny_stage1_config, tiny_stage1_overrides
+from tests.helpers.servers import free_port, stop
 
 pytestmark = [pytest.mark.slow, pytest.mark.ddp]
 
 WORKER = Path(__file__).parent / "ddp_workers" / "multinode_worker.py"
+LAUNCH_TIMEOUT_S = 420  # a two-node leg takes about 20 s on 2 cores
 TWO_NODES = [
     "trainer=multinode",
     "trainer.num_nodes=2",
@@ -30,12 +32,6 @@ TWO_NODES = [
     "trainer.process_group_backend=gloo",
     "trainer.enable_progress_bar=false",
 ]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def launch_two_nodes(probe: Path, args: list[str], run_id: str, resume: str | None = None) -> None:
@@ -68,10 +64,31 @@ def launch_two_nodes(probe: Path, args: list[str], run_id: str, resume: str | No
         "OMP_NUM_THREADS": "1",
     }
     nodes = [
-        subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+            start_new_session=True,  # a process group: `stop` ends the torchrun and its worker
+        )
         for _ in range(2)
     ]
-    logs = [node.communicate(timeout=420)[0] for node in nodes]
+    deadline = time.monotonic() + LAUNCH_TIMEOUT_S
+    logs = ["", ""]
+    try:
+        for i, node in enumerate(nodes):
+            logs[i] = node.communicate(timeout=max(1.0, deadline - time.monotonic()))[0]
+    except subprocess.TimeoutExpired:
+        # Stop both torchruns and their workers, or they would go on taking the cores from the
+        # tests after this one.
+        for node in nodes:
+            stop(node)
+        logs = [log or node.communicate()[0] or "" for node, log in zip(nodes, logs)]
+        pytest.fail(
+            f"two-node launch still running after {LAUNCH_TIMEOUT_S} s:\n"
+            + "\n".join(log[-3000:] for log in logs)
+        )
     for node, log in zip(nodes, logs):
         assert node.returncode == 0, log[-4000:]
 
