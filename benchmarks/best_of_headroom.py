@@ -6,8 +6,8 @@ same draws: one draw (the mean over the N: what `mmm evaluate` measures with one
 less of one seed's noise), the judge's pick (what it measures with N), and the share where any of
 the N passes (what a perfect judge would reach).
 
-    python benchmarks/best_of_headroom.py --data data/synthetic-large --candidates 4 [--model REF]
-        [--judge REF] [--seed 0] [--max-items N]
+    python benchmarks/best_of_headroom.py --data data/synthetic-large --candidates 4 [--guidance 1.5]
+        [--model REF] [--judge REF] [--seed 0] [--max-items N]
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from mmm.evaluation.adherence import item_groups, labelled_captions, ordered_pas
 from mmm.evaluation.evaluators import load_judge
 from mmm.generation.best_of import check_candidates, check_judge, judge_scores
 from mmm.generation.model import TextToMotion
+from mmm.generation.sampler import SamplingConfig
 
 
 def main() -> None:
@@ -34,11 +35,13 @@ def main() -> None:
     p.add_argument("--model", default=None, help="stage-2 reference (default: the champion)")
     p.add_argument("--judge", default=None, help="evaluator reference (default: its champion)")
     p.add_argument("--tracking-uri", default="sqlite:///mlflow.db")
+    p.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance of every draw")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--max-items", type=int, default=None)
     args = p.parse_args()
     n = check_candidates(args.candidates, "--candidates")
+    sampling = SamplingConfig(guidance_scale=args.guidance)  # checks the scale
     root = Path(args.data)
     model = TextToMotion.load(args.model, args.tracking_uri)
     judge = load_judge(args.judge, args.tracking_uri)
@@ -51,7 +54,7 @@ def main() -> None:
     for b in range(0, len(checks), args.batch):
         chunk = checks[b : b + args.batch]
         texts, frames = [c[0] for c in chunk], [c[1] for c in chunk]
-        out = model.generate(texts * n, frames * n, None, seed=args.seed + b, check_lengths=False)
+        out = model.generate(texts * n, frames * n, sampling, seed=args.seed + b, check_lengths=False)
         scores = judge_scores(judge, texts * n, out.features).reshape(n, len(chunk))
         passed = np.array(
             [ordered_pass(joints, f, parts) for joints, (_, f, parts) in zip(out.joints, chunk * n)]
@@ -60,7 +63,7 @@ def main() -> None:
         for i, (_, _, parts) in enumerate(chunk):
             for group in ["all", *item_groups(parts)]:
                 tally[group] += [1, passed[:, i].mean(), picked[i], passed[:, i].any()]
-    print(f"best of {n}, seed {args.seed}: {time.perf_counter() - started:.0f} s")
+    print(f"best of {n}, guidance {args.guidance:g}, seed {args.seed}: {time.perf_counter() - started:.0f} s")
     print("| group | captions | one draw | the judge's pick | any of the draws |")
     print("|---|---|---|---|---|")
     for group, (count, one, picked, any_) in tally.items():

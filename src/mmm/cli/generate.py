@@ -35,7 +35,8 @@ def add_best_of_options(parser, kept: str) -> None:
         type=int,
         default=1,
         help=f"best of N: draw N motions per sample and keep {kept} "
-        "(4 follows the most prompts; about N times the decoding time; default 1: one draw)",
+        "(from text, 4 with --guidance 1.5 follows the most prompts, README 'Best of N'; about N times "
+        "the decoding time; default 1: one draw)",
     )
     parser.add_argument(
         "--judge",

@@ -37,7 +37,8 @@ def check_candidates(candidates: int, name: str = "candidates") -> int:
     ):
         raise ValueError(
             f"{name} {candidates!r} is not allowed: a whole number of motions drawn per prompt, "
-            f"1 to {MAX_CANDIDATES} (1: no judge; 4 follows the most prompts, README 'Best of N')"
+            f"1 to {MAX_CANDIDATES} (1: no judge; from text, 4 at guidance 1.5 follows the most prompts, "
+            "README 'Best of N')"
         )
     return candidates
 
