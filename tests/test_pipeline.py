@@ -90,6 +90,9 @@ def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypa
     fingerprint = champions["mmm-tokenizer"].tags["data.fingerprint"]
     assert len(fingerprint) == 16 and champions["mmm-text2motion"].tags["data.fingerprint"] == fingerprint
     assert champions["mmm-text2motion"].tags["evaluator"].startswith("contrastive-")
+    # Its bundle carries that evaluator as the judge of best of N (the `candidates` param).
+    text2motion = champions["mmm-text2motion"].tags
+    assert text2motion["judge.identity"] == text2motion["evaluator"]
     assert champions["mmm-text2motion"].run_id == steps["stage2"].data.tags["output.run_id"]
     assert champions["mmm-tokenizer"].run_id == steps["stage1"].data.tags["output.run_id"]
     assert np.isfinite(float(champions["mmm-text2motion"].tags["metric.generated/fid"]))

@@ -457,3 +457,132 @@ def test_precision_param_and_model_config(served_model):
     assert np.array_equal(np.asarray(again[0]["joints"]), np.asarray(base[0]["joints"]))
     with pytest.raises(Exception, match="precision must be one of fp32, bf16, int8"):
         served_model.predict(request, params={"precision": "fp16"})
+
+
+@pytest.fixture(scope="module")
+def judged_model(trained, registered, store):
+    """The same checkpoints bundled with a tiny evaluator trained on the walker data as the judge."""
+    import mlflow
+
+    from mmm.registry.bundle import log_bundle
+    from mmm.training.evaluator import load_evaluator_config, train_evaluator
+
+    out = trained["out"]
+    overrides = {
+        "data.root": trained["walker"],
+        "data.synthesize": "null",
+        "data.batch_size": 8,
+        "model.hidden_dim": 16,
+        "model.embed_dim": 32,
+        "model.text_hidden_dim": 32,
+        "trainer.max_steps": 4,
+        "trainer.val_check_interval": 4,
+        "trainer.enable_progress_bar": "false",
+        "output_dir": f"{out}/judge",
+        "text.cache_dir": f"{out}/text",
+        "logger.tracking_uri": store,
+        "logger.artifact_root": f"{out}/art",
+    }
+    judge = train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
+    experiment = mlflow.get_experiment_by_name("mmm-bundle-test").experiment_id
+    with mlflow.start_run(experiment_id=experiment):
+        info = log_bundle(
+            registered["stage2"],
+            registered["stage1"],
+            registered_model_name=NAME + "-judged",
+            judge_checkpoint=judge.best_checkpoint,
+        )
+    return {"model": mlflow.pyfunc.load_model(info.model_uri), "info": info, "judge": judge.best_checkpoint}
+
+
+@pytest.mark.slow
+def test_candidates_param_keeps_the_draw_the_bundled_judge_rates_highest(judged_model, served_model, store):
+    from mlflow import MlflowClient
+
+    from mmm.evaluation.evaluators import load_evaluator
+    from mmm.generation.best_of import judge_scores
+    from mmm.registry.bundle import sampling_config
+
+    model = judged_model["model"]
+    identity = load_evaluator(judged_model["judge"], store).identity
+    assert model.metadata.metadata["mmm"]["judge"] == identity
+    version = MlflowClient(store).get_model_version(
+        NAME + "-judged", judged_model["info"].registered_model_version
+    )
+    assert version.tags["mmm.judge.identity"] == identity
+    assert served_model.metadata.metadata["mmm"]["judge"] is None
+
+    request = pd.DataFrame(
+        {"text": ["a person walks forward", "a person jumps"], "length": [48, 40], "seed": [3, 5]}
+    )
+    # One candidate (the default) is the judge-less bundle's draw, with nothing added.
+    plain = served_model.predict(request)
+    one = model.predict(request)
+    assert [sorted(o) for o in one] == [sorted(o) for o in plain] and "scores" not in one[0]
+    assert all(np.array_equal(np.asarray(a["joints"]), np.asarray(b["joints"])) for a, b in zip(one, plain))
+
+    params = {"candidates": 3, "guidance_scale": 1.5}
+    best = model.predict(request, params=params)
+    raw = model.unwrap_python_model()
+    sampling = sampling_config({"guidance_scale": 1.5})
+    for row, text, frames, seed in zip(best, request.text, request.length, request.seed):
+        assert row["candidates"] == 3 and len(row["scores"]) == 3 and row["length"] == frames
+        # The three draws of the row, as one batch of the model, and the judge's own cosines.
+        drawn = raw.model.generate([text] * 3, [frames] * 3, sampling, seed)
+        scores = judge_scores(raw.judge, [text] * 3, drawn.features)
+        np.testing.assert_allclose(row["scores"], scores, atol=1e-5)
+        kept = drawn.features[int(np.argmax(scores))]
+        np.testing.assert_allclose(np.asarray(row["features"]), kept, atol=1e-6)
+        assert np.asarray(row["joints"]).shape == (frames, 22, 3)
+    assert any(np.argmax(row["scores"]) != 0 for row in best)  # so keeping the first draw would fail
+    # A row's pick depends only on its own text, length and seed.
+    alone = model.predict(request.iloc[1:], params=params)
+    assert np.array_equal(np.asarray(alone[0]["joints"]), np.asarray(best[1]["joints"]))
+    json.dumps(best)
+
+
+@pytest.mark.slow
+def test_candidates_are_refused_without_a_judge_or_out_of_range(judged_model, served_model):
+    from mlflow.exceptions import MlflowException
+
+    request = pd.DataFrame({"text": ["a person walks"], "length": [40]})
+    with pytest.raises(
+        MlflowException, match="candidates 4 needs a judge, and this bundle carries none"
+    ) as err:
+        served_model.predict(request, params={"candidates": 4})
+    assert err.value.get_http_status_code() == 400
+    raw = judged_model["model"].unwrap_python_model()
+    for bad in (0, 17, 2.5, "four"):
+        with pytest.raises(MlflowException, match=f"candidates {bad!r} is not allowed") as err:
+            raw.predict(None, request, params={"candidates": bad})
+        assert err.value.get_http_status_code() == 400
+    # JSON may carry 2 as 2.0.
+    assert raw.predict(None, request, params={"candidates": 2.0})[0]["candidates"] == 2
+
+
+def test_a_judge_must_read_the_models_features_and_captions(tmp_path):
+    from mmm.evaluation.contrastive import ContrastiveEvaluator, ContrastiveModelConfig
+    from mmm.fingerprint import tensors_fingerprint
+    from mmm.registry.bundle import JudgeMismatch, describe_judge
+
+    cfg = ContrastiveModelConfig(hidden_dim=8, embed_dim=8, text_hidden_dim=8)
+    evaluator = ContrastiveEvaluator(263, 16, cfg)
+    state = {f"evaluator.{k}": v for k, v in evaluator.state_dict().items()}
+    hp = {
+        "feature_dim": 263,
+        "sentence_dim": 16,
+        "model": vars(cfg),
+        "text_encoder": {"name": "minilm", "identity": "minilm-abc"},
+    }
+    path = tmp_path / "judge.ckpt"
+    torch.save({"state_dict": state, "hyper_parameters": hp}, path)
+    ok = {"feature_dim": 263, "text_encoder": "minilm-abc"}
+    assert describe_judge(path, ok) == "contrastive-" + tensors_fingerprint(evaluator.state_dict())
+    with pytest.raises(
+        JudgeMismatch, match="trained on 263-dimensional motion features but the model makes 251"
+    ):
+        describe_judge(path, {**ok, "feature_dim": 251})
+    with pytest.raises(
+        JudgeMismatch, match="reads captions with text encoder minilm-abc, the model with clip-x"
+    ):
+        describe_judge(path, {**ok, "text_encoder": "clip-x"})

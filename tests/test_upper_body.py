@@ -372,6 +372,28 @@ def test_promotion_registers_the_part_aware_bundle_and_editing_defaults_to_it(
         pd.DataFrame({"text": ["a person waves both hands"], "source": [source[:80].tolist()], "seed": [1]}),
     )
     assert rows[0]["lower_mask"] == 0.5 and np.asarray(rows[0]["joints"]).shape == (80, 22, 3)
+    # Best of N on an edit: with a judge (an untrained evaluator here: the plumbing, not the pick's
+    # quality), each row keeps the draw of the upper body that the judge rates highest.
+    from mmm.evaluation.contrastive import ContrastiveEvaluator, EvaluatorEmbedder
+    from mmm.generation.best_of import judge_scores
+    from mmm.generation.edits import UPPER_BODY, EditRequest, sampling_defaults
+    from mmm.registry.bundle import sampling_config
+
+    encoder = wrapped.model.text_encoder
+    torch.manual_seed(0)
+    evaluator = ContrastiveEvaluator(263, encoder.sentence_dim, {"hidden_dim": 8, "embed_dim": 8})
+    wrapped.judge = EvaluatorEmbedder(evaluator, {"text_encoder": {"identity": encoder.identity}}, encoder)
+    text = "a person waves both hands"
+    best = wrapped.predict(
+        None, pd.DataFrame({"text": [text], "source": [source[:80].tolist()], "seed": [1]}), {"candidates": 3}
+    )[0]
+    sampling = sampling_config(sampling_defaults(UPPER_BODY))  # the bundle's defaults for edits (guidance 4)
+    drawn = EditRequest.parse(UPPER_BODY, text=text).run(wrapped.model, source[:80], sampling, 1, 3)
+    scores = judge_scores(wrapped.judge, [text] * 3, drawn.features)
+    np.testing.assert_allclose(best["scores"], scores, atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(best["features"]), drawn.features[int(np.argmax(scores))], atol=1e-6
+    )
     with pytest.raises(ValueError, match=r"row 0: source has shape \(80, 100\)"):
         wrapped.predict(
             None, pd.DataFrame({"text": ["a person waves"], "source": [source[:80, :100].tolist()]})

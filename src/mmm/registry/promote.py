@@ -36,7 +36,7 @@ from mmm.evaluation.upper_body import upper_body_adherence
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
 from mmm.generation.model import TextToMotion
 from mmm.kinds import PROMOTABLE
-from mmm.registry.bundle import log_bundle
+from mmm.registry.bundle import JudgeMismatch, log_bundle
 from mmm.registry.versions import (
     CI_SUFFIX,
     EVALUATOR,
@@ -350,6 +350,7 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         "stage1.identity": model.identity["stage1"]["identity"],
         "text_encoder": model.identity["text_encoder"],
     }
+    judge = None  # the evaluator checkpoint the bundle carries for best of N (`candidates`)
     if kind == "upperbody":
         if not model.part_aware:
             raise ValueError(
@@ -398,6 +399,13 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
             )
 
         evaluator = _evaluator(cfg, uri, required=True)
+        if hasattr(evaluator, "sentence_embeddings"):  # the package's own, not the standard T2M one
+            judge = evaluator.info.get("path")
+        else:
+            log.warning(
+                "the bundle carries no best-of-N judge: the evaluator %s reads tagged captions, not text",
+                evaluator.identity,
+            )
         items, _ = cfg.data.items(cfg.split, root)
         mean, std = load_stats(root, cfg.data.feature_dim)
         result = evaluate_text_to_motion(model, evaluator, items, mean, std, cfg.protocol, progress=False)
@@ -443,13 +451,15 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         if adherence is not None:
             measured += f"; prompt adherence (`adherence/*`) of {adherence['count']} labelled captions"
     metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
-    info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint)
+    info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint, judge)
     # The bundle holds copies of both checkpoints (logged with the model); their digests say which files they
     # are.
     extra.update(
         {
             "weights.transformer.sha256": sha256_file(checkpoint),
             "weights.tokenizer.sha256": sha256_file(tokenizer_checkpoint),
+            # the evaluator the bundle's `candidates` param picks with ("" when it carries none)
+            "judge.identity": ((info.metadata or {}).get("mmm") or {}).get("judge") or "",
         }
     )
     tags = version_tags(
@@ -477,14 +487,21 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     )
 
 
-def _log_bundle(uri: str, run_id: str, checkpoint: str, tokenizer_checkpoint: str):
+def _log_bundle(uri: str, run_id: str, checkpoint: str, tokenizer_checkpoint: str, judge: str | None):
     """The bundle logged into the candidate's own run, whose status and end time are then put back:
-    its duration in the dashboard stays the training's, not training until promotion."""
+    its duration in the dashboard stays the training's, not training until promotion. It carries
+    `judge` (best of N) where that evaluator can read the model's motions and captions."""
     mlflow.set_tracking_uri(uri)
     before = mlflow.MlflowClient(uri).get_run(run_id).info
     try:
         with mlflow.start_run(run_id=run_id):
-            return log_bundle(checkpoint, tokenizer_checkpoint, artifact_path="bundle")
+            try:
+                return log_bundle(
+                    checkpoint, tokenizer_checkpoint, artifact_path="bundle", judge_checkpoint=judge
+                )
+            except JudgeMismatch as e:  # checked before anything is logged
+                log.warning("the bundle carries no best-of-N judge: %s", e)
+                return log_bundle(checkpoint, tokenizer_checkpoint, artifact_path="bundle")
     finally:
         if before.end_time:
             mlflow.MlflowClient(uri).set_terminated(run_id, before.status, end_time=before.end_time)
