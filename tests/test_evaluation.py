@@ -206,25 +206,9 @@ def test_item_parts_follow_the_span():
 
 @pytest.fixture(scope="module")
 def own_evaluator(trained):
-    from mmm.training.evaluator import load_evaluator_config, train_evaluator
+    from tests.helpers import train_tiny_evaluator
 
-    out = trained["out"]
-    overrides = {
-        "data.root": trained["walker"],
-        "data.synthesize": "null",
-        "data.batch_size": 8,
-        "model.hidden_dim": 16,
-        "model.embed_dim": 32,
-        "model.text_hidden_dim": 32,
-        "trainer.max_steps": 4,
-        "trainer.val_check_interval": 4,
-        "trainer.enable_progress_bar": "false",
-        "output_dir": f"{out}/ev",
-        "text.cache_dir": f"{out}/text",
-        "logger.tracking_uri": trained["uri"],
-        "logger.artifact_root": f"{out}/art",
-    }
-    return train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
+    return train_tiny_evaluator(trained["walker"], trained["out"], trained["uri"])
 
 
 SMALL = [

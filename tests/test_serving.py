@@ -465,25 +465,9 @@ def judged_model(trained, registered, store):
     import mlflow
 
     from mmm.registry.bundle import log_bundle
-    from mmm.training.evaluator import load_evaluator_config, train_evaluator
+    from tests.helpers import train_tiny_evaluator
 
-    out = trained["out"]
-    overrides = {
-        "data.root": trained["walker"],
-        "data.synthesize": "null",
-        "data.batch_size": 8,
-        "model.hidden_dim": 16,
-        "model.embed_dim": 32,
-        "model.text_hidden_dim": 32,
-        "trainer.max_steps": 4,
-        "trainer.val_check_interval": 4,
-        "trainer.enable_progress_bar": "false",
-        "output_dir": f"{out}/judge",
-        "text.cache_dir": f"{out}/text",
-        "logger.tracking_uri": store,
-        "logger.artifact_root": f"{out}/art",
-    }
-    judge = train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
+    judge = train_tiny_evaluator(trained["walker"], trained["out"], store, output_dir="judge")
     experiment = mlflow.get_experiment_by_name("mmm-bundle-test").experiment_id
     with mlflow.start_run(experiment_id=experiment):
         info = log_bundle(

@@ -114,6 +114,29 @@ def train_tiny_stage1(root, out, *extra):
     return train_stage1(tiny_stage1_config(root, out, *extra))
 
 
+def train_tiny_evaluator(root, out, tracking_uri: str, output_dir: str = "ev"):
+    """A contrastive evaluator of a few steps on the dataset at `root` (its TrainResult), runs in
+    `tracking_uri`, files under `out`/`output_dir`."""
+    from mmm.training.evaluator import load_evaluator_config, train_evaluator
+
+    overrides = {
+        "data.root": root,
+        "data.synthesize": "null",
+        "data.batch_size": 8,
+        "model.hidden_dim": 16,
+        "model.embed_dim": 32,
+        "model.text_hidden_dim": 32,
+        "trainer.max_steps": 4,
+        "trainer.val_check_interval": 4,
+        "trainer.enable_progress_bar": "false",
+        "output_dir": f"{out}/{output_dir}",
+        "text.cache_dir": f"{out}/text",
+        "logger.tracking_uri": tracking_uri,
+        "logger.artifact_root": f"{out}/art",
+    }
+    return train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
+
+
 def stage2_overrides(root, out, **extra):
     """Overrides for a tiny, short stage-2 run on `root` with everything written under `out`."""
     items = {
