@@ -234,10 +234,8 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         """The candidates param as an int (1 when absent), refused where the bundle has no judge."""
         if _missing(value):
             return 1
-        if isinstance(value, float) and value.is_integer():  # JSON may carry 4 as 4.0
-            value = int(value)
         try:
-            candidates = check_candidates(value)
+            candidates = check_candidates(_whole(value))
         except ValueError as e:
             raise InvalidRequest(f"params: {e}") from None
         if candidates > 1 and getattr(self, "judge", None) is None:
@@ -363,14 +361,18 @@ def sampling_config(params: dict | None) -> SamplingConfig:
             raise InvalidRequest(f"params: {key} {values[key]!r} is not a number") from None
     for key in ("top_k", "top_p"):
         values[key] = None if values[key] == 1.0 else values[key]
-    iterations = values["max_iterations"]
-    if isinstance(iterations, float) and iterations.is_integer():  # JSON may carry 10 as 10.0
-        iterations = int(iterations)
+    iterations = _whole(values["max_iterations"])
     # SamplingConfig checks the ranges: the same as the command line's.
     try:
         return SamplingConfig(**{**values, "max_iterations": iterations, "decoding": str(values["decoding"])})
     except ValueError as e:
         raise InvalidRequest(f"params: {e}") from None
+
+
+def _whole(value):
+    """An integral float as an int (JSON may carry 10 as 10.0); anything else as it is, for the
+    range checks to name."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
 def _missing(value) -> bool:
