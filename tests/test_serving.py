@@ -258,7 +258,8 @@ def test_bundle_checkpoints_load_as_text_to_motion(registered, served_model, sto
     from mmm.generation.sampler import SamplingConfig
     from mmm.resolve import bundle_checkpoints
 
-    stage2, stage1 = bundle_checkpoints(registered["uri"], store, dst=tmp_path / "bundle")
+    stage2, stage1, judge = bundle_checkpoints(registered["uri"], store, dst=tmp_path / "bundle")
+    assert judge is None  # logged without one
     assert Path(stage2).is_relative_to(tmp_path) and Path(stage1).is_relative_to(tmp_path)
     assert Path(stage2).read_bytes() == Path(registered["stage2"]).read_bytes()
     assert Path(stage1).read_bytes() == Path(registered["stage1"]).read_bytes()
@@ -523,6 +524,34 @@ def test_candidates_param_keeps_the_draw_the_bundled_judge_rates_highest(judged_
     alone = model.predict(request.iloc[1:], params=params)
     assert np.array_equal(np.asarray(alone[0]["joints"]), np.asarray(best[1]["joints"]))
     json.dumps(best)
+
+
+@pytest.mark.slow
+def test_generate_picks_with_the_judge_its_bundle_carries(
+    judged_model, registered, store, tmp_path, monkeypatch
+):
+    """`mmm generate --candidates` on a registered bundle, without --judge, uses the evaluator the
+    bundle was logged with, not whatever the evaluator champion is now: here the store it asks
+    for the champion holds no evaluator at all."""
+    import argparse
+
+    from mmm.cli.generate import load_best_of_judge
+    from mmm.evaluation.evaluators import load_evaluator
+    from mmm.generation.model import TextToMotion
+    from mmm.resolve import ModelNotFound
+
+    monkeypatch.chdir(tmp_path)  # the bundle download cache and the newest-run search are relative
+    uri = f"models:/{NAME}-judged/{judged_model['info'].registered_model_version}"
+    model = TextToMotion.load(uri, tracking_uri=store)
+    assert Path(model.judge_checkpoint).read_bytes() == Path(judged_model["judge"]).read_bytes()
+    empty = argparse.Namespace(judge=None, tracking_uri=f"sqlite:///{tmp_path / 'empty.db'}", device="cpu")
+    judge = load_best_of_judge(empty, model)
+    assert judge.identity == load_evaluator(judged_model["judge"], store).identity
+    # A bundle without a judge falls back to the champion, of which that store has none.
+    plain = TextToMotion.load(registered["uri"], tracking_uri=store)
+    assert plain.judge_checkpoint is None
+    with pytest.raises(ModelNotFound):
+        load_best_of_judge(empty, plain)
 
 
 @pytest.mark.slow

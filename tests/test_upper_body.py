@@ -361,7 +361,7 @@ def test_promotion_registers_the_part_aware_bundle_and_editing_defaults_to_it(
     from mmm.registry.bundle import TextToMotionPyfunc
     from mmm.resolve import bundle_checkpoints
 
-    stage2, stage1 = bundle_checkpoints(
+    stage2, stage1, _ = bundle_checkpoints(
         "models:/mmm-upperbody@champion", parts_model["uri"], dst=tmp_path / "b"
     )
     wrapped = TextToMotionPyfunc()

