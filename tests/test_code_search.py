@@ -53,6 +53,52 @@ def test_the_config_refuses_what_is_not_a_count_and_names_the_key():
             CodeSearchConfig(**bad)
 
 
+def test_the_precision_is_checked_resolved_for_this_machine_and_names_token_caches(monkeypatch):
+    import mmm.tokenizer.search as search
+
+    with pytest.raises(ValueError, match="encode.precision='fp16'"):
+        CodeSearchConfig(precision="fp16")
+    assert CodeSearchConfig(precision="bf16").label == "search4x1-bf16"
+    assert CodeSearchConfig(1, precision="bf16").label == "nearest"
+    for fast, expected in ((True, "bf16"), (False, "fp32")):
+        monkeypatch.setattr(search, "has_fast_bf16", lambda fast=fast: fast)
+        assert CodeSearchConfig(precision="auto").resolved().precision == expected
+        # The module searches with the resolved setting and keeps `auto` in its checkpoint.
+        module = TokenizerModule(
+            263, TokenizerConfig(width=16, num_codes=32, code_dim=8), {}, {}, encode={"precision": "auto"}
+        )
+        assert module.encode_cfg.precision == expected and module.hparams["encode"]["precision"] == "auto"
+        assert module.encode_cfg.label == ("search4x1-bf16" if fast else "search4x1")
+
+
+def test_the_choice_of_code_stays_float32_under_a_bfloat16_autocast():
+    # Latent 1.0006 lies nearer code 1.001 than code 1.0; a bfloat16 matmul (8 bits of mantissa)
+    # rounds both products to 1.0, and the distances' float32 norms then favour code 0.
+    q = EMAQuantizer(num_codes=2, code_dim=1)
+    q.codebook.copy_(torch.tensor([[1.0], [1.001]]))
+    z = torch.tensor([[[1.0006]]])  # (B=1, C=1, T'=1)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert q.quantize(z).item() == 1 and q.nearest_codes(z, 2)[0, 0].tolist() == [1, 0]
+
+
+def test_the_bfloat16_search_decodes_in_bfloat16_and_keeps_a_code_as_good():
+    module = tokenizer(candidates=4)
+    x = motion(batch=3, frames=32)
+    dtypes = []
+    hook = module.tokenizer.decoder.net[0].register_forward_hook(lambda m, i, o: dtypes.append(o.dtype))
+    fp32 = search_codes(module.tokenizer, x, module.joints, CodeSearchConfig(precision="fp32"))
+    assert set(dtypes) == {torch.float32}
+    dtypes.clear()
+    bf16 = search_codes(module.tokenizer, x, module.joints, CodeSearchConfig(precision="bf16"))
+    hook.remove()
+    assert set(dtypes) == {torch.bfloat16} and len(dtypes) == 1 + x.shape[1] // 4
+    # Scored in float32, the bfloat16 choice is within rounding of the float32 one, and better
+    # than the nearest codes (which both searches start from).
+    nearest = error(module, module.tokenizer.encode(x), x)
+    assert torch.all(error(module, bf16, x) <= error(module, fp32, x) * 1.02)
+    assert torch.all(error(module, bf16, x) < nearest)
+
+
 def test_nearest_codes_are_in_order_of_distance_and_start_with_the_quantized_one():
     q = EMAQuantizer(num_codes=5, code_dim=2)
     q.codebook.copy_(torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [0.0, 2.5], [-0.4, 0.0]]))
@@ -137,7 +183,7 @@ def test_the_search_decodes_once_per_position_on_candidates_copies_of_the_batch(
 
 def test_the_setting_lives_in_the_checkpoint_and_old_checkpoints_get_the_default(tmp_path):
     module = tokenizer(candidates=3, sweeps=2)
-    assert module.hparams["encode"] == {"candidates": 3, "sweeps": 2}
+    assert module.hparams["encode"] == {"candidates": 3, "sweeps": 2, "precision": "fp32"}
     path = tmp_path / "tok.ckpt"
 
     def save(hparams):

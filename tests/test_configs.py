@@ -83,8 +83,12 @@ def test_part_aware_configs_extend_the_whole_body_ones():
     )
     assert parts["output_dir"] == "outputs/stage1-parts"
     differing = {k for k in base if base[k] != parts[k]}
-    assert differing == {"model", "logger", "output_dir", "refine", "loss", "encode"}  # the rest inherited
-    assert base["encode"] == {"candidates": 4, "sweeps": 1} and parts["encode"]["candidates"] == 1
+    # the rest inherited
+    assert differing == {"model", "logger", "output_dir", "refine", "loss", "encode", "trainer"}
+    assert {k for k in base["trainer"] if base["trainer"][k] != parts["trainer"][k]} == {"precision"}
+    assert (base["trainer"]["precision"], parts["trainer"]["precision"]) == ("auto", "32-true")
+    assert base["encode"] == {"candidates": 4, "sweeps": 1, "precision": "auto"}
+    assert parts["encode"]["candidates"] == 1
     # its tokenizer training as its upper-body figures were measured, the rest of both groups inherited
     assert parts["refine"] == {**base["refine"], "steps": 1000}
     assert parts["loss"] == {**base["loss"], "path_weight": 0.0}

@@ -85,6 +85,27 @@ def test_tokenizer_shapes_and_paper_size():
     assert 17e6 < sum(p.numel() for p in paper.parameters()) < 19e6
 
 
+def test_under_a_bfloat16_autocast_the_convolutions_run_in_bfloat16_and_the_rest_in_float32():
+    torch.manual_seed(0)
+    tok = MotionTokenizer(263, TokenizerConfig(width=16, num_codes=32, code_dim=8)).train()
+    x = torch.randn(4, 32, 263)
+    conv_dtypes = []
+    tok.decoder.net[0].register_forward_hook(lambda m, i, o: conv_dtypes.append(o.dtype))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = tok(x)
+        loss = torch.nn.functional.smooth_l1_loss(out.reconstruction, x) + out.commit_loss
+    loss.backward()
+    assert conv_dtypes == [torch.bfloat16]
+    # The losses, the root integration and the codebook read float32 (README, Stage 1).
+    assert out.reconstruction.dtype == out.commit_loss.dtype == torch.float32
+    assert tok.quantizer.codebook.dtype == tok.quantizer.ema_sum.dtype == torch.float32
+    assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in tok.encoder.parameters())
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert tok.decode(out.indices).dtype == torch.float32
+        lengths = torch.tensor([8, 5, 8, 3])
+        assert tok.decode_lengths(out.indices, lengths).dtype == torch.float32
+
+
 def test_lr_schedule_warmup_and_decay():
     f = warmup_step_schedule(1000, [200_000], 0.05)
     assert f(0) == pytest.approx(1 / 1000) and f(499) == pytest.approx(0.5) and f(999) == 1.0

@@ -38,6 +38,23 @@ PRECISIONS = ("fp32", "bf16", "int8")
 DEFAULT_PRECISION = {"cpu": "int8", "cuda": "fp32"}
 
 
+def cpu_has_bf16_matmul() -> bool | None:
+    """Whether oneDNN has bfloat16 kernels for this CPU (AVX-512 and newer: AVX-512 BF16, AMX);
+    None when this build of PyTorch cannot tell."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return None
+
+
+def has_fast_bf16() -> bool:
+    """Whether bfloat16 runs faster than float32 here: a GPU that supports it, or a CPU with
+    oneDNN's bfloat16 kernels (without them autocast emulates every matmul, slower than float32)."""
+    if torch.cuda.is_available():
+        return torch.cuda.is_bf16_supported()
+    return bool(cpu_has_bf16_matmul())
+
+
 def check_precision(precision: str) -> str:
     """`precision` when it is one of PRECISIONS, else a ValueError naming the choices."""
     if precision not in PRECISIONS:

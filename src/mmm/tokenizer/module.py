@@ -111,7 +111,8 @@ class TokenizerModule(L.LightningModule):
             logger=False,
         )
         self.model_cfg, self.optim_cfg, self.loss_cfg, self.refine_cfg = model, optim, loss, refine
-        self.encode_cfg = encode  # how `encode` tokenizes a known motion (mmm.tokenizer.search)
+        # How `encode` tokenizes a known motion (mmm.tokenizer.search); `auto` resolved for this machine.
+        self.encode_cfg = encode.resolved()
         self.tokenizer = (
             PartAwareTokenizer(feature_dim, model)
             if model.part_aware

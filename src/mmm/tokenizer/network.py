@@ -87,7 +87,8 @@ class Decoder(nn.Module):
         self.net = nn.Sequential(*layers)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return self.net(z)
+        # float32 also from a bfloat16 autocast: the losses and the joints integrate the root from it.
+        return self.net(z).float()
 
     def forward_lengths(self, z: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """`forward` of a batch of mixed lengths (B, C, T') with (B,) valid steps each: every
@@ -109,7 +110,7 @@ class Decoder(nn.Module):
                 if isinstance(block, nn.Upsample):
                     n = n * int(block.scale_factor)
                 x = keep(x, n)
-        return x
+        return x.float()
 
 
 @dataclass

@@ -79,13 +79,16 @@ class EMAQuantizer(nn.Module):
 
     # -- lookup ---------------------------------------------------------------------------------
     def _flatten(self, z: torch.Tensor) -> torch.Tensor:
-        flat = z.permute(0, 2, 1).reshape(-1, self.code_dim)
+        # float32 under a bfloat16 autocast too: the codebook, its EMA and the choice of code stay exact.
+        flat = z.permute(0, 2, 1).reshape(-1, self.code_dim).float()
         return F.normalize(flat, dim=-1) if self.l2_normalize else flat
 
     def _distances(self, flat: torch.Tensor) -> torch.Tensor:
-        """Squared L2 distances (N, K) of latents (N, C) to every code."""
+        """Squared L2 distances (N, K) of latents (N, C) to every code, in float32 (also under autocast,
+        whose bfloat16 matmul would pick among near codes by rounding)."""
         codebook = self.codebook.to(flat.dtype)
-        return flat.pow(2).sum(-1, keepdim=True) - 2 * flat @ codebook.t() + codebook.pow(2).sum(-1)[None]
+        with torch.autocast(flat.device.type, enabled=False):
+            return flat.pow(2).sum(-1, keepdim=True) - 2 * flat @ codebook.t() + codebook.pow(2).sum(-1)[None]
 
     def nearest(self, flat: torch.Tensor) -> torch.Tensor:
         """Index (N,) of the nearest code (L2) of each latent (N, C)."""

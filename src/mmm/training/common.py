@@ -29,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from mmm.callbacks.checkpoints import RunState, checkpoint_callbacks
 from mmm.checkpoints import load_checkpoint
 from mmm.config import conf_dir, config_hash
+from mmm.generation.precision import cpu_has_bf16_matmul
 from mmm.kinds import ModelKind
 from mmm.resolve import log_artifact_with_digest
 from mmm.tracking import (
@@ -78,15 +79,6 @@ def build_logger(
         artifact_location=artifact_location(cfg.tracking_uri, cfg.artifact_root),
         run_id=run_id,
     )
-
-
-def cpu_has_bf16_matmul() -> bool | None:
-    """Whether oneDNN has bfloat16 kernels for this CPU (AVX-512 and newer: AVX-512 BF16, AMX);
-    None when this build of PyTorch cannot tell."""
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return None
 
 
 def training_precision(precision: str, accelerator: str) -> str:
