@@ -63,7 +63,7 @@ class CodeSearchConfig:
         token caches and logged metrics."""
         if self.candidates == 1:
             return "nearest"
-        suffix = {"fp32": "", "bf16": "-bf16"}.get(self.resolved().precision)
+        suffix = "-bf16" if self.resolved().precision == "bf16" else ""
         return f"search{self.candidates}x{self.sweeps}{suffix}"
 
 
