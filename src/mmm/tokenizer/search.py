@@ -97,7 +97,7 @@ def search_codes(
             torch.autocast(motion.device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
         )
         with autocast:
-            return tokenizer.decode(indices).float()
+            return tokenizer.decode(indices)  # the decoder hands back float32
 
     candidates = tokenizer.candidate_codes(motion, cfg.candidates)
     if not tokenizer.part_aware:
