@@ -84,6 +84,10 @@ BEFORE_MODEL = {
     "iterations zero": (GEN + ["--iterations", "0"], ["--iterations 0", "from 1 to 100"]),
     "num-samples zero": (GEN + ["--num-samples", "0"], ["--num-samples 0", "from 1 to 64"]),
     "num-samples above bound": (GEN + ["--num-samples", "65"], ["--num-samples 65", "from 1 to 64"]),
+    "prompts x num-samples above bound": (
+        GEN + ["--text", "a person jumps"] * 16 + ["--num-samples", "4"],
+        ["17 prompts x --num-samples 4 is 68 samples", "at most 64 per call"],
+    ),
     "candidates zero": (GEN + ["--candidates", "0"], ["--candidates 0", "1 to 16"]),
     "candidates above bound": (GEN + ["--candidates", "17"], ["--candidates 17", "1 to 16"]),
     "seed negative": (GEN + ["--seed", "-1"], ["--seed -1", "0 to 2^63-1"]),

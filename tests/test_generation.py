@@ -354,6 +354,30 @@ def test_cli_generate_writes_complete_sample_folders(trained, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_cli_generate_draws_several_prompts_in_one_call(trained, tmp_path, capsys):
+    prompts = ["a person walks forward", "someone jumps twice"]
+    common = ["--length", "64", "--num-samples", "2", "--seed", "3", "--model", trained["checkpoint"]]
+    common += ["--tracking-uri", trained["uri"]]
+    dest = tmp_path / "both"
+    argv = ["generate", "--text", prompts[0], "--text", prompts[1], *common, "--out", str(dest)]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "4 samples of 2 prompts in" in capsys.readouterr().out
+    assert sorted(p.name for p in dest.iterdir()) == ["0", "1", "2", "3"]
+    metas = [json.loads((dest / str(k) / "meta.json").read_text()) for k in range(4)]
+    assert [(m["prompt"], m["sample"]) for m in metas] == [
+        (prompts[0], 0),
+        (prompts[0], 1),
+        (prompts[1], 0),
+        (prompts[1], 1),
+    ]
+    assert all(np.load(dest / str(k) / "features.npy").shape == (64, 263) for k in range(4))
+    # An empty prompt among several is refused before anything is drawn.
+    bad = tmp_path / "bad"
+    assert main(["generate", "--text", prompts[0], "--text", " ", *common, "--out", str(bad)]) != 0
+    assert "--text is empty" in capsys.readouterr().err and not bad.exists()
+
+
+@pytest.mark.slow
 def test_cli_edit_and_long(trained, tmp_path, capsys):
     from mmm.motion.features import recover_from_ric
 

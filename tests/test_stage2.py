@@ -12,7 +12,7 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
-from mmm.data.humanml3d import Caption, DataError, MotionItem
+from mmm.data.humanml3d import Caption, DataError, MotionItem, read_split
 from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
 from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
@@ -257,6 +257,18 @@ def test_the_token_cache_is_one_array_and_caches_of_the_first_format_still_read(
     np.savez(folder / "tokens.npz", codes=codes, offsets=offsets[:-1])
     with pytest.raises(DataError, match=r"tokens\.npz: inconsistent token cache .*delete the folder"):
         len(TokenCache(folder))
+
+
+def test_stage2_tokenizes_only_the_splits_it_reads(trained):
+    (meta_file,) = (trained["out"] / "tokens").glob("*/meta.json")
+    cache = TokenCache(meta_file.parent)
+    root = trained["walker"]
+    train, val, test = (read_split(root, split) for split in ("train", "val", "test"))
+    assert cache.meta["splits"] == ["train", "val"] and len(test) > 0
+    assert sorted(cache.meta["ids"]) == sorted(train + val)
+    assert not any(m in cache for m in test)
+    with pytest.raises(KeyError, match=rf"{test[0]}: no tokens in .*covers the ids of train, val"):
+        cache[test[0]]
 
 
 def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):

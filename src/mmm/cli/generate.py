@@ -66,7 +66,13 @@ def check_best_of_args(args: argparse.Namespace) -> None:
 
 def add_generate(sub) -> None:
     gen = sub.add_parser("generate", help="text to motion")
-    gen.add_argument("--text", required=True)
+    gen.add_argument(
+        "--text",
+        action="append",
+        required=True,
+        help="what the motion shows; repeat it for several prompts, drawn in one batch with one model "
+        "load: the sample folders hold --num-samples samples of each prompt, in the order given",
+    )
     gen.add_argument(
         "--length",
         type=int,
@@ -137,10 +143,17 @@ def cmd_generate(args: argparse.Namespace) -> None:
     # imported here: keeps `mmm --help` fast
     from mmm.generation.best_of import generate_best_of
     from mmm.generation.outputs import write_samples
+    from mmm.generation.sampler import MAX_SAMPLES
 
     check_generation_args(args)
-    check_texts([args.text])
+    check_texts(args.text)
     check_best_of_args(args)
+    total = len(args.text) * args.num_samples
+    if total > MAX_SAMPLES:
+        raise CLIError(
+            f"{len(args.text)} prompts x --num-samples {args.num_samples} is {total} samples; at most "
+            f"{MAX_SAMPLES} per call: split the prompts over several calls"
+        )
     if args.candidates > 1 and args.trace:
         raise CLIError(
             "--trace plots one draw's decoding: leave it out with --candidates, or use --candidates 1"
@@ -148,8 +161,9 @@ def cmd_generate(args: argparse.Namespace) -> None:
     model = load_model(args)
     if args.length is not None:
         model.check_frames(args.length, "--length")
-    texts = [args.text] * args.num_samples
-    lengths = [args.length] * args.num_samples if args.length else None
+    # Prompt-major: sample folder i * num_samples + k is sample k of prompt i.
+    texts = [text for text in args.text for _ in range(args.num_samples)]
+    lengths = [args.length] * len(texts) if args.length else None
     judged = {}
     if args.candidates > 1:
         judge = load_best_of_judge(args, model)
@@ -163,16 +177,16 @@ def cmd_generate(args: argparse.Namespace) -> None:
         {
             "features": f,
             "joints": j,
-            "caption": args.text,
+            "caption": texts[k],
             "meta": meta(
                 args,
                 model,
                 out,
                 "generate",
                 {
-                    "prompt": args.text,
+                    "prompt": texts[k],
                     "length_frames": int(f.shape[0]),
-                    "sample": k,
+                    "sample": k % args.num_samples,
                     "iterations": out.iterations[k],
                     **judged,
                     **({"judge_scores": [round(float(v), 4) for v in out.scores[k]]} if judged else {}),
@@ -185,11 +199,15 @@ def cmd_generate(args: argparse.Namespace) -> None:
     if args.trace:
         from mmm.generation.trace import plot_trace
 
-        trace = plot_trace(out.trace, Path(args.out) / "decoding_trace.png", sample=0, title=args.text)
+        trace = plot_trace(out.trace, Path(args.out) / "decoding_trace.png", sample=0, title=texts[0])
         print(f"wrote {trace}")
     for folder in folders:
         print(f"wrote {folder}")
-    print(f"{len(folders)} samples in {out.seconds['total']:.2f} s ({out.forward_passes} transformer passes)")
+    prompts = f" of {len(args.text)} prompts" if len(args.text) > 1 else ""
+    print(
+        f"{len(folders)} samples{prompts} in {out.seconds['total']:.2f} s "
+        f"({out.forward_passes} transformer passes)"
+    )
 
 
 def cmd_edit(args: argparse.Namespace) -> None:

@@ -245,10 +245,14 @@ class TextMotionDataModule(_DatasetFolder):
 class TokenTextDataModule(_DatasetFolder):
     """Stage 2: cached motion tokens with cached caption embeddings, batches from TokenBatchCollator.
 
-    prepare_data (one process per node) synthesizes the dataset if configured, tokenizes it with
-    the stage-1 model (cached by tokenizer identity and data fingerprint) and caches the text
-    embeddings of every caption; setup only reads the caches.
+    prepare_data (one process per node) synthesizes the dataset if configured, tokenizes the
+    TOKEN_SPLITS with the stage-1 model (cached by tokenizer identity and data fingerprint) and
+    caches the text embeddings of every caption; setup only reads the caches.
     """
+
+    # The splits stage 2 and the length estimator read; the test motions are never tokenized for
+    # them (on the synthetic default, 450 of 3,000 motions of the code search).
+    TOKEN_SPLITS = ("train", "val")
 
     def __init__(
         self,
@@ -308,6 +312,7 @@ class TokenTextDataModule(_DatasetFolder):
             self.tokenizer,
             self.root,
             self._token_folder(),
+            splits=self.TOKEN_SPLITS,
             meta={"tokenizer": self.tokenizer_identity, "data": self.data_fingerprint},
         )
         captions = set()
@@ -337,7 +342,7 @@ class TokenTextDataModule(_DatasetFolder):
             )
         self.collate = TokenBatchCollator(self.caption_cache, sizes.pop(), self.max_tokens)
         self.datasets = {}
-        for split in ("train", "val"):
+        for split in self.TOKEN_SPLITS:
             items, report = self._items(split)
             _log_report(f"{self.cfg.name} {split} items", report)
             self.datasets[split] = TokenTextDataset(
