@@ -169,7 +169,6 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
         "optim.gamma": 0.1,
         "trainer.max_steps": 6500,
         "trainer.val_check_interval": 300,
-        "trainer.precision": "auto",
         "callbacks.adherence_captions": 128,
         "callbacks.checkpoint.monitor": "val_adherence/ordered_rate",
         "callbacks.checkpoint.mode": "max",

@@ -170,3 +170,45 @@ def test_auto_precision_trains_in_bf16_only_where_the_device_has_bf16_kernels(
         assert trainer.precision == expected
         messages = [r.getMessage() for r in caplog.records if r.name == common.__name__]
         assert messages == [f"trainer.precision=auto: {expected} (bfloat16 kernels on this cpu: {has_bf16})"]
+
+
+def test_cpu_bf16_autocast_runs_attention_in_float32_with_the_same_result(monkeypatch):
+    """Under a CPU bfloat16 autocast (training with bf16-mixed, bf16 decoding) the attention kernel
+    gets float32 inputs: PyTorch's bfloat16 CPU kernel is several times slower on these short
+    sequences. The layer still returns bfloat16, and its output and gradients match float32's."""
+    import torch.nn.functional as F
+
+    from mmm.transformer import network
+
+    torch.manual_seed(0)
+    attention = network.Attention(32, 4, dropout=0.0)
+    x, context = torch.randn(3, 9, 32), torch.randn(3, 5, 32)
+    mask = torch.ones(3, 5, dtype=torch.bool)
+    mask[0, 3:] = False
+    kernel_dtypes, kernel = [], F.scaled_dot_product_attention
+
+    def recording(q, k, v, **kwargs):
+        kernel_dtypes.append({q.dtype, k.dtype, v.dtype})
+        return kernel(q, k, v, **kwargs)
+
+    monkeypatch.setattr(network.F, "scaled_dot_product_attention", recording)
+
+    def run(bf16: bool):
+        attention.zero_grad()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            y = attention(x, context, mask)
+        y.float().square().sum().backward()
+        return y, attention.kv.weight.grad.clone()
+
+    y32, grad32 = run(bf16=False)
+    y16, grad16 = run(bf16=True)
+    assert kernel_dtypes == [{torch.float32}, {torch.float32}]
+    assert y32.dtype == torch.float32 and y16.dtype == torch.bfloat16
+    scale = y32.abs().max()
+    assert (y16.float() - y32).abs().max() < 0.03 * scale
+    assert (grad16 - grad32).abs().max() < 0.05 * grad32.abs().max()
+    # Masked context positions stay masked on the float32 path: the padding cannot move the output.
+    context2 = context.clone()
+    context2[0, 3:] = 100.0
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.equal(attention(x, context2, mask)[0], attention(x, context, mask)[0])

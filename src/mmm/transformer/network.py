@@ -109,9 +109,17 @@ class Attention(nn.Module):
         B, S, E = x.shape
         q = self.q(x).view(B, S, self.heads, -1).transpose(1, 2)
         k, v = kv
-        y = F.scaled_dot_product_attention(
-            q, k, v, attn_mask=key_mask[:, None, None, :], dropout_p=self.dropout if self.training else 0.0
-        )
+        mask, dropout_p = key_mask[:, None, None, :], self.dropout if self.training else 0.0
+        if q.device.type == "cpu" and q.dtype == torch.bfloat16:
+            # PyTorch's CPU attention kernel is several times slower in bfloat16 than in float32 on
+            # these short sequences (the backward 3-8x on an AVX-512 CPU without AMX; README "Training
+            # speed"), and it is a small share of the step's arithmetic, so it runs in float32.
+            with torch.autocast("cpu", enabled=False):
+                y = F.scaled_dot_product_attention(
+                    q.float(), k.float(), v.float(), attn_mask=mask, dropout_p=dropout_p
+                ).to(q.dtype)
+        else:
+            y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout_p)
         return self.out(y.transpose(1, 2).reshape(B, S, E))
 
 
