@@ -152,6 +152,10 @@ BEFORE_MODEL = {
         ["data", "synth", "--out", "{out}", "--num-clips", "2", "--extra-train-clips", "-3"],
         ["--extra-train-clips -3", "0 or more"],
     ),
+    "synth workers zero": (
+        ["data", "synth", "--out", "{out}", "--num-clips", "2", "--workers", "0"],
+        ["--workers 0", "1 or more"],
+    ),
     "synth composite fraction above one": (
         ["data", "synth", "--out", "{out}", "--num-clips", "2", "--extra-composite-fraction", "1.5"],
         ["--extra-composite-fraction 1.5", "between 0 and 1"],

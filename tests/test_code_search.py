@@ -167,8 +167,8 @@ def test_the_searched_codes_are_candidates_and_decode_no_worse_than_the_nearest(
     assert not torch.equal(picked, nearest)
 
 
-def test_the_search_decodes_once_per_position_on_candidates_copies_of_the_batch():
-    module = tokenizer(candidates=2)
+def test_the_search_decodes_once_per_position_on_the_other_candidates_copies_of_the_batch():
+    module = tokenizer(candidates=3)
     x = motion(batch=2, frames=16)
     joints_of = []
 
@@ -176,9 +176,30 @@ def test_the_search_decodes_once_per_position_on_candidates_copies_of_the_batch(
         joints_of.append(features.shape[0])
         return module.joints(features)
 
-    search_codes(module.tokenizer, x, joints, CodeSearchConfig(candidates=2))
-    # the motion, the nearest codes' decoding, then one call per position on 2 copies of the batch
+    search_codes(module.tokenizer, x, joints, CodeSearchConfig(candidates=3))
+    # the motion, the nearest codes' decoding, then one call per position on 2 copies of the batch:
+    # the code in place is not decoded again
     assert joints_of == [2, 2] + [4] * 4
+
+
+@pytest.mark.parametrize("sweeps", [1, 2])
+def test_the_search_picks_what_scoring_every_candidate_in_turn_picks(sweeps):
+    module = tokenizer(candidates=4, seed=3)
+    x = motion(batch=3, frames=20, seed=4)
+    candidates = module.tokenizer.candidate_codes(x, 4)  # (B, 5, 4)
+    chosen = candidates[..., 0].clone()
+    for _ in range(sweeps):  # greedy coordinate descent, each row and candidate decoded alone
+        for row in range(3):
+            for t in range(5):
+                for code in candidates[row, t]:
+                    trial = chosen[row : row + 1].clone()
+                    trial[0, t] = code
+                    one = x[row : row + 1]
+                    if error(module, trial, one) < error(module, chosen[row : row + 1], one) - 1e-6:
+                        chosen[row] = trial[0]
+    picked = search_codes(module.tokenizer, x, module.joints, CodeSearchConfig(candidates=4, sweeps=sweeps))
+    assert torch.equal(picked, chosen)
+    assert not torch.equal(picked, candidates[..., 0])
 
 
 def test_the_setting_lives_in_the_checkpoint_and_old_checkpoints_get_the_default(tmp_path):

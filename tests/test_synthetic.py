@@ -34,7 +34,7 @@ PARAMS = {
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth") / "ds"
-    summary = gen.generate_dataset(root, num_clips=NUM_CLIPS, seed=SEED, progress=False)
+    summary = gen.generate_dataset(root, num_clips=NUM_CLIPS, seed=SEED, progress=False, workers=1)
     return root, summary
 
 
@@ -256,10 +256,22 @@ def test_mean_std_are_the_reference_statistics_of_all_files(dataset):
 
 
 @pytest.mark.slow
-def test_same_seed_gives_identical_bytes_and_another_seed_differs(dataset, tmp_path):
+def test_same_seed_gives_identical_bytes_in_worker_processes_and_another_seed_differs(
+    dataset, tmp_path, monkeypatch
+):
     root, _ = dataset
     again = tmp_path / "again"
-    gen.generate_dataset(again, num_clips=NUM_CLIPS, seed=SEED, progress=False)
+    monkeypatch.setattr(gen, "POOL_MIN_CHUNKS", 1)  # NUM_CLIPS are 2 chunks: drawn by 2 processes
+    spawned = []
+    context = gen.multiprocessing.get_context
+
+    def spawn_context(method):
+        spawned.append(method)
+        return context(method)
+
+    monkeypatch.setattr(gen.multiprocessing, "get_context", spawn_context)
+    gen.generate_dataset(again, num_clips=NUM_CLIPS, seed=SEED, progress=False, workers=2)
+    assert spawned == ["spawn"]
     files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
     assert files == sorted(p.relative_to(again) for p in again.rglob("*") if p.is_file())
     for rel in files:
@@ -424,6 +436,8 @@ def test_extra_train_clips_add_training_clips_and_leave_the_held_out_splits_alon
     gen.check_synthesis(more, NUM_CLIPS, SEED, 3, extra_train_clips=5)
     with pytest.raises(ValueError, match="extra_train_clips must be >= 0"):
         gen.generate_dataset(tmp_path / "x", num_clips=3, seed=0, progress=False, extra_train_clips=-1)
+    with pytest.raises(ValueError, match="workers must be >= 1, got 0"):
+        gen.generate_dataset(tmp_path / "x", num_clips=3, seed=0, progress=False, workers=0)
 
 
 @pytest.mark.slow

@@ -49,6 +49,12 @@ def add_data(sub) -> None:
         default=None,
         help="share of two-action clips among the --extra-train-clips (default: a third, as in the others)",
     )
+    synth.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes drawing clips (default: one per CPU core, at most 4); the files are the same for any",
+    )
     synth.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     synth.set_defaults(func=cmd_data_synth)
 
@@ -133,6 +139,8 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
     fraction = COMPOSITE_FRACTION if args.extra_composite_fraction is None else args.extra_composite_fraction
     if not 0.0 <= fraction <= 1.0:
         raise CLIError(f"--extra-composite-fraction {fraction}: give a share between 0 and 1")
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers {args.workers}: give 1 or more processes")
     summary = generate_dataset(
         args.out,
         num_clips=args.num_clips,
@@ -141,6 +149,7 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         train_paraphrases=args.train_paraphrases,
         extra_train_clips=args.extra_train_clips,
         extra_composite_fraction=fraction,
+        workers=args.workers,
     )
     print(summary)
 

@@ -29,10 +29,13 @@ lines, so the motions, the val and test splits and the first lines stay those of
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import shutil
 import time
-from collections import Counter
+from collections import Counter, deque
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,6 +59,7 @@ MIN_ROWS = 40
 COMPOSITE_FRACTION = 1 / 3
 SYNTHESIS_FILE = "synthesis.json"
 CHUNK = 32  # clips whose first tries share one forward-kinematics call
+POOL_MIN_CHUNKS = 8  # fewer chunks are drawn in this process: starting workers costs seconds
 SPLITS = {"val": 0.05, "test": 0.15}  # the rest is train
 _ACTIONS = tuple(ACTIONS)
 _P = np.array([ACTIONS[a].weight for a in _ACTIONS]) / sum(spec.weight for spec in ACTIONS.values())
@@ -247,6 +251,38 @@ def _generate_chunk(
     return clips
 
 
+def _single_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def _generate_all(seed: int, composite_fractions: list[float], workers: int) -> Iterator[Clip]:
+    """Every clip, in index order, drawn in chunks of CHUNK; with workers > 1 by that many
+    processes, a few chunks ahead of the caller (each clip has its own random stream, so the
+    clips are those of one process)."""
+    total = len(composite_fractions)
+    chunks = [range(lo, min(lo + CHUNK, total)) for lo in range(0, total, CHUNK)]
+    if workers <= 1 or len(chunks) < POOL_MIN_CHUNKS:
+        for chunk in chunks:
+            yield from _generate_chunk(seed, chunk, composite_fractions[chunk.start : chunk.stop])
+        return
+    # spawn, not fork: the caller may hold OpenMP threads (a forked child can hang on them)
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_single_thread) as pool:
+        pending: deque = deque()
+        try:
+            for chunk in chunks:
+                pending.append(
+                    pool.submit(_generate_chunk, seed, chunk, composite_fractions[chunk.start : chunk.stop])
+                )
+                if len(pending) > 2 * workers:  # bounded: clips are written as they come
+                    yield from pending.popleft().result()
+            while pending:
+                yield from pending.popleft().result()
+        finally:
+            for future in pending:
+                future.cancel()
+
+
 def split_ids(num_clips: int, seed: int) -> dict[str, list[str]]:
     """Clip ids (without mirrors) per split, 80/5/15 by clip."""
     order = np.random.default_rng([int(seed), 2**31 - 1]).permutation(num_clips)
@@ -365,10 +401,14 @@ def generate_dataset(
     train_paraphrases: int = 3,
     extra_train_clips: int = 0,
     extra_composite_fraction: float = COMPOSITE_FRACTION,
+    workers: int | None = None,
 ) -> dict:
     """Generate `num_clips` clips plus their mirrors into out_dir, and `extra_train_clips` more
     (a share `extra_composite_fraction` of them two-action clips) that all go to the training
     split; returns a summary.
+
+    workers: processes drawing clips (None: one per CPU core, at most 4; the files are the same
+    for any number).
 
     Written into a temporary sibling folder that replaces out_dir only when complete, so a crash
     never leaves a half-written dataset. Refuses a non-empty out_dir unless overwrite=True.
@@ -381,6 +421,11 @@ def generate_dataset(
         raise ValueError(f"extra_train_clips must be >= 0, got {extra_train_clips}")
     if not 0.0 <= float(extra_composite_fraction) <= 1.0:
         raise ValueError(f"extra_composite_fraction must be within [0, 1], got {extra_composite_fraction}")
+    if workers is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        workers = min(4, cores or 1)
+    if int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     total = int(num_clips) + int(extra_train_clips)
     extra = [float(extra_composite_fraction)] * int(extra_train_clips)
     fractions = [COMPOSITE_FRACTION] * int(num_clips) + extra  # per clip index
@@ -403,14 +448,7 @@ def generate_dataset(
         composites = attempts = frames = short = 0
         train = set(splits["train"])
         bar = tqdm(total=total, desc="synthesizing clips", unit="clip", disable=not progress)
-        for i, clip in (
-            (i, c)
-            for lo in range(0, total, CHUNK)
-            for i, c in zip(
-                range(lo, min(lo + CHUNK, total)),
-                _generate_chunk(seed, range(lo, min(lo + CHUNK, total)), fractions[lo : lo + CHUNK]),
-            )
-        ):
+        for i, clip in enumerate(_generate_all(seed, fractions, int(workers))):
             bar.update(1)
             cid = f"{i:06d}"
             if train_paraphrases > 3 and cid in train:
