@@ -6,8 +6,10 @@ import torch
 
 from mmm.generation.best_of import (
     MIN_JUDGED_FRAMES,
+    caption_clauses,
     check_candidates,
     check_judge,
+    clause_scores,
     edit_best_of,
     edited_span,
     generate_best_of,
@@ -222,3 +224,96 @@ def test_long_sequences_keep_each_prompts_best_segment():
     assert out.features[0][:40, 0].tolist() == pytest.approx([0.6] * 40)
     assert out.features[0][40:, 0].tolist() == pytest.approx([1.4] * 48)
     assert out.scores.shape == (2, 3) and out.seconds["total"] > 0.5 and "segments" in out.seconds
+
+
+@pytest.mark.parametrize(
+    "caption, clauses",
+    [
+        ("a person walks forward and then jumps", ("a person walks forward", "jumps")),
+        ("Someone first squats, then waves.", ("Someone squats", "waves")),
+        ("a man runs, followed by a jump", ("a man runs", "a jump")),
+        ("the person kicks and afterwards sits down", ("the person kicks", "sits down")),
+        ("a person turns around. After that, they wave", ("a person turns around", "they wave")),
+        ("a person walks and waves", None),  # "and" alone also joins actions done at once
+        ("a person jumps twice", None),
+        ("he strengthens his stance", None),  # "then" inside a word
+        ("walks, then jumps, then sits", None),  # three steps
+        ("then a person walks", None),  # nothing before the connective
+    ],
+)
+def test_caption_clauses_splits_a_caption_in_two_steps_only(caption, clauses):
+    assert caption_clauses(caption) == clauses
+
+
+class ClauseJudge:
+    """Texts embed by their words: "rises" as (1, 0), "falls" as (0, 1), both as (1, 1) / sqrt 2;
+    a motion as (frames above 0, frames below 0) over its valid frames, so a piece's cosine with a
+    clause is the share of the piece doing what the clause says."""
+
+    info = {"feature_dim": 3}
+    identity = "clause-judge"
+
+    def sentence_embeddings(self, texts):
+        raise AssertionError("not called: embed_texts is")
+
+    def embed_texts(self, texts):
+        return torch.tensor([[float("rises" in t), float("falls" in t)] for t in texts])
+
+    def embed_motions(self, features, lengths):
+        features = torch.as_tensor(features)
+        rows = [features[i, : int(n), 0] for i, n in enumerate(lengths)]
+        return torch.stack([torch.stack([(r > 0).sum(), (r < 0).sum()]).float() for r in rows])
+
+
+def _rise_fall(first: float, frames: int = 96) -> np.ndarray:
+    """(frames, 3): the first half at `first`, the second at `-first`."""
+    half = np.full((frames // 2, 3), first, np.float32)
+    return np.concatenate((half, -half))
+
+
+def test_clause_scores_find_the_cut_and_tell_the_order_the_whole_caption_cannot():
+    caption = "a thing rises and then falls"
+    rise_fall, fall_rise = _rise_fall(1.0), _rise_fall(-1.0)
+    judge = ClauseJudge()
+    # 96 frames: cuts at 24, 32, ..., 72 (every 8, a quarter of the motion on each side).
+    # Rise-then-fall: the cut at frame 48 gives each clause a piece it describes fully.
+    # Fall-then-rise, by hand: the best cuts are 24 and 72 (the shortest first or last piece),
+    # where one clause's piece is 24 of 72 frames right: cosine 24 / sqrt(48^2 + 24^2), the
+    # other's 0.
+    expected = 24 / np.hypot(48, 24) / 2
+    np.testing.assert_allclose(
+        clause_scores(judge, [caption] * 2, [rise_fall, fall_rise]), [1.0, expected], atol=1e-6
+    )
+    # The whole caption ("rises" and "falls": (1, 1)) scores both motions 1: half the frames each.
+    np.testing.assert_allclose(
+        judge_scores(judge, [caption] * 2, [rise_fall, fall_rise], by_clause=False), [1, 1], atol=1e-6
+    )
+    np.testing.assert_allclose(
+        judge_scores(judge, [caption] * 2, [rise_fall, fall_rise]), [1.0, (1 + expected) / 2], atol=1e-6
+    )
+    # A caption in one step, or a motion too short to leave 16 frames on each side of a cut: no
+    # clause score, the cosine alone.
+    one_step, short = "a thing rises", _rise_fall(1.0, frames=30)
+    assert np.isnan(clause_scores(judge, [one_step, caption], [rise_fall, short])).all()
+    np.testing.assert_allclose(
+        judge_scores(judge, [one_step, caption], [rise_fall, short]),
+        judge_scores(judge, [one_step, caption], [rise_fall, short], by_clause=False),
+    )
+
+
+def test_best_of_keeps_the_draw_whose_steps_come_in_the_captions_order():
+    class OrderedDraws(Draws):
+        def generate(self, texts, frames, sampling=None, seed=None, check_lengths=True):
+            features = [_rise_fall(self.values[r], n) for r, n in enumerate(frames)]
+            codes = [np.full(n // 4, r) for r, n in enumerate(frames)]
+            return Generated(
+                list(texts), features, [f[:, None] for f in features], codes, [1] * len(texts), 1
+            )
+
+    model = OrderedDraws([-1.0, 1.0])  # candidate 0 falls first, candidate 1 rises first
+    out = generate_best_of(model, ClauseJudge(), ["a thing rises, then falls"], [96], candidates=2)
+    assert int(out.codes[0][0]) == 1 and out.scores[0, 1] == pytest.approx(1.0)
+    whole = generate_best_of(
+        model, ClauseJudge(), ["a thing rises, then falls"], [96], candidates=2, by_clause=False
+    )
+    np.testing.assert_allclose(whole.scores, [[1.0, 1.0]], atol=1e-6)  # a tie: the order is invisible to it

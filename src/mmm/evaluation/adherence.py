@@ -94,9 +94,10 @@ def prompt_adherence(
     max_items: int | None = None,
     candidates: int = 1,
     judge=None,
+    by_clause: bool = True,
 ) -> dict:
     """Prompt adherence of a TextToMotion `model` on `items` (candidates > 1: each motion the best
-    of that many draws by `judge`, mmm.generation.best_of):
+    of that many draws by `judge`, mmm.generation.best_of, clause by clause unless by_clause=False):
 
     rate, per_action {actions: (satisfied, total)}: strict; ordered_rate, per_action_ordered: the
     order-aware check; groups {"single" | "composition" | "counts": {"count", "strict", "ordered"}}
@@ -113,7 +114,15 @@ def prompt_adherence(
         texts, frames = [c[0] for c in chunk], [c[1] for c in chunk]
         if candidates > 1:
             out = generate_best_of(
-                model, judge, texts, frames, candidates, sampling, seed=seed + b, check_lengths=False
+                model,
+                judge,
+                texts,
+                frames,
+                candidates,
+                sampling,
+                seed=seed + b,
+                check_lengths=False,
+                by_clause=by_clause,
             )
         else:
             out = model.generate(texts, frames, sampling, seed=seed + b, check_lengths=False)

@@ -92,6 +92,8 @@ class EvaluateConfig:
     # The text2motion protocol always draws one: its evaluator would be judging its own choice.
     adherence_candidates: int = 1
     adherence_judge: str | None = None
+    # A caption in two steps also judged clause by clause (mmm.generation.best_of.judge_scores).
+    adherence_by_clause: bool = True
     output_dir: str = "outputs/evaluation"
     device: str = "cpu"
     precision: str | None = None  # fp32 | bf16 | int8 decoding passes; null: the device's default
@@ -293,9 +295,14 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             max_items=cfg.adherence_max_items,
             candidates=candidates,
             judge=judge,
+            by_clause=cfg.adherence_by_clause,
         )
         if judge is not None:
-            results["adherence_judge"] = {"candidates": candidates, "identity": judge.identity}
+            results["adherence_judge"] = {
+                "candidates": candidates,
+                "identity": judge.identity,
+                "by_clause": cfg.adherence_by_clause,
+            }
         results["adherence"] = adherence
         # Best of N gets its own keys: a plain run and a judged one are not the same measurement.
         metrics.update(
@@ -307,7 +314,13 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
         )
         lines = [
             "**Prompt adherence**"
-            + (f" (best of {candidates} by {judge.identity})" if judge is not None else "")
+            + (
+                f" (best of {candidates} by {judge.identity}"
+                + (", clause by clause" if cfg.adherence_by_clause else ", whole captions only")
+                + ")"
+                if judge is not None
+                else ""
+            )
             + f": {adherence['rate']:.3f} strict (each action inside its labelled span), "
             f"{adherence['ordered_rate']:.3f} order-aware (the actions in the caption's order, wherever they "
             f"meet) of {adherence['count']} {cfg.split} captions ({adherence['skipped']} without a checkable "

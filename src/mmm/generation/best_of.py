@@ -12,10 +12,17 @@ Why: one draw of the sampler often misses a detail its next draw gets right (the
 "walks, then jumps", the third of "jumps three times"); the judge sees the difference. More
 candidates are not better without end: the maximum over many draws finds motions the judge rates
 above what they do (README, "Best of N").
+
+A caption in two steps ("walks forward and then jumps", "..., followed by ...") is also judged
+clause by clause (`caption_clauses`, `clause_scores`): the first clause against the motion up to a
+cut, the second after it, at the cut that fits best. One embedding of the whole clip weighs the
+second action lightly, and that is the action a draw most often misses.
 """
 
 from __future__ import annotations
 
+import math
+import re
 import time
 
 import numpy as np
@@ -60,17 +67,91 @@ def check_judge(model: TextToMotion, judge) -> None:
         )
 
 
-@torch.no_grad()
-def judge_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndarray:
-    """Cosine (B,) of each text with its motion (un-normalized (T_i, D)) in the judge's space
-    (for an edit, what `edited_span` cuts out)."""
-    lengths = [len(f) for f in features]
-    batch = pad_motions(features)
+def _cosines(judge, texts: list[str], features: list[np.ndarray]) -> np.ndarray:
+    """Cosine (B,) of each text with its motion (un-normalized (T_i, D)) in the judge's space."""
     unique = {t: i for i, t in enumerate(dict.fromkeys(texts))}  # each distinct text embedded once
     text = F.normalize(judge.embed_texts(list(unique)).float(), dim=-1)
     text = text[torch.tensor([unique[t] for t in texts])]
-    motion = F.normalize(judge.embed_motions(batch, lengths).float(), dim=-1).to(text.device)
-    return (text * motion).sum(-1).cpu().numpy()
+    motion = judge.embed_motions(pad_motions(features), [len(f) for f in features])
+    return (text * F.normalize(motion.float(), dim=-1).to(text.device)).sum(-1).cpu().numpy()
+
+
+# Words that put one action after another. "and" alone is left out: it also joins actions done at
+# once ("walks and waves").
+_SEQUENCE = re.compile(
+    r"\s*,?\s*\b(?:(?:and\s+)?(?:then|afterwards|after\s+that)|followed\s+by)\b\s*,?\s*", re.IGNORECASE
+)
+_FIRST = re.compile(r"\bfirst\b,?\s*", re.IGNORECASE)
+
+
+def caption_clauses(text: str) -> tuple[str, str] | None:
+    """The two steps of a caption that says one thing happens after another ("a person walks
+    forward and then jumps" -> ("a person walks forward", "jumps")), "first" dropped from the
+    first; None for a caption in one step or in more than two."""
+    parts = _SEQUENCE.split(text)
+    if len(parts) != 2:
+        return None
+    first, second = (part.strip(" .,;") for part in (_FIRST.sub("", parts[0]), parts[1]))
+    return (first, second) if first and second else None
+
+
+CLAUSE_CUT_STEP = 8  # frames between the cuts tried (two codes)
+# The shortest piece a clause is judged on: a quarter of the motion, and at least 16 frames. Each
+# cut costs two passes of the judge over pieces as long as the motion, so the cuts are kept few.
+CLAUSE_MIN_FRAMES = 16
+CLAUSE_MIN_SHARE = 0.25
+CLAUSE_BATCH = 256  # pieces embedded at once
+
+
+@torch.no_grad()
+def clause_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.ndarray:
+    """(B,) for captions in two steps (`caption_clauses`): the best, over cuts every
+    CLAUSE_CUT_STEP frames leaving a quarter of the motion and at least CLAUSE_MIN_FRAMES on each
+    side, of the mean of the first clause's cosine with the motion before the cut and the
+    second's with the rest; NaN for other captions and for motions too short to cut."""
+    out = np.full(len(texts), np.nan)
+    pieces, clause_texts, owner = [], [], []  # owner: (row, cut index, which half)
+    cuts_of: dict[int, int] = {}
+    for row, (text, motion) in enumerate(zip(texts, features)):
+        clauses = caption_clauses(text)
+        shortest = max(CLAUSE_MIN_FRAMES, math.ceil(CLAUSE_MIN_SHARE * len(motion)))
+        cuts = range(shortest, len(motion) - shortest + 1, CLAUSE_CUT_STEP)
+        if clauses is None or not cuts:
+            continue
+        cuts_of[row] = len(cuts)
+        for c, cut in enumerate(cuts):
+            for half, (piece, clause) in enumerate(((motion[:cut], clauses[0]), (motion[cut:], clauses[1]))):
+                pieces.append(piece)
+                clause_texts.append(clause)
+                owner.append((row, c, half))
+    if not pieces:
+        return out
+    # In slices of similar lengths: a caption's cuts make up to about 80 pieces per draw, padded
+    # together they would take hundreds of MB, and the judge's GRUs run over the padding too.
+    order = np.argsort([len(piece) for piece in pieces], kind="stable")
+    cosines = np.empty(len(pieces))
+    for i in range(0, len(order), CLAUSE_BATCH):
+        rows = order[i : i + CLAUSE_BATCH]
+        cosines[rows] = _cosines(judge, [clause_texts[r] for r in rows], [pieces[r] for r in rows])
+    per_cut = {row: np.zeros((n, 2)) for row, n in cuts_of.items()}
+    for (row, c, half), value in zip(owner, cosines):
+        per_cut[row][c, half] = value
+    for row, values in per_cut.items():
+        out[row] = values.mean(1).max()
+    return out
+
+
+@torch.no_grad()
+def judge_scores(judge, texts: list[str], features: list[np.ndarray], by_clause: bool = True) -> np.ndarray:
+    """The judge's score (B,) of each text with its motion (un-normalized (T_i, D); for an edit,
+    what `edited_span` cuts out): the cosine of their embeddings, and for a caption in two steps
+    (with by_clause) the mean of that and its `clause_scores`. Both are cosines: the score stays
+    in [-1, 1]."""
+    score = _cosines(judge, texts, features)
+    if by_clause:
+        clauses = clause_scores(judge, texts, features)
+        score = np.where(np.isnan(clauses), score, (score + clauses) / 2)
+    return score
 
 
 def _keep_best(drawn: Generated, scores: np.ndarray, seconds: dict) -> Generated:
@@ -103,11 +184,13 @@ def generate_best_of(
     sampling: SamplingConfig | None = None,
     seed: int | None = None,
     check_lengths: bool = True,
+    by_clause: bool = True,
 ) -> Generated:
-    """One motion per text (as `model.generate`), the best of `candidates` by the judge's cosine.
+    """One motion per text (as `model.generate`), the best of `candidates` by the judge's score
+    (`judge_scores`; by_clause=False: the whole caption's cosine only).
 
     The candidates of a text share its length (estimated once when `frames` is None). The result's
-    `scores` (B, candidates) holds every candidate's cosine; the kept one is each row's maximum.
+    `scores` (B, candidates) holds every candidate's score; the kept one is each row's maximum.
     candidates=1 is `model.generate` with the scores added."""
     check_candidates(candidates)
     check_judge(model, judge)
@@ -121,7 +204,7 @@ def generate_best_of(
         texts * candidates, frames * candidates, sampling, seed, check_lengths=check_lengths
     )
     t0 = time.perf_counter()
-    scores = judge_scores(judge, texts * candidates, drawn.features).reshape(candidates, n).T
+    scores = judge_scores(judge, texts * candidates, drawn.features, by_clause).reshape(candidates, n).T
     seconds = {**drawn.seconds, "judge": time.perf_counter() - t0}
     seconds["total"] = time.perf_counter() - started
     return _keep_best(drawn, scores, seconds)

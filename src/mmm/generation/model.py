@@ -66,7 +66,7 @@ class Generated:
     # the lower-body codes shown
     kept_codes: np.ndarray | None = None
     trace: object | None = None  # DecodeTrace when asked for
-    scores: np.ndarray | None = None  # best of N: (B, N) the judge's cosine of every candidate
+    scores: np.ndarray | None = None  # best of N: (B, N) the judge's score of each (best_of.judge_scores)
 
 
 class TextToMotion:

@@ -147,7 +147,7 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
         guidance_scale 1.5 follows the most prompts, README "Best of N").
     Output: one dict per row, JSON-serializable:
         {"text", "length", "seed", "joints": (T, 22, 3) nested lists, "features": (T, 263) nested lists}
-        and, with candidates > 1, "candidates" and "scores" (each draw's cosine; the kept one is the
+        and, with candidates > 1, "candidates" and "scores" (each draw's judge score; the kept one is the
         highest).
     A part-aware bundle (mmm-upperbody) edits the upper body of a motion instead: each row has
         text (what the upper body does), source (T, 263) features as nested lists, optional
@@ -306,7 +306,8 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
 
 
 def _judged(g, candidates: int) -> dict:
-    """What a best-of-N row adds to its output: the number of draws and each one's cosine."""
+    """What a best-of-N row adds to its output: the number of draws and each one's judge score
+    (mmm.generation.best_of.judge_scores)."""
     if candidates == 1:
         return {}
     return {"candidates": candidates, "scores": [float(s) for s in np.asarray(g.scores)[0]]}
