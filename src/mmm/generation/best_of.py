@@ -126,8 +126,8 @@ def clause_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.nda
                 owner.append((row, c, half))
     if not pieces:
         return out
-    # In slices of similar lengths: a caption's cuts make up to about 80 pieces per draw, padded
-    # together they would take hundreds of MB, and the judge's GRUs run over the padding too.
+    # In slices of similar lengths: a draw of 196 frames makes 26 pieces, an evaluation batch's
+    # pieces padded together would take hundreds of MB, and the judge's GRUs run over the padding.
     order = np.argsort([len(piece) for piece in pieces], kind="stable")
     cosines = np.empty(len(pieces))
     for i in range(0, len(order), CLAUSE_BATCH):
