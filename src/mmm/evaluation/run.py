@@ -312,15 +312,10 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             f"{name} {g['strict']:.3f} strict / {g['ordered']:.3f} in order ({g['count']})"
             for name, g in adherence["groups"].items()
         )
+        how = ", clause by clause" if cfg.adherence_by_clause else ", whole captions only"
         lines = [
             "**Prompt adherence**"
-            + (
-                f" (best of {candidates} by {judge.identity}"
-                + (", clause by clause" if cfg.adherence_by_clause else ", whole captions only")
-                + ")"
-                if judge is not None
-                else ""
-            )
+            + (f" (best of {candidates} by {judge.identity}{how})" if judge is not None else "")
             + f": {adherence['rate']:.3f} strict (each action inside its labelled span), "
             f"{adherence['ordered_rate']:.3f} order-aware (the actions in the caption's order, wherever they "
             f"meet) of {adherence['count']} {cfg.split} captions ({adherence['skipped']} without a checkable "

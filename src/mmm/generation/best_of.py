@@ -67,11 +67,15 @@ def check_judge(model: TextToMotion, judge) -> None:
         )
 
 
-def _cosines(judge, texts: list[str], features: list[np.ndarray]) -> np.ndarray:
-    """Cosine (B,) of each text with its motion (un-normalized (T_i, D)) in the judge's space."""
-    unique = {t: i for i, t in enumerate(dict.fromkeys(texts))}  # each distinct text embedded once
+def _text_embeddings(judge, texts: list[str]) -> torch.Tensor:
+    """(B, E) unit embeddings of the texts, each distinct text through the judge once."""
+    unique = {t: i for i, t in enumerate(dict.fromkeys(texts))}
     text = F.normalize(judge.embed_texts(list(unique)).float(), dim=-1)
-    text = text[torch.tensor([unique[t] for t in texts])]
+    return text[torch.tensor([unique[t] for t in texts])]
+
+
+def _cosines(judge, text: torch.Tensor, features: list[np.ndarray]) -> np.ndarray:
+    """Cosine (B,) of each unit text embedding (B, E) with its motion (un-normalized (T_i, D))."""
     motion = judge.embed_motions(pad_motions(features), [len(f) for f in features])
     return (text * F.normalize(motion.float(), dim=-1).to(text.device)).sum(-1).cpu().numpy()
 
@@ -128,11 +132,12 @@ def clause_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.nda
         return out
     # In slices of similar lengths: a draw of 196 frames makes 26 pieces, an evaluation batch's
     # pieces padded together would take hundreds of MB, and the judge's GRUs run over the padding.
+    text = _text_embeddings(judge, clause_texts)
     order = np.argsort([len(piece) for piece in pieces], kind="stable")
     cosines = np.empty(len(pieces))
     for i in range(0, len(order), CLAUSE_BATCH):
         rows = order[i : i + CLAUSE_BATCH]
-        cosines[rows] = _cosines(judge, [clause_texts[r] for r in rows], [pieces[r] for r in rows])
+        cosines[rows] = _cosines(judge, text[torch.from_numpy(rows)], [pieces[r] for r in rows])
     per_cut = {row: np.zeros((n, 2)) for row, n in cuts_of.items()}
     for (row, c, half), value in zip(owner, cosines):
         per_cut[row][c, half] = value
@@ -147,7 +152,7 @@ def judge_scores(judge, texts: list[str], features: list[np.ndarray], by_clause:
     what `edited_span` cuts out): the cosine of their embeddings, and for a caption in two steps
     (with by_clause) the mean of that and its `clause_scores`. Both are cosines: the score stays
     in [-1, 1]."""
-    score = _cosines(judge, texts, features)
+    score = _cosines(judge, _text_embeddings(judge, texts), features)
     if by_clause:
         clauses = clause_scores(judge, texts, features)
         score = np.where(np.isnan(clauses), score, (score + clauses) / 2)
