@@ -7,7 +7,7 @@ less of one seed's noise), the judge's pick (what it measures with N), and the s
 the N passes (what a perfect judge would reach).
 
     python benchmarks/best_of_headroom.py --data data/synthetic-large --candidates 4 [--guidance 1.5]
-        [--model REF] [--judge REF] [--seed 0] [--max-items N] [--whole-caption]
+        [--model REF] [--judge REF] [--seed 0] [--max-items N] [--whole-caption] [--no-counterfactuals]
 """
 
 from __future__ import annotations
@@ -40,6 +40,11 @@ def main() -> None:
     p.add_argument(
         "--whole-caption", action="store_true", help="judge the whole caption only, not clause by clause"
     )
+    p.add_argument(
+        "--no-counterfactuals",
+        action="store_true",
+        help="do not judge captions with a count or speed word against their counterfactuals",
+    )
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--max-items", type=int, default=None)
     args = p.parse_args()
@@ -58,7 +63,9 @@ def main() -> None:
         chunk = checks[b : b + args.batch]
         texts, frames = [c[0] for c in chunk], [c[1] for c in chunk]
         out = model.generate(texts * n, frames * n, sampling, seed=args.seed + b, check_lengths=False)
-        scores = judge_scores(judge, texts * n, out.features, not args.whole_caption).reshape(n, len(chunk))
+        scores = judge_scores(
+            judge, texts * n, out.features, not args.whole_caption, not args.no_counterfactuals
+        ).reshape(n, len(chunk))
         passed = np.array(
             [ordered_pass(joints, f, parts) for joints, (_, f, parts) in zip(out.joints, chunk * n)]
         ).reshape(n, len(chunk))

@@ -5,11 +5,13 @@ import pytest
 import torch
 
 from mmm.generation.best_of import (
+    COUNTERFACTUAL_WEIGHT,
     MIN_JUDGED_FRAMES,
     caption_clauses,
     check_candidates,
     check_judge,
     clause_scores,
+    counterfactual_margins,
     edit_best_of,
     edited_span,
     generate_best_of,
@@ -52,7 +54,7 @@ class ValueJudge:
         raise AssertionError("not called: embed_texts is")
 
     def embed_texts(self, texts):
-        self.texts = list(texts)
+        self.texts = [*getattr(self, "texts", []), *texts]
         return torch.tensor([[1.0, 0.0]] * len(texts))
 
     def embed_motions(self, features, lengths):
@@ -79,7 +81,9 @@ def test_keeps_each_texts_candidate_the_judge_rates_highest():
     assert [float(f[0, 0]) for f in out.features] == [pytest.approx(0.6), pytest.approx(1.4)]
     assert [len(f) for f in out.features] == [40, 48]
     assert [int(c[0]) for c in out.codes] == [4, 5]  # the kept rows' own codes
-    assert judge.texts == ["walk", "jump twice"]  # each distinct text embedded once
+    # Each distinct wording embedded once: the texts, then the count's counterfactuals (which tie
+    # here: this judge reads no words).
+    assert judge.texts == ["walk", "jump twice", "jump once", "jump three times", "jump four times"]
     assert "judge" in out.seconds and out.texts == ["walk", "jump twice"]
 
 
@@ -317,3 +321,69 @@ def test_best_of_keeps_the_draw_whose_steps_come_in_the_captions_order():
         model, ClauseJudge(), ["a thing rises, then falls"], [96], candidates=2, by_clause=False
     )
     np.testing.assert_allclose(whole.scores, [[1.0, 1.0]], atol=1e-6)  # a tie: the order is invisible to it
+
+
+class CountJudge:
+    """Texts embed as (1, cos 30n, sin 30n) for "n times" (n in 1-4, as words), (1, 0, 0) without a
+    count; a motion whose frames hold (m, k, 0) as (m, cos 30k, sin 30k): how strongly it does
+    the action, and how many times. The cosine then trades the count against the strength."""
+
+    info = {"feature_dim": 3}
+    identity = "count-judge"
+    COUNTS = {"once": 1, "twice": 2, "three times": 3, "four times": 4}
+
+    def sentence_embeddings(self, texts):
+        raise AssertionError("not called: embed_texts is")
+
+    def embed_texts(self, texts):
+        rows = []
+        for text in texts:
+            n = next((n for word, n in self.COUNTS.items() if word in text), None)
+            angle = np.radians(30 * n) if n else None
+            rows.append([1.0, 0.0, 0.0] if n is None else [1.0, np.cos(angle), np.sin(angle)])
+        return torch.tensor(rows, dtype=torch.float32)
+
+    def embed_motions(self, features, lengths):
+        features = torch.as_tensor(features)
+        rows = []
+        for i, n in enumerate(lengths):
+            m, k = features[i, : int(n), :2].mean(0).tolist()
+            angle = np.radians(30 * k)
+            rows.append([m, np.cos(angle), np.sin(angle)])
+        return torch.tensor(rows, dtype=torch.float32)
+
+
+def test_counterfactual_margins_prefer_the_asked_count_to_a_closer_cosine():
+    caption = "a person jumps twice"
+    judge = CountJudge()
+    asked = np.tile([0.4, 2.0, 0.0], (40, 1)).astype(np.float32)  # twice, done weakly
+    other = np.tile([1.2, 3.0, 0.0], (40, 1)).astype(np.float32)  # three times, done strongly
+    # By hand: cosine = (m + cos 30(n - k)) / (sqrt 2 * sqrt(m^2 + 1)).
+    cos = lambda m, d: (m + np.cos(np.radians(30 * d))) / (np.sqrt(2) * np.hypot(m, 1))  # noqa: E731
+    whole = judge_scores(judge, [caption] * 2, [asked, other], counterfactuals=False)
+    np.testing.assert_allclose(whole, [cos(0.4, 0), cos(1.2, 1)], atol=1e-5)
+    assert whole[1] > whole[0]  # the cosine alone prefers the strong three jumps
+    # The variants are once, three times, four times. The asked draw beats its nearest (once or
+    # three times: 30 degrees off); the other draw is read as "three times" better than as "twice".
+    margins = [cos(0.4, 0) - cos(0.4, 1), cos(1.2, 1) - cos(1.2, 0)]
+    motions = torch.nn.functional.normalize(judge.embed_motions(np.stack([asked, other]), [40, 40]), dim=-1)
+    found = counterfactual_margins(judge, [caption] * 2, motions, whole)
+    np.testing.assert_allclose(found, margins, atol=1e-5)
+    # Cosines 0.919 and 0.935, margins +0.088 and -0.061: at the weight 0.25, 0.941 and 0.920.
+    scores = judge_scores(judge, [caption] * 2, [asked, other])
+    np.testing.assert_allclose(scores, whole + COUNTERFACTUAL_WEIGHT * np.array(margins), atol=1e-5)
+    assert COUNTERFACTUAL_WEIGHT == 0.25 and scores == pytest.approx([0.9411, 0.9200], abs=1e-3)
+    # Best of 2 keeps the asked count; without the counterfactuals, the other draw.
+    model = Draws([0.0, 0.0])
+    model.generate = lambda texts, frames, *a, **k: Generated(  # noqa: E731
+        list(texts), [asked, other], [asked[:, None], other[:, None]], [np.zeros(10), np.ones(10)], [1, 1], 1
+    )
+    assert int(generate_best_of(model, judge, [caption], [40], candidates=2).codes[0][0]) == 0
+    plain = generate_best_of(model, judge, [caption], [40], candidates=2, counterfactuals=False)
+    assert int(plain.codes[0][0]) == 1
+    # A caption without a count or speed word has no margin, and its score is the cosine.
+    assert np.isnan(counterfactual_margins(judge, ["a person jumps"], motions[:1], whole[:1])).all()
+    np.testing.assert_allclose(
+        judge_scores(judge, ["a person jumps"], [asked]),
+        judge_scores(judge, ["a person jumps"], [asked], counterfactuals=False),
+    )

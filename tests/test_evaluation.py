@@ -537,8 +537,10 @@ def test_mmm_evaluate_best_of_adherence_is_logged_under_its_own_keys(
     assert results["adherence_judge"]["candidates"] == 2
     assert results["adherence_judge"]["identity"].startswith("contrastive-")
     assert results["adherence_judge"]["by_clause"] is True
+    assert results["adherence_judge"]["counterfactuals"] is True
     report = (tmp_path / "eval/evaluation.md").read_text()
-    assert "**Prompt adherence** (best of 2 by contrastive-" in report and ", clause by clause)" in report
+    assert "**Prompt adherence** (best of 2 by contrastive-" in report
+    assert ", clause by clause and against counterfactuals)" in report
 
 
 @pytest.mark.slow

@@ -95,9 +95,11 @@ def prompt_adherence(
     candidates: int = 1,
     judge=None,
     by_clause: bool = True,
+    counterfactuals: bool = True,
 ) -> dict:
     """Prompt adherence of a TextToMotion `model` on `items` (candidates > 1: each motion the best
-    of that many draws by `judge`, mmm.generation.best_of, clause by clause unless by_clause=False):
+    of that many draws by `judge`, mmm.generation.best_of.judge_scores: clause by clause unless
+    by_clause=False, against count and speed counterfactuals unless counterfactuals=False):
 
     rate, per_action {actions: (satisfied, total)}: strict; ordered_rate, per_action_ordered: the
     order-aware check; groups {"single" | "composition" | "counts": {"count", "strict", "ordered"}}
@@ -123,6 +125,7 @@ def prompt_adherence(
                 seed=seed + b,
                 check_lengths=False,
                 by_clause=by_clause,
+                counterfactuals=counterfactuals,
             )
         else:
             out = model.generate(texts, frames, sampling, seed=seed + b, check_lengths=False)

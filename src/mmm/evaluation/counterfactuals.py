@@ -1,11 +1,13 @@
 """Counterfactual captions: a caption with one countable detail changed ("jumps twice" ->
 "jumps three times", "walks slowly" -> "walks quickly").
 
-Two uses. `counterfactual_ranking` asks whether an evaluator reads counts and speeds: how often a
+Three uses. `counterfactual_ranking` asks whether an evaluator reads counts and speeds: how often a
 real motion's own caption scores above its counterfactuals (logged by `mmm train evaluator` as
-`test/counterfactual_*_first`). And `loss.counterfactuals` makes them hard negatives in the
+`test/counterfactual_*_first`). `loss.counterfactuals` makes them hard negatives in the
 evaluator's training, since in-batch negatives rarely hold the same action at another count
 (measured in the README, "Best of N": it reads counts better and is not a better judge of draws).
+And best of N scores a draw by its caption's margin over them
+(mmm.generation.best_of.counterfactual_margins).
 
 `counterfactual_captions` rewrites the count ("once", "twice", "thrice", "<n> times", "<n> jumps")
 to each other count up to four, and a speed word to one of the opposite speed, one change per

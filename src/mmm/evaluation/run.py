@@ -92,8 +92,10 @@ class EvaluateConfig:
     # The text2motion protocol always draws one: its evaluator would be judging its own choice.
     adherence_candidates: int = 1
     adherence_judge: str | None = None
-    # A caption in two steps also judged clause by clause (mmm.generation.best_of.judge_scores).
+    # A caption in two steps also judged clause by clause, and one with a count or speed word
+    # against its counterfactuals (mmm.generation.best_of.judge_scores).
     adherence_by_clause: bool = True
+    adherence_counterfactuals: bool = True
     output_dir: str = "outputs/evaluation"
     device: str = "cpu"
     precision: str | None = None  # fp32 | bf16 | int8 decoding passes; null: the device's default
@@ -296,12 +298,14 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             candidates=candidates,
             judge=judge,
             by_clause=cfg.adherence_by_clause,
+            counterfactuals=cfg.adherence_counterfactuals,
         )
         if judge is not None:
             results["adherence_judge"] = {
                 "candidates": candidates,
                 "identity": judge.identity,
                 "by_clause": cfg.adherence_by_clause,
+                "counterfactuals": cfg.adherence_counterfactuals,
             }
         results["adherence"] = adherence
         # Best of N gets its own keys: a plain run and a judged one are not the same measurement.
@@ -312,7 +316,15 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             f"{name} {g['strict']:.3f} strict / {g['ordered']:.3f} in order ({g['count']})"
             for name, g in adherence["groups"].items()
         )
-        how = ", clause by clause" if cfg.adherence_by_clause else ", whole captions only"
+        refinements = [
+            name
+            for name, on in (
+                ("clause by clause", cfg.adherence_by_clause),
+                ("against counterfactuals", cfg.adherence_counterfactuals),
+            )
+            if on
+        ]
+        how = ", " + (" and ".join(refinements) or "whole captions only")
         lines = [
             "**Prompt adherence**"
             + (f" (best of {candidates} by {judge.identity}{how})" if judge is not None else "")

@@ -17,6 +17,11 @@ A caption in two steps ("walks forward and then jumps", "..., followed by ...") 
 clause by clause (`caption_clauses`, `clause_scores`): the first clause against the motion up to a
 cut, the second after it, at the cut that fits best. One embedding of the whole clip weighs the
 second action lightly, and that is the action a draw most often misses.
+
+A caption with a count or speed word ("jumps twice", "walks slowly") is also judged against its
+counterfactuals, the same caption with that word changed (`counterfactual_margins`): a draw gains
+by how much better the judge reads it as the caption than as "jumps three times". The cosine alone
+trades the count for how clearly the action is done; the margin asks the judge about the count.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from mmm.evaluation.counterfactuals import counterfactual_captions
 from mmm.generation.model import Generated, TextToMotion
 from mmm.generation.sampler import SamplingConfig
 from mmm.motion.features import pad_motions
@@ -74,10 +80,15 @@ def _text_embeddings(judge, texts: list[str]) -> torch.Tensor:
     return text[torch.tensor([unique[t] for t in texts])]
 
 
+def _motion_embeddings(judge, features: list[np.ndarray]) -> torch.Tensor:
+    """(B, E) unit embeddings of the motions (un-normalized (T_i, D))."""
+    motion = judge.embed_motions(pad_motions(features), [len(f) for f in features])
+    return F.normalize(motion.float(), dim=-1)
+
+
 def _cosines(judge, text: torch.Tensor, features: list[np.ndarray]) -> np.ndarray:
     """Cosine (B,) of each unit text embedding (B, E) with its motion (un-normalized (T_i, D))."""
-    motion = judge.embed_motions(pad_motions(features), [len(f) for f in features])
-    return (text * F.normalize(motion.float(), dim=-1).to(text.device)).sum(-1).cpu().numpy()
+    return (text * _motion_embeddings(judge, features).to(text.device)).sum(-1).cpu().numpy()
 
 
 # Words that put one action after another. "and" alone is left out: it also joins actions done at
@@ -146,16 +157,48 @@ def clause_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.nda
     return out
 
 
+# How much the margin over the nearest counterfactual weighs beside the caption's own score
+# (chosen on the validation draws: README, "Best of N", counterfactual margins).
+COUNTERFACTUAL_WEIGHT = 0.25
+
+
 @torch.no_grad()
-def judge_scores(judge, texts: list[str], features: list[np.ndarray], by_clause: bool = True) -> np.ndarray:
+def counterfactual_margins(judge, texts: list[str], motions: torch.Tensor, cosines: np.ndarray) -> np.ndarray:
+    """(B,) for a caption with a count or speed word: its cosine with the motion (`cosines` (B,),
+    of the unit embeddings `motions` (B, E)) minus the highest cosine of its counterfactuals
+    (mmm.evaluation.counterfactuals: "jumps twice" against "jumps once", "... three times", "...
+    four times"); NaN for other captions. Positive when the judge reads the motion as this caption
+    rather than as any of its one-word changes."""
+    out = np.full(len(texts), np.nan)
+    variants = {t: counterfactual_captions(t) for t in dict.fromkeys(texts)}
+    wordings = list(dict.fromkeys(v for vs in variants.values() for v in vs))
+    if not wordings:
+        return out
+    embedded = dict(zip(wordings, _text_embeddings(judge, wordings).to(motions.device)))
+    for row, text in enumerate(texts):
+        if variants[text]:
+            out[row] = cosines[row] - max(float(embedded[v] @ motions[row]) for v in variants[text])
+    return out
+
+
+@torch.no_grad()
+def judge_scores(
+    judge, texts: list[str], features: list[np.ndarray], by_clause: bool = True, counterfactuals: bool = True
+) -> np.ndarray:
     """The judge's score (B,) of each text with its motion (un-normalized (T_i, D); for an edit,
-    what `edited_span` cuts out): the cosine of their embeddings, and for a caption in two steps
-    (with by_clause) the mean of that and its `clause_scores`. Both are cosines: the score stays
-    in [-1, 1]."""
-    score = _cosines(judge, _text_embeddings(judge, texts), features)
+    what `edited_span` cuts out): the cosine of their embeddings; for a caption in two steps (with
+    by_clause) the mean of that and its `clause_scores`; for a caption with a count or speed word
+    (with counterfactuals) plus COUNTERFACTUAL_WEIGHT times its `counterfactual_margins`. Only the
+    order of a caption's scores matters: the cosine is in [-1, 1], the margin in [-2, 2]."""
+    motions = _motion_embeddings(judge, features)
+    cosine = (_text_embeddings(judge, texts).to(motions.device) * motions).sum(-1).cpu().numpy()
+    score = cosine
     if by_clause:
         clauses = clause_scores(judge, texts, features)
         score = np.where(np.isnan(clauses), score, (score + clauses) / 2)
+    if counterfactuals:
+        margins = counterfactual_margins(judge, texts, motions, cosine)
+        score = np.where(np.isnan(margins), score, score + COUNTERFACTUAL_WEIGHT * margins)
     return score
 
 
@@ -190,9 +233,10 @@ def generate_best_of(
     seed: int | None = None,
     check_lengths: bool = True,
     by_clause: bool = True,
+    counterfactuals: bool = True,
 ) -> Generated:
     """One motion per text (as `model.generate`), the best of `candidates` by the judge's score
-    (`judge_scores`; by_clause=False: the whole caption's cosine only).
+    (`judge_scores`; by_clause=False and counterfactuals=False: the whole caption's cosine only).
 
     The candidates of a text share its length (estimated once when `frames` is None). The result's
     `scores` (B, candidates) holds every candidate's score; the kept one is each row's maximum.
@@ -209,7 +253,8 @@ def generate_best_of(
         texts * candidates, frames * candidates, sampling, seed, check_lengths=check_lengths
     )
     t0 = time.perf_counter()
-    scores = judge_scores(judge, texts * candidates, drawn.features, by_clause).reshape(candidates, n).T
+    scores = judge_scores(judge, texts * candidates, drawn.features, by_clause, counterfactuals)
+    scores = scores.reshape(candidates, n).T
     seconds = {**drawn.seconds, "judge": time.perf_counter() - t0}
     seconds["total"] = time.perf_counter() - started
     return _keep_best(drawn, scores, seconds)
