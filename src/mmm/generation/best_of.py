@@ -87,9 +87,9 @@ def _motion_embeddings(judge, features: list[np.ndarray]) -> torch.Tensor:
     return F.normalize(motion.float(), dim=-1)
 
 
-def _cosines(judge, text: torch.Tensor, features: list[np.ndarray]) -> np.ndarray:
-    """Cosine (B,) of each unit text embedding (B, E) with its motion (un-normalized (T_i, D))."""
-    return (text * _motion_embeddings(judge, features).to(text.device)).sum(-1).cpu().numpy()
+def _cosines(text: torch.Tensor, motions: torch.Tensor) -> np.ndarray:
+    """Cosine (B,) of each unit text embedding (B, E) with its unit motion embedding (B, E)."""
+    return (text.to(motions.device) * motions).sum(-1).cpu().numpy()
 
 
 # Words that put one action after another. "and" alone is left out: it also joins actions done at
@@ -149,7 +149,8 @@ def clause_scores(judge, texts: list[str], features: list[np.ndarray]) -> np.nda
     cosines = np.empty(len(pieces))
     for i in range(0, len(order), CLAUSE_BATCH):
         rows = order[i : i + CLAUSE_BATCH]
-        cosines[rows] = _cosines(judge, text[torch.from_numpy(rows)], [pieces[r] for r in rows])
+        motions = _motion_embeddings(judge, [pieces[r] for r in rows])
+        cosines[rows] = _cosines(text[torch.from_numpy(rows)], motions)
     per_cut = {row: np.zeros((n, 2)) for row, n in cuts_of.items()}
     for (row, c, half), value in zip(owner, cosines):
         per_cut[row][c, half] = value
@@ -192,7 +193,7 @@ def judge_scores(
     (with counterfactuals) plus COUNTERFACTUAL_WEIGHT times its `counterfactual_margins`. Only the
     order of a caption's scores matters: the cosine is in [-1, 1], the margin in [-2, 2]."""
     motions = _motion_embeddings(judge, features)
-    cosine = (_text_embeddings(judge, texts).to(motions.device) * motions).sum(-1).cpu().numpy()
+    cosine = _cosines(_text_embeddings(judge, texts), motions)
     score = cosine
     if by_clause:
         clauses = clause_scores(judge, texts, features)
