@@ -316,8 +316,7 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
         "logger.tracking_uri": uri,
         "logger.artifact_root": f"{tmp_path}/art",
         "registry.name": "test-evaluator",
-        "loss.counterfactuals": "[count,speed]",  # every caption "<action> twice" has three
-    }
+    }  # the default hard negatives: every caption "<action> twice" has three count variants
     result = train_evaluator(load_evaluator_config([f"{k}={v}" for k, v in overrides.items()]))
     client = MlflowClient(uri)
     run = client.get_run(result.run_id)
@@ -333,6 +332,7 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     assert (
         run.data.params["model.hidden_dim"] == "16" and run.data.params["registry.name"] == "test-evaluator"
     )
+    assert run.data.params["loss.counterfactuals"] == "['count']"
     expected = {
         "train/loss",
         "train/temperature",
