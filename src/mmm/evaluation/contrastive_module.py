@@ -32,7 +32,7 @@ class ContrastiveLossConfig:
     false_negative_threshold: float | None = 0.95
     # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
     # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
-    # negatives only.
+    # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
     counterfactuals: list[str] = field(default_factory=list)
 
 
