@@ -348,7 +348,9 @@ def test_cache_lookup_equals_fresh_encoding(minilm, tmp_path, monkeypatch):
     calls = _count_encodes(monkeypatch, minilm)
     counts = cache.build(minilm, CAPTIONS + [CAPTIONS[0], long_caption], batch_size=2, progress=False)
     assert counts == {"cached": 0, "added": 6, "truncated": 1}
-    assert sum(len(c) for c in calls) == 6 and max(len(c) for c in calls) <= 2
+    # every pass: two captions of one token count (the last of a count filled with a repeat)
+    assert all(len(c) == 2 and len(set(minilm.count_tokens(c))) == 1 for c in calls)
+    assert {t for c in calls for t in c} == set(CAPTIONS + [long_caption])
     assert len(cache) == 6 and all(c in cache for c in CAPTIONS)
     monkeypatch.undo()
 
@@ -390,7 +392,7 @@ def test_cache_incremental_build(minilm, tmp_path, monkeypatch):
     assert reader.lookup(first[:1]).sentence.shape == (1, 384)
     calls.clear()
     assert cache.build(minilm, second, progress=False) == {"cached": 2, "added": 2, "truncated": 0}
-    assert sorted(t for c in calls for t in c) == sorted(CAPTIONS[3:])
+    assert {t for c in calls for t in c} == set(CAPTIONS[3:])  # only the new ones are encoded
     calls.clear()
     assert cache.build(minilm, CAPTIONS, progress=False) == {"cached": 5, "added": 0, "truncated": 0}
     assert calls == []
@@ -405,6 +407,26 @@ def test_cache_incremental_build(minilm, tmp_path, monkeypatch):
     assert torch.equal(reader.lookup(first).words, after.words)
     assert torch.equal(reader.lookup(CAPTIONS[3:]).sentence, cache.lookup(CAPTIONS[3:]).sentence)
     assert not list(cache.folder.glob(".build-*"))
+
+
+def test_cache_embeddings_do_not_depend_on_the_other_captions(minilm, tmp_path):
+    """A caption cached with others, or added to a cache later, has the very same bits as cached
+    alone: otherwise what a model learns from the cache depends on what was cached before."""
+    others = [
+        "a person walks slowly in a wide circle to the left, then sits down on the floor",
+        "jump",
+        "someone kicks with the right foot twice and then waves with both hands above the head",
+        "the man runs",
+    ]
+    alone = CaptionEmbeddingCache(tmp_path / "alone", minilm.identity)
+    alone.build(minilm, CAPTIONS, progress=False)
+    mixed = CaptionEmbeddingCache(tmp_path / "mixed", minilm.identity)
+    mixed.build(minilm, others + CAPTIONS[::2], progress=False)
+    mixed.build(minilm, others + CAPTIONS, progress=False)
+    a, b = alone.lookup(CAPTIONS), mixed.lookup(CAPTIONS)
+    assert torch.equal(a.sentence, b.sentence) and torch.equal(a.words, b.words)
+    fresh = minilm.encode(CAPTIONS)  # the same embedding as one plain batch, up to float noise
+    torch.testing.assert_close(a.sentence, fresh.sentence, atol=1e-6, rtol=0)
 
 
 @pytest.mark.slow
