@@ -236,12 +236,12 @@ class CaptionEmbeddingCache:
                 f"caption cache {self.folder} holds dims {old['sentence_dim']}/{old['word_dim']}, encoder "
                 f"gives {Ds}/{Dw}"
             )
-        # A caption's embedding must not depend on the captions cached with it: padded to a batch's
-        # longest caption, or in a batch of another size, the same caption's float32 embedding moves by
-        # about 1e-7, and a model trained on the cache then learns something else (an evaluator's
-        # test R-Precision top-1 0.709 against 0.734, README "Caption embeddings"). So every pass
-        # encodes `batch_size` captions of one token count, the last batch of a count filled with
-        # repeats of its first caption: the same shapes whatever else is added.
+        # A caption's embedding must not depend on the captions cached with it. Padded to a batch's
+        # longest caption, or in a batch of another size, the same caption's float32 embedding moves
+        # by about 1e-7 (1e-6 in the word features), and a model trained on the cache then learns
+        # something else (an evaluator's test R-Precision top-1 0.709 against 0.734; README, "Stage
+        # 2"). So every pass encodes `batch_size` captions of one token count, the last batch of a
+        # count filled with repeats of its first caption: the same shapes whatever else is added.
         counted = encoder.count_tokens(new)
         tokens = [min(n, encoder.max_words) for n in counted]
         order = sorted(range(len(new)), key=lambda i: (tokens[i], new[i]))
