@@ -2,6 +2,7 @@
 
 import gzip
 import json
+import logging
 import pickle
 import subprocess
 import sys
@@ -347,7 +348,7 @@ def test_cache_lookup_equals_fresh_encoding(minilm, tmp_path, monkeypatch):
     assert len(cache) == 0 and CAPTIONS[0] not in cache
     calls = _count_encodes(monkeypatch, minilm)
     counts = cache.build(minilm, CAPTIONS + [CAPTIONS[0], long_caption], batch_size=2, progress=False)
-    assert counts == {"cached": 0, "added": 6, "truncated": 1}
+    assert counts == {"cached": 0, "added": 6, "truncated": 1, "reembedded": 0}
     # every pass: two captions of one token count (the last of a count filled with a repeat)
     assert all(len(c) == 2 and len(set(minilm.count_tokens(c))) == 1 for c in calls)
     assert {t for c in calls for t in c} == set(CAPTIONS + [long_caption])
@@ -374,7 +375,12 @@ def test_cache_lookup_equals_fresh_encoding(minilm, tmp_path, monkeypatch):
 def test_cache_clip_pads_to_longest_not_77(clip_random, tmp_path):
     cache = CaptionEmbeddingCache(tmp_path, clip_random.identity)
     texts = ["hello world", "hello world, hi", " ".join(["a"] * 80)]
-    assert cache.build(clip_random, texts, progress=False) == {"cached": 0, "added": 3, "truncated": 1}
+    assert cache.build(clip_random, texts, progress=False) == {
+        "cached": 0,
+        "added": 3,
+        "truncated": 1,
+        "reembedded": 0,
+    }
     got, fresh = cache.lookup(texts[:2]), clip_random.encode(texts[:2])
     assert got.words.shape == (2, 7, 512)
     torch.testing.assert_close(got.words, fresh.words[:, :7], atol=1e-3, rtol=1e-3)
@@ -391,10 +397,20 @@ def test_cache_incremental_build(minilm, tmp_path, monkeypatch):
     reader = CaptionEmbeddingCache(tmp_path, minilm.identity)  # opened before the second build
     assert reader.lookup(first[:1]).sentence.shape == (1, 384)
     calls.clear()
-    assert cache.build(minilm, second, progress=False) == {"cached": 2, "added": 2, "truncated": 0}
+    assert cache.build(minilm, second, progress=False) == {
+        "cached": 2,
+        "added": 2,
+        "truncated": 0,
+        "reembedded": 0,
+    }
     assert {t for c in calls for t in c} == set(CAPTIONS[3:])  # only the new ones are encoded
     calls.clear()
-    assert cache.build(minilm, CAPTIONS, progress=False) == {"cached": 5, "added": 0, "truncated": 0}
+    assert cache.build(minilm, CAPTIONS, progress=False) == {
+        "cached": 5,
+        "added": 0,
+        "truncated": 0,
+        "reembedded": 0,
+    }
     assert calls == []
     after = cache.lookup(first)
     assert torch.equal(before.sentence, after.sentence) and torch.equal(before.words, after.words)
@@ -427,6 +443,44 @@ def test_cache_embeddings_do_not_depend_on_the_other_captions(minilm, tmp_path):
     assert torch.equal(a.sentence, b.sentence) and torch.equal(a.words, b.words)
     fresh = minilm.encode(CAPTIONS)  # the same embedding as one plain batch, up to float noise
     torch.testing.assert_close(a.sentence, fresh.sentence, atol=1e-6, rtol=0)
+
+
+def test_cache_of_the_first_format_is_encoded_again_row_for_row(minilm, tmp_path, caplog):
+    """A format-1 cache (built when embeddings depended on their batch) is encoded again whole by
+    its next build, each caption keeping its row, so a reader holding the old index stays right."""
+    first, later = CAPTIONS[:3], CAPTIONS[3:]
+    cache = CaptionEmbeddingCache(tmp_path / "old", minilm.identity)
+    cache.build(minilm, first, progress=False)
+    rows = dict(cache.index)
+    # What format 1 left: other bits for the same captions (the batch they were encoded in).
+    sentences = cache.folder / "sentences.0.npy"
+    np.save(sentences, np.load(sentences) + np.float32(1e-3))
+    meta_path = cache.folder / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps(dict(meta, format=1)))
+    stale = CaptionEmbeddingCache(tmp_path / "old", minilm.identity).lookup(first).sentence
+    reader = CaptionEmbeddingCache(tmp_path / "old", minilm.identity)
+    assert reader.index == rows  # holds the old index, opens the arrays after the build
+    with caplog.at_level(logging.WARNING, logger="mmm.text.cache"):
+        counts = cache.build(minilm, later + first[:1], progress=False)
+    assert counts == {"cached": 1, "added": 2, "truncated": 0, "reembedded": 3}
+    assert "format 1" in caplog.text and str(cache.folder) in caplog.text
+    meta = json.loads(meta_path.read_text())
+    assert meta["format"] == 2 and meta["generation"] == 1 and meta["count"] == 5
+    assert all(cache.index[c] == rows[c] for c in first)  # the old rows keep their numbers
+    assert not sentences.exists()
+    fresh = CaptionEmbeddingCache(tmp_path / "fresh", minilm.identity)
+    fresh.build(minilm, CAPTIONS, progress=False)
+    a, b = cache.lookup(CAPTIONS), fresh.lookup(CAPTIONS)
+    assert torch.equal(a.sentence, b.sentence) and torch.equal(a.words, b.words)
+    assert (stale - a.sentence[:3]).abs().max() > 5e-4  # the stale bits are gone
+    got = reader.lookup(first)  # the old index's rows, read from the new arrays
+    assert torch.equal(got.sentence, a.sentence[:3]) and torch.equal(got.words, fresh.lookup(first).words)
+    assert cache.build(minilm, CAPTIONS, progress=False)["reembedded"] == 0
+
+    meta_path.write_text(json.dumps(dict(meta, format=99)))
+    with pytest.raises(ValueError, match=r"format 99.*delete that folder"):
+        CaptionEmbeddingCache(tmp_path / "old", minilm.identity)
 
 
 @pytest.mark.slow

@@ -8,13 +8,16 @@ Layout of cache_dir/<sanitized encoder identity>/ (generation g increases with e
     offsets.<g>.npy           (N + 1,) int64, row i's words are words[offsets[i]:offsets[i + 1]]
     truncated.<g>.npy         (N,) bool, the caption was cut to the encoder's limit
 A build writes a new generation under temporary names, renames them into place, and commits by
-replacing meta.json last, so readers never see a half-written cache. Arrays are opened memory-
+replacing meta.json last, so readers never see a half-written cache. Format 2 encodes in fixed
+shapes, so a caption's embedding does not depend on what else is cached; a format-1 cache (built
+before) is re-embedded whole by its next build, each caption keeping its row. Arrays are opened memory-
 mapped on first use; a pickled cache (DataLoader workers) reopens its files in each process.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import shutil
@@ -31,7 +34,12 @@ from mmm.data.arrays import load_array
 
 from .base import TextEmbedding, TextEncoder
 
-FORMAT_VERSION = 1
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 2
+# Format 1: the same files, but a caption's embedding could depend on the captions encoded with it
+# (mixed padded batches before the fixed-shape passes; their first versions still wrote format 1).
+_REEMBEDDED_FORMATS = (1,)
 _ARRAYS = ("sentences", "words", "offsets", "truncated")
 
 
@@ -88,10 +96,10 @@ class CaptionEmbeddingCache:
                 f"the caption cache in {self.folder} was built by text encoder {meta.get('identity')!r}, "
                 f"not {self.encoder_identity!r}; use another cache_dir or delete that folder"
             )
-        if meta.get("format") != FORMAT_VERSION:
+        if meta.get("format") not in (FORMAT_VERSION, *_REEMBEDDED_FORMATS):
             raise ValueError(
-                f"the caption cache in {self.folder} has format {meta.get('format')}, expected "
-                f"{FORMAT_VERSION}; rebuild it"
+                f"the caption cache in {self.folder} has format {meta.get('format')!r}, this package "
+                f"reads format {FORMAT_VERSION}; delete that folder: it is rebuilt on the next use"
             )
         if self._meta is None or meta["generation"] != self._meta["generation"]:
             self._index = None
@@ -197,10 +205,12 @@ class CaptionEmbeddingCache:
     def build(
         self, encoder: TextEncoder, captions: Iterable[str], batch_size: int = 32, progress: bool = True
     ) -> dict:
-        """Encode the captions not cached yet and add them; returns {"cached", "added", "truncated"}:
-        unique requested captions already present, captions encoded now, and how many of those
-        were cut to the encoder's limit. Each encoder pass takes exactly `batch_size` captions of
-        one token count, so a caption's embedding does not depend on what else is cached."""
+        """Encode the captions not cached yet and add them; returns {"cached", "added", "truncated",
+        "reembedded"}: unique requested captions already present, captions encoded now, how many of
+        those were cut to the encoder's limit, and how many cached captions were encoded again (a
+        format-1 cache, all of them, each keeping its row). Each encoder pass takes exactly
+        `batch_size` captions of one token count, so a caption's embedding does not depend on what
+        else is cached."""
         if encoder.identity != self.encoder_identity:
             raise ValueError(
                 f"this caption cache belongs to text encoder {self.encoder_identity!r}, "
@@ -221,14 +231,28 @@ class CaptionEmbeddingCache:
             self._load_meta()
             index = dict(self.index)
             new = [c for c in unique if c not in index]
-            counts = {"cached": len(unique) - len(new), "added": len(new), "truncated": 0}
+            counts = {"cached": len(unique) - len(new), "added": len(new), "truncated": 0, "reembedded": 0}
+            if self._meta and self._meta["format"] in _REEMBEDDED_FORMATS:
+                log.warning(
+                    "caption cache %s has format %s, whose embeddings may depend on the captions encoded "
+                    "with them; encoding its %d captions again (format %d)",
+                    self.folder,
+                    self._meta["format"],
+                    len(index),
+                    FORMAT_VERSION,
+                )
+                counts["reembedded"] = len(index)
+                new, index = sorted(index, key=index.get) + new, {}  # cached rows first, in row order
             if new:
-                counts["truncated"] = self._write_generation(encoder, index, new, batch_size, progress)
+                flags = self._write_generation(encoder, index, new, batch_size, progress)
+                counts["truncated"] = int(flags[counts["reembedded"] :].sum())
         return counts
 
-    def _write_generation(self, encoder, index, new, batch_size, progress) -> int:
-        old = self._meta
-        gen = (old["generation"] + 1) if old else 0
+    def _write_generation(self, encoder, index, new, batch_size, progress) -> np.ndarray:
+        """Append `new` after the rows of `index` (empty: a whole new cache of `new` alone) as the
+        next generation; returns the new captions' truncation flags, in their order."""
+        gen = (self._meta["generation"] + 1) if self._meta else 0
+        old = self._meta if index else None  # the rows kept from the current generation
         n_old = len(index)
         Ds, Dw = encoder.sentence_dim, encoder.word_dim
         if old and (old["sentence_dim"], old["word_dim"]) != (Ds, Dw):
@@ -242,21 +266,21 @@ class CaptionEmbeddingCache:
         # something else (an evaluator's test R-Precision top-1 0.709 against 0.734; README, "Stage
         # 2"). So every pass encodes `batch_size` captions of one token count, the last batch of a
         # count filled with repeats of its first caption: the same shapes whatever else is added.
+        # The rows are stored in the order of `new`, whatever the order of the passes.
         counted = encoder.count_tokens(new)
         tokens = [min(n, encoder.max_words) for n in counted]
-        order = sorted(range(len(new)), key=lambda i: (tokens[i], new[i]))
-        new, tokens = [new[i] for i in order], [tokens[i] for i in order]
-        flags = np.asarray([counted[i] > encoder.max_words for i in order], dtype=bool)
-        starts, run = [], 0  # where each batch begins: a new token count, or batch_size more of one
-        for i, n in enumerate(tokens):
-            run = run + 1 if i and n == tokens[i - 1] else 0
+        flags = np.asarray([n > encoder.max_words for n in counted], dtype=bool)
+        order = sorted(range(len(new)), key=lambda i: (tokens[i], new[i]))  # the passes' order
+        starts, run = [], 0  # where each pass begins: a new token count, or batch_size more of one
+        for k, i in enumerate(order):
+            run = run + 1 if k and tokens[i] == tokens[order[k - 1]] else 0
             if run % batch_size == 0:
-                starts.append(i)
+                starts.append(k)
         tmp_dir = Path(tempfile.mkdtemp(dir=self.folder, prefix=".build-"))
         try:
             sentences = np.empty((len(new), Ds), dtype=np.float32)
             lengths = np.empty(len(new), dtype=np.int64)
-            raw_words = tmp_dir / "words.raw"
+            raw_words = tmp_dir / "words.raw"  # the real positions in the passes' order
             batches = zip(starts, starts[1:] + [len(new)])
             if progress:
                 batches = tqdm(
@@ -264,22 +288,22 @@ class CaptionEmbeddingCache:
                 )
             with open(raw_words, "wb") as fh:
                 for start, stop in batches:
-                    chunk = new[start:stop]
+                    rows = order[start:stop]
+                    chunk = [new[i] for i in rows]
                     emb = encoder.encode(chunk + chunk[:1] * (batch_size - len(chunk)))
                     mask = emb.word_mask.cpu()[: len(chunk)]
-                    sentences[start:stop] = emb.sentence[: len(chunk)].float().cpu().numpy()
+                    sentences[rows] = emb.sentence[: len(chunk)].float().cpu().numpy()
                     n_real = mask.sum(1)
                     if not torch.equal(mask, torch.arange(mask.shape[1]) < n_real.unsqueeze(1)):
                         raise ValueError(
                             f"{encoder.name}: word_mask is not a prefix mask; the cache stores rows as "
                             "prefixes"
                         )
-                    lengths[start:stop] = n_real.numpy()
+                    lengths[rows] = n_real.numpy()
                     # One boolean index for the batch: the real positions, row after row. (Indexing
                     # row by row costs milliseconds per call on CPU.)
                     words = emb.words[: len(chunk)].float().cpu()[mask]
                     fh.write(words.numpy().astype(np.float16).tobytes())
-            added_truncated = int(flags.sum())
 
             old_tokens = int(self._array("offsets")[-1]) if old else 0
             total_tokens = old_tokens + int(lengths.sum())
@@ -293,21 +317,19 @@ class CaptionEmbeddingCache:
                 for s in range(0, old_tokens, step):
                     e = min(s + step, old_tokens)
                     words_out[s:e] = old_words[s:e]
-            with open(raw_words, "rb") as fh:
-                pos = old_tokens
-                while True:
-                    block = np.frombuffer(fh.read(step * Dw * 2), dtype=np.float16)
-                    if block.size == 0:
-                        break
-                    block = block.reshape(-1, Dw)
-                    words_out[pos : pos + len(block)] = block
-                    pos += len(block)
-            assert pos == total_tokens
+            new_offsets = old_tokens + np.concatenate([[0], np.cumsum(lengths)])
+            raw = np.memmap(raw_words, dtype=np.float16, mode="r", shape=(int(lengths.sum()), Dw))
+            pos = 0
+            for i in order:
+                n = int(lengths[i])
+                words_out[new_offsets[i] : new_offsets[i] + n] = raw[pos : pos + n]
+                pos += n
+            assert pos == len(raw)
+            del raw
             words_out.flush()
             del words_out
             raw_words.unlink()
 
-            new_offsets = old_tokens + np.concatenate([[0], np.cumsum(lengths)])
             if old:
                 all_sent = np.concatenate([np.asarray(self._array("sentences")), sentences])
                 all_offsets = np.concatenate([np.asarray(self._array("offsets")), new_offsets[1:]])
@@ -335,7 +357,7 @@ class CaptionEmbeddingCache:
                 "word_dim": Dw,
                 "max_words": encoder.max_words,
                 "total_tokens": total_tokens,
-                "truncated": (old["truncated"] if old else 0) + added_truncated,
+                "truncated": (old["truncated"] if old else 0) + int(flags.sum()),
             }
             _write_json_atomic(self.folder / "meta.json", meta)  # the commit point
         finally:
@@ -344,8 +366,8 @@ class CaptionEmbeddingCache:
         self._arrays = {}
         self._index = None
         self._load_meta()
-        if old:  # the previous generation; open memory maps elsewhere keep their data on POSIX
+        if gen:  # the previous generation; open memory maps elsewhere keep their data on POSIX
             for kind in _ARRAYS:
-                self._file(kind, old["generation"]).unlink(missing_ok=True)
-            self._file("index", old["generation"]).unlink(missing_ok=True)
-        return added_truncated
+                self._file(kind, gen - 1).unlink(missing_ok=True)
+            self._file("index", gen - 1).unlink(missing_ok=True)
+        return flags
