@@ -3,6 +3,7 @@ learning a toy retrieval problem, weights-only checkpoints, the raw-input embedd
 registered end-to-end training run."""
 
 import math
+from types import SimpleNamespace
 
 import lightning as L
 import numpy as np
@@ -423,3 +424,32 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     assert embedder.embed_texts(ACTIONS).shape == (4, 32)
     features = torch.from_numpy(np.load(root / "new_joint_vecs" / "000056.npy"))[None]
     assert embedder.embed_motions(features, [features.shape[1]]).shape == (1, 32)
+
+
+def test_an_evaluator_run_embeds_the_counterfactuals_it_uses():
+    """Every caption, every kind of counterfactual of the test captions (the ranking after training),
+    and of the train and val captions only the hard negatives' kinds."""
+    from mmm.training.evaluator import captions_to_embed
+
+    def split(*captions):
+        return [SimpleNamespace(captions=[SimpleNamespace(text=c) for c in captions])]
+
+    items = {
+        "train": split("a person walks slowly", "someone jumps twice"),
+        "val": split("the man runs quickly three times"),
+        "test": split("a person squats slowly twice"),
+    }
+    got = captions_to_embed(items, ["count"])
+    own = ["a person walks slowly", "someone jumps twice", "the man runs quickly three times"]
+    own.append("a person squats slowly twice")
+    assert got[:4] == sorted(own)
+    variants = set(got[4:])
+    assert len(got) == 4 + len(variants)  # each caption once
+    assert "someone jumps once" in variants and "the man runs quickly twice" in variants  # counts
+    assert "a person walks quickly" not in variants and "the man runs slowly three times" not in variants
+    # the test caption's, of every kind
+    assert {"a person squats quickly twice", "a person squats slowly once"} <= variants
+    assert len(variants) == 3 + 3 + 4  # count variants up to four, and one speed variant of the test caption
+    assert set(captions_to_embed(items, [])) == set(got[:4]) | {
+        v for v in variants if v.startswith("a person squats")
+    }

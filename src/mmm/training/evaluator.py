@@ -44,7 +44,7 @@ from mmm.evaluation.contrastive import (
     retrieval_metrics,
 )
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule, ContrastiveLossConfig
-from mmm.evaluation.counterfactuals import counterfactual_captions, counterfactual_ranking
+from mmm.evaluation.counterfactuals import KINDS, counterfactual_captions, counterfactual_ranking
 from mmm.fingerprint import dataset_fingerprint
 from mmm.kinds import EVALUATOR
 from mmm.registry.versions import WEIGHTS_SHA256, freeze_weights
@@ -275,6 +275,23 @@ def register_evaluator(
 # ---------------------------------------------------------------------------------------- training
 
 
+def captions_to_embed(items: dict[str, list], hard_negative_kinds) -> list[str]:
+    """The captions an evaluator run embeds: every caption of the splits ("train", "val", "test" ->
+    MotionItems), then the counterfactuals it needs that are not among them: every kind of the test
+    captions' (the ranking after training), the hard negatives' kinds of the train and val captions'."""
+    captions = sorted({c.text for split in items.values() for item in split for c in item.captions})
+    kinds = {"train": tuple(hard_negative_kinds), "val": tuple(hard_negative_kinds), "test": KINDS}
+    variants = {
+        v
+        for split, split_kinds in kinds.items()
+        if split_kinds
+        for item in items[split]
+        for c in item.captions
+        for v in counterfactual_captions(c.text, split_kinds)
+    }
+    return captions + sorted(variants - set(captions))
+
+
 def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
     cfg: EvaluatorTrainConfig = to_object(cfg_node)
     started = time.perf_counter()
@@ -288,14 +305,7 @@ def train_evaluator(cfg_node: DictConfig) -> EvaluatorTrainResult:
 
     cache_started = time.perf_counter()
     text_encoder, caption_cache = build_text(cfg.text)
-    captions = sorted(
-        {c.text for split_items in items.values() for item in split_items for c in item.captions}
-    )
-    # Counterfactuals: of the test captions for the ranking after training; of the others too when
-    # they are the hard negatives.
-    splits = ("train", "val", "test") if cfg.loss.counterfactuals else ("test",)
-    varied = {c.text for split in splits for item in items[split] for c in item.captions}
-    captions += sorted({v for c in varied for v in counterfactual_captions(c)} - set(captions))
+    captions = captions_to_embed(items, cfg.loss.counterfactuals)
     counts = caption_cache.build(text_encoder, captions, progress=cfg.trainer.enable_progress_bar)
     cache_seconds = time.perf_counter() - cache_started
     log.info(
