@@ -7,7 +7,13 @@ import pytest
 import torch
 
 from mmm.config import ConfigError, compose, conf_dir, to_object
-from mmm.data.datamodule import DataConfig, TextMotionDataModule, TokenizerDataModule
+from mmm.data.datamodule import (
+    DataConfig,
+    OversampleConfig,
+    TextMotionDataModule,
+    TokenizerDataModule,
+    oversample_items,
+)
 from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_motions
 from mmm.data.humanml3d import (
     DataError,
@@ -291,6 +297,37 @@ def test_datamodules_produce_batches(tmp_path):
     assert batch["motion"].shape[0] == 3 and batch["motion"].shape[2] == D
     assert all(length % 4 == 0 for length in batch["lengths"].tolist())
     assert "test" not in stage2.datasets
+
+
+def test_oversampling_repeats_the_training_items_whose_caption_matches(tmp_path, caplog):
+    twice = "a person jumps twice#a/DET person/NOUN jump/VERB twice/ADV#0.0#0.0"
+    clips = {f"{i:06d}": (60 + 4 * i, [twice if i in (1, 3) else WHOLE]) for i in range(6)}
+    write_dataset(
+        tmp_path, clips, {"train": list(clips)[:4], "val": list(clips)[4:], "test": list(clips)[4:]}
+    )
+    overrides = ["data.oversample.pattern=TWICE|three times", "data.oversample.factor=3"]
+    cfg = to_object(compose("data_check", overrides, schema=_DataOnly)).data
+    cfg.root, cfg.batch_size = str(tmp_path), 2
+    dm = TextMotionDataModule(cfg)
+    with caplog.at_level("INFO"):
+        dm.setup("fit")
+    # 2 of 4 training items match (case-insensitively), each three times: 2 + 2 * 3 draws an epoch.
+    names = [item.name for item in dm.datasets["train"].items]
+    assert sorted(names) == ["000000", "000001", "000001", "000001", "000002", "000003", "000003", "000003"]
+    assert [item.name for item in dm.datasets["val"].items] == ["000004", "000005"]
+    assert "2 of 4 training items" in caplog.text and "(8 draws per epoch)" in caplog.text
+    # A whole epoch of the loader draws each matched item three times.
+    seen = [n for batch in dm.train_dataloader() for n in batch["names"]]
+    assert sorted(seen) == names
+    # Off by default; the pattern and factor are checked.
+    items = dm.datasets["val"].items
+    assert oversample_items(items, OversampleConfig()) is items
+    with pytest.raises(ValueError, match=r"data.oversample.pattern='\(' is not a regular expression"):
+        oversample_items(items, OversampleConfig(pattern="("))
+    with pytest.raises(ValueError, match="data.oversample.factor=0 must be a whole number"):
+        oversample_items(items, OversampleConfig(pattern="x", factor=0))
+    with pytest.warns(UserWarning, match="none of the 2 training items has a caption matching .*'thrice'"):
+        assert oversample_items(items, OversampleConfig(pattern="thrice")) == items
 
 
 def test_datamodule_refuses_a_missing_folder_without_synthesis(tmp_path):

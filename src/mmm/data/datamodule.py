@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +42,16 @@ class SynthConfig:
 
 
 @dataclass
+class OversampleConfig:
+    """Training items with a caption that matches `pattern` (a Python regular expression, searched
+    case-insensitively) are drawn `factor` times per epoch; an empty pattern turns it off. Stage 2
+    and the evaluator's training split only: validation and test stay as they are."""
+
+    pattern: str = ""
+    factor: int = 2
+
+
+@dataclass
 class DataConfig:
     name: str = "synthetic"
     root: str = "data/synthetic"
@@ -55,6 +66,7 @@ class DataConfig:
     num_workers: int = 0
     on_invalid: str = "error"  # error | skip (skipped clips are counted and logged)
     synthesize: SynthConfig | None = field(default=None)
+    oversample: OversampleConfig = field(default_factory=OversampleConfig)
 
     @property
     def skeleton_def(self) -> Skeleton:
@@ -87,6 +99,41 @@ class DataConfig:
             min_length=self.min_length,
             on_invalid=self.on_invalid,
         )
+
+
+def oversample_items(items: list, cfg: OversampleConfig, where: str = "data") -> list:
+    """`items` with each item that has a caption matching `cfg.pattern` repeated `cfg.factor` times
+    (in place, so an epoch's order stays a permutation of the longer list). Logs how many matched."""
+    if not cfg.pattern:
+        return items
+    try:
+        pattern = re.compile(cfg.pattern, re.IGNORECASE)
+    except re.error as err:
+        raise ValueError(
+            f"data.oversample.pattern={cfg.pattern!r} is not a regular expression ({err}); "
+            "fix it, or set data.oversample.pattern='' to turn oversampling off"
+        ) from None
+    if isinstance(cfg.factor, bool) or not isinstance(cfg.factor, int) or cfg.factor < 1:
+        raise ValueError(
+            f"data.oversample.factor={cfg.factor!r} must be a whole number of at least 1 (1: no oversampling)"
+        )
+    out, matched = [], 0
+    for item in items:
+        hit = any(pattern.search(c.text) for c in item.captions)
+        matched += hit
+        out.extend([item] * (cfg.factor if hit else 1))
+    if not matched:
+        rank_zero_warn(
+            f"{where}: none of the {len(items)} training items has a caption matching "
+            f"data.oversample.pattern={cfg.pattern!r}, so none is oversampled: check the pattern"
+        )
+    else:
+        rank_zero_info(
+            f"{where}: {matched} of {len(items)} training items have a caption matching "
+            f"data.oversample.pattern={cfg.pattern!r}; each is drawn {cfg.factor} times per epoch "
+            f"({len(out)} draws per epoch)"
+        )
+    return out
 
 
 def _log_report(what: str, report: LoadReport) -> None:
@@ -223,6 +270,8 @@ class TextMotionDataModule(_DatasetFolder):
             items, report = self.cfg.items(split, self.root)
             self.reports[split] = report
             _log_report(f"{self.cfg.name} {split} items", report)
+            if split == "train":
+                items = oversample_items(items, self.cfg.oversample, str(self.root))
             self.datasets[split] = TextMotionDataset(
                 items,
                 self.mean,
@@ -345,6 +394,8 @@ class TokenTextDataModule(_DatasetFolder):
         for split in self.TOKEN_SPLITS:
             items, report = self._items(split)
             _log_report(f"{self.cfg.name} {split} items", report)
+            if split == "train":
+                items = oversample_items(items, self.cfg.oversample, str(self.root))
             self.datasets[split] = TokenTextDataset(
                 items,
                 self.tokens,
