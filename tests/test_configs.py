@@ -1,5 +1,6 @@
 """Every file of every config group composes into a valid, typed training config of each stage."""
 
+import re
 from dataclasses import fields
 
 import pytest
@@ -172,6 +173,13 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
         "callbacks.adherence_captions": 128,
         "callbacks.checkpoint.monitor": "val_adherence/ordered_rate",
         "callbacks.checkpoint.mode": "max",
+        "data.oversample.pattern": r"\b(twice|thrice|(two|three|four|five|six|[2-9])\s+[a-z]+s)\b",
     }
+    # The oversampled captions are those asking for an action more than once, however spelled.
+    pattern = re.compile(load_stage2_config(["recipe=quality"]).data.oversample.pattern, re.IGNORECASE)
+    asks_more_than_once = ["a man jumps twice", "she does 3 squats", "Two jumps", "squats three times"]
+    other = ["a person jumps once", "one squat", "someone walks slowly", "jumps a single time"]
+    assert all(pattern.search(c) for c in asks_more_than_once)
+    assert not any(pattern.search(c) for c in other)
     # The command line still wins over the recipe.
     assert load_stage2_config(["recipe=quality", "trainer.max_steps=7"]).trainer.max_steps == 7
