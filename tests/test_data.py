@@ -1,6 +1,7 @@
 """The on-disk reader, its length rules and errors, the datasets and the datamodules."""
 
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -299,34 +300,54 @@ def test_datamodules_produce_batches(tmp_path):
     assert "test" not in stage2.datasets
 
 
-def test_oversampling_repeats_the_training_items_whose_caption_matches(tmp_path, caplog):
+def test_stage2_draws_the_training_items_whose_caption_matches_several_times(tmp_path, caplog):
+    from mmm.data.datamodule import TokenTextDataModule
+    from mmm.data.resumable import ShardedRandomSampler
+
     twice = "a person jumps twice#a/DET person/NOUN jump/VERB twice/ADV#0.0#0.0"
-    clips = {f"{i:06d}": (60 + 4 * i, [twice if i in (1, 3) else WHOLE]) for i in range(6)}
+    clips = {f"{i:06d}": (60 + 4 * i, [twice if i in (1, 3, 4) else WHOLE]) for i in range(6)}
     write_dataset(
         tmp_path, clips, {"train": list(clips)[:4], "val": list(clips)[4:], "test": list(clips)[4:]}
     )
     overrides = ["data.oversample.pattern=TWICE|three times", "data.oversample.factor=3"]
     cfg = to_object(compose("data_check", overrides, schema=_DataOnly)).data
-    cfg.root, cfg.batch_size = str(tmp_path), 2
-    dm = TextMotionDataModule(cfg)
+    cfg.root, cfg.synthesize = str(tmp_path), None
+    tokenizer = SimpleNamespace(quantizers={"codes": SimpleNamespace(num_codes=16)})
+    stage2 = TokenTextDataModule(cfg, 0, tokenizer, "tok", None, None, str(tmp_path / "tokens"))
+    stage2.tokens = {name: np.zeros(length // 4, dtype=np.int64) for name, (length, _) in clips.items()}
     with caplog.at_level("INFO"):
-        dm.setup("fit")
-    # 2 of 4 training items match (case-insensitively), each three times: 2 + 2 * 3 draws an epoch.
-    names = [item.name for item in dm.datasets["train"].items]
-    assert sorted(names) == ["000000", "000001", "000001", "000001", "000002", "000003", "000003", "000003"]
-    assert [item.name for item in dm.datasets["val"].items] == ["000004", "000005"]
+        stage2.setup("fit")
+    # 2 of 4 training items match (case-insensitively), each three times: 2 + 2 * 3 draws an epoch;
+    # validation is left as it is although 000004 matches.
+    train = stage2.datasets["train"]
+    names = ["000000", "000001", "000001", "000001", "000002", "000003", "000003", "000003"]
+    assert sorted(item.name for item in train.items) == names
+    assert [item.name for item in stage2.datasets["val"].items] == ["000004", "000005"]
     assert "2 of 4 training items" in caplog.text and "(8 draws per epoch)" in caplog.text
-    # A whole epoch of the loader draws each matched item three times.
-    seen = [n for batch in dm.train_dataloader() for n in batch["names"]]
-    assert sorted(seen) == names
+    # An epoch of the sampler draws each matched item three times, in a new order each epoch.
+    sampler = ShardedRandomSampler(len(train), seed=0)
+    epochs = []
+    for epoch in (0, 1):
+        sampler.set_epoch(epoch)
+        epochs.append([train[i]["name"] for i in sampler])
+    assert sorted(epochs[0]) == sorted(epochs[1]) == names and epochs[0] != epochs[1]
+    # The evaluator's data (TextMotionDataModule) reads every item once.
+    evaluator = TextMotionDataModule(cfg)
+    evaluator.setup("fit")
+    assert sorted(item.name for item in evaluator.datasets["train"].items) == [
+        "000000",
+        "000001",
+        "000002",
+        "000003",
+    ]
     # Off by default; the pattern and factor are checked.
-    items = dm.datasets["val"].items
+    items = evaluator.datasets["train"].items
     assert oversample_items(items, OversampleConfig()) is items
     with pytest.raises(ValueError, match=r"data.oversample.pattern='\(' is not a regular expression"):
         oversample_items(items, OversampleConfig(pattern="("))
     with pytest.raises(ValueError, match="data.oversample.factor=0 must be a whole number"):
         oversample_items(items, OversampleConfig(pattern="x", factor=0))
-    with pytest.warns(UserWarning, match="none of the 2 training items has a caption matching .*'thrice'"):
+    with pytest.warns(UserWarning, match="none of the 4 training items has a caption matching .*'thrice'"):
         assert oversample_items(items, OversampleConfig(pattern="thrice")) == items
 
 

@@ -43,9 +43,9 @@ class SynthConfig:
 
 @dataclass
 class OversampleConfig:
-    """Training items with a caption that matches `pattern` (a Python regular expression, searched
-    case-insensitively) are drawn `factor` times per epoch; an empty pattern turns it off. Stage 2
-    and the evaluator's training split only: validation and test stay as they are."""
+    """Stage 2's training items with a caption that matches `pattern` (a Python regular expression,
+    searched case-insensitively) are drawn `factor` times per epoch; an empty pattern turns it off.
+    The validation and test splits, stage 1 and the evaluator read the data as it is."""
 
     pattern: str = ""
     factor: int = 2
@@ -270,8 +270,6 @@ class TextMotionDataModule(_DatasetFolder):
             items, report = self.cfg.items(split, self.root)
             self.reports[split] = report
             _log_report(f"{self.cfg.name} {split} items", report)
-            if split == "train":
-                items = oversample_items(items, self.cfg.oversample, str(self.root))
             self.datasets[split] = TextMotionDataset(
                 items,
                 self.mean,
