@@ -102,8 +102,9 @@ class DataConfig:
 
 
 def oversample_items(items: list, cfg: OversampleConfig, where: str = "data") -> list:
-    """`items` with each item that has a caption matching `cfg.pattern` repeated `cfg.factor` times
-    (in place, so an epoch's order stays a permutation of the longer list). Logs how many matched."""
+    """A new list: `items` with each item that has a caption matching `cfg.pattern` repeated
+    `cfg.factor` times where it stands (an epoch is then one permutation of the longer list, so the
+    sharded, resumable sampler needs no change). Logs how many matched."""
     if not cfg.pattern:
         return items
     try:
