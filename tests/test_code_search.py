@@ -99,6 +99,33 @@ def test_the_bfloat16_search_decodes_in_bfloat16_and_keeps_a_code_as_good():
     assert torch.all(error(module, bf16, x) < nearest)
 
 
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_decoding_only_the_features_the_joints_read_gives_them_and_the_codes_to_the_bit(precision):
+    module = tokenizer(candidates=4, seed=5)
+    x = motion(batch=3, frames=40, seed=6)
+    n = module.joint_features
+    assert n == 67  # the root (4) and 21 joint positions (63) of the 263
+    codes = module.tokenizer.encode(x)
+    autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16")
+    with autocast:
+        full, first = module.tokenizer.decode(codes), module.tokenizer.decode(codes, n)
+    assert first.shape == (3, 40, n) and first.dtype == torch.float32
+    assert torch.equal(first, full[..., :n])
+    assert torch.equal(module.joints(first), module.joints(full))
+    cfg = CodeSearchConfig(candidates=4, precision=precision)
+    whole = search_codes(module.tokenizer, x, module.joints, cfg)  # decodes all 263 features
+    assert torch.equal(search_codes(module.tokenizer, x, module.joints, cfg, n), whole)
+    with pytest.raises(ValueError, match="width 66 do not fit 22 joints"):
+        module.joints(first[..., :66])
+
+
+def test_the_part_aware_decoder_gives_the_first_features_of_its_merged_parts():
+    module = tokenizer(part_aware=True)
+    codes = module.tokenizer.encode(motion(batch=2, frames=16))
+    assert torch.equal(module.tokenizer.decode(codes, 67), module.tokenizer.decode(codes)[..., :67])
+    assert module.tokenizer.decode(codes, 67).shape == (2, 16, 67)
+
+
 def test_nearest_codes_are_in_order_of_distance_and_start_with_the_quantized_one():
     q = EMAQuantizer(num_codes=5, code_dim=2)
     q.codebook.copy_(torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [0.0, 2.5], [-0.4, 0.0]]))

@@ -118,6 +118,17 @@ def test_recover_from_ric_reproduces_reference_joints():
 
 
 @pytest.mark.skipif(REFERENCE is None, reason="../shared/reference not available")
+def test_the_joints_of_the_position_features_alone_are_those_of_all_263():
+    features = torch.from_numpy(np.load(REFERENCE / "humanml3d/new_joint_vecs/012314.npy"))
+    positions = features[:, :67].clone()  # root (4) and joints 1..21 relative to it (63)
+    assert torch.equal(recover_from_ric(positions, 22, positions_only=True), recover_from_ric(features))
+    with pytest.raises(ValueError, match="needs num_joints"):
+        recover_from_ric(positions, positions_only=True)
+    with pytest.raises(ValueError, match="width 263 do not fit 22 joints \\(expected 67\\)"):
+        recover_from_ric(features, 22, positions_only=True)
+
+
+@pytest.mark.skipif(REFERENCE is None, reason="../shared/reference not available")
 def test_joints_to_features_reproduces_reference_features():
     features = np.load(REFERENCE / "humanml3d/new_joint_vecs/012314.npy")
     joints = np.load(REFERENCE / "humanml3d/new_joints/012314.npy")

@@ -198,17 +198,22 @@ def recover_root_rot_pos(features: torch.Tensor) -> tuple[torch.Tensor, torch.Te
 
 
 @_array_api
-def recover_from_ric(features, num_joints: int | None = None):
+def recover_from_ric(features, num_joints: int | None = None, *, positions_only: bool = False):
     """Joint positions (..., T, J, 3) from features (..., T, D).
 
     Integrates the yaw velocity to a heading per frame and the root velocity to a root path
     (both starting at 0), then un-rotates the root-relative positions and adds the root x/z.
+    positions_only: features are only the part the joints are recovered from, (..., T, 4 + 3(J-1))
+    (the root and the joint positions; num_joints required); the joints are the same to the bit.
     """
+    if positions_only and num_joints is None:
+        raise ValueError("recover_from_ric(positions_only=True) needs num_joints")
     num_joints = num_joints or skeleton_for(features.shape[-1]).num_joints
     layout = FeatureLayout(num_joints)
-    if features.shape[-1] != layout.dim:
+    expected = layout.positions.stop if positions_only else layout.dim
+    if features.shape[-1] != expected:
         raise ValueError(
-            f"features of width {features.shape[-1]} do not fit {num_joints} joints (expected {layout.dim})"
+            f"features of width {features.shape[-1]} do not fit {num_joints} joints (expected {expected})"
         )
     rot_quat, root = recover_root_rot_pos(features)
     local = features[..., layout.positions].reshape(features.shape[:-1] + (num_joints - 1, 3))

@@ -253,10 +253,20 @@ class TokenizerModule(L.LightningModule):
         return x * self.std + self.mean
 
     def joints(self, x: torch.Tensor) -> torch.Tensor:
-        """Joint positions (B, T, J, 3) in metres of normalized features (B, T, D)."""
+        """Joint positions (B, T, J, 3) in metres of normalized features (B, T, D), or of only their
+        first `joint_features` (B, T, 4 + 3(J-1)), the root and joint positions they are recovered from."""
+        n = x.shape[-1]
+        features = (x * self.std[:n] + self.mean[:n]).float()
+        partial = n != self.std.shape[-1]
         return (
-            recover_from_ric(self.denormalize(x).float(), self.skeleton.num_joints) * self.skeleton.unit_scale
+            recover_from_ric(features, self.skeleton.num_joints, positions_only=partial)
+            * self.skeleton.unit_scale
         )
+
+    @property
+    def joint_features(self) -> int:
+        """How many leading features the joints are recovered from (67 of 263)."""
+        return FeatureLayout(self.skeleton.num_joints).positions.stop
 
     @torch.no_grad()
     def encode(self, x: torch.Tensor) -> torch.Tensor:
@@ -264,7 +274,7 @@ class TokenizerModule(L.LightningModule):
         whose clips all have T frames, as `encode_cfg` says: the nearest codes (candidates 1) or
         those the code search picks. What tokenizes datasets for stage 2, reconstruction metrics and
         the kept frames of edits; training and the refinement quantize to the nearest code."""
-        return search_codes(self.tokenizer, x, self.joints, self.encode_cfg)
+        return search_codes(self.tokenizer, x, self.joints, self.encode_cfg, self.joint_features)
 
     def root_path(self, x: torch.Tensor) -> torch.Tensor:
         """Root x/z path (B, T, 2) in metres of normalized features (B, T, D), from 0 at the first frame."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from mmm.tokenizer.quantizer import EMAQuantizer, QuantizerOutput
@@ -86,9 +87,15 @@ class Decoder(nn.Module):
         layers += [nn.Conv1d(W, W, 3, padding=1), nn.ReLU(), nn.Conv1d(W, out_dim, 3, padding=1)]
         self.net = nn.Sequential(*layers)
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
+    def forward(self, z: torch.Tensor, features: int | None = None) -> torch.Tensor:
+        """features: only the first `features` output channels (B, features, T), each the same to
+        the bit as the full output's; the last convolution's other rows are never computed."""
         # float32 also from a bfloat16 autocast: the losses and the joints integrate the root from it.
-        return self.net(z).float()
+        if features is None:
+            return self.net(z).float()
+        last = self.net[-1]
+        x = self.net[:-1](z)
+        return F.conv1d(x, last.weight[:features], last.bias[:features], padding=last.padding).float()
 
     def forward_lengths(self, z: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """`forward` of a batch of mixed lengths (B, C, T') with (B,) valid steps each: every
@@ -151,8 +158,11 @@ class MotionTokenizer(nn.Module):
         return self.quantizer.nearest_codes(self.encoder(motion.transpose(1, 2)), k)
 
     @torch.no_grad()
-    def decode(self, indices: torch.Tensor) -> torch.Tensor:
-        """Motion (B, T' * 4, D) of code indices (B, T')."""
+    def decode(self, indices: torch.Tensor, features: int | None = None) -> torch.Tensor:
+        """Motion (B, T' * 4, D) of code indices (B, T'); with `features`, only the first
+        `features` of D (B, T' * 4, features), computed alone (the code search's joints read 67 of 263)."""
+        if features is not None:
+            return self.decoder(self.quantizer.lookup(indices), features).transpose(1, 2)
         return self.reconstruct(indices)
 
     def reconstruct(self, indices: torch.Tensor) -> torch.Tensor:

@@ -68,14 +68,16 @@ class PartAwareTokenizer(nn.Module):
         )
 
     @torch.no_grad()
-    def decode(self, indices: torch.Tensor) -> torch.Tensor:
-        """Motion (B, T' * 4, 263) of code index pairs (B, T', 2)."""
+    def decode(self, indices: torch.Tensor, features: int | None = None) -> torch.Tensor:
+        """Motion (B, T' * 4, 263) of code index pairs (B, T', 2); with `features`, its first
+        `features` of 263 (both parts are decoded whole: the first features mix lower and upper)."""
         if indices.dim() != 3 or indices.shape[-1] != len(PARTS):
             raise ValueError(
                 "a part-aware tokenizer decodes index pairs (B, T', 2) (lower, upper), got shape "
                 f"{tuple(indices.shape)}"
             )
-        return self.reconstruct(indices)
+        motion = self.reconstruct(indices)
+        return motion if features is None else motion[..., :features]
 
     def reconstruct(self, indices: torch.Tensor) -> torch.Tensor:
         """`decode` with gradients to both decoders (the decoder refinement trains them alone)."""

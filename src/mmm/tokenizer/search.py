@@ -82,11 +82,14 @@ def search_codes(
     motion: torch.Tensor,
     joints: Callable[[torch.Tensor], torch.Tensor],
     cfg: CodeSearchConfig,
+    features: int | None = None,
 ) -> torch.Tensor:
     """Indices shaped as `tokenizer.encode(motion)` gives them, (B, T') or (B, T', 2) for a
     part-aware tokenizer, of normalized motion (B, T, D) whose clips all have T frames.
 
-    joints: normalized features (N, T, D) -> joint positions (N, T, J, 3).
+    joints: normalized features (N, T, features) -> joint positions (N, T, J, 3).
+    features: how many leading features of D the joints read (None: all); the decoder calls make
+    only those (README, Stage 1: "Code search": 1.2x, the same codes).
     With cfg.candidates == 1 this is `tokenizer.encode(motion)`.
     """
     if cfg.candidates == 1:
@@ -98,7 +101,7 @@ def search_codes(
             torch.autocast(motion.device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
         )
         with autocast:
-            return tokenizer.decode(indices)  # the decoder hands back float32
+            return tokenizer.decode(indices, features)  # the decoder hands back float32
 
     candidates = tokenizer.candidate_codes(motion, cfg.candidates)
     if not tokenizer.part_aware:
@@ -108,7 +111,7 @@ def search_codes(
     def indices(chosen: torch.Tensor) -> torch.Tensor:
         return chosen if tokenizer.part_aware else chosen[..., 0]
 
-    target = joints(motion)
+    target = joints(motion[..., :features])
     chosen = candidates[..., 0].clone()
     best = _joint_error(joints(decode(indices(chosen))), target)
     others = k - 1  # the code in place is one of the candidates, and its score is `best` already
