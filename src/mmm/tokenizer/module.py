@@ -250,23 +250,23 @@ class TokenizerModule(L.LightningModule):
         return loss
 
     def denormalize(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.std + self.mean
+        """Features of normalized x (..., n): all D, or only the first n of them."""
+        n = x.shape[-1]
+        return x * self.std[:n] + self.mean[:n]
 
     def joints(self, x: torch.Tensor) -> torch.Tensor:
         """Joint positions (B, T, J, 3) in metres of normalized features (B, T, D), or of only their
         first `joint_features` (B, T, 4 + 3(J-1)), the root and joint positions they are recovered from."""
-        n = x.shape[-1]
-        features = (x * self.std[:n] + self.mean[:n]).float()
-        partial = n != self.std.shape[-1]
+        partial = x.shape[-1] != self.std.shape[-1]
         return (
-            recover_from_ric(features, self.skeleton.num_joints, positions_only=partial)
+            recover_from_ric(self.denormalize(x).float(), self.skeleton.num_joints, positions_only=partial)
             * self.skeleton.unit_scale
         )
 
     @property
     def joint_features(self) -> int:
         """How many leading features the joints are recovered from (67 of 263)."""
-        return FeatureLayout(self.skeleton.num_joints).positions.stop
+        return self.layout.positions.stop
 
     @torch.no_grad()
     def encode(self, x: torch.Tensor) -> torch.Tensor:
