@@ -13,7 +13,7 @@ from mlflow.tracking import MlflowClient
 
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
 from mmm.config import ConfigError
-from mmm.motion.features import recover_from_ric
+from mmm.motion.features import recover_from_ric, recover_root_rot_pos
 from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.quantizer import EMAQuantizer
@@ -173,6 +173,17 @@ def test_root_path_integrates_the_root_velocity_in_metres():
     turned = module.root_path((raw - mean) / std)
     assert torch.allclose(turned, recover_from_ric(raw)[..., 0, [0, 2]], atol=1e-5)
     assert not torch.allclose(turned, path, atol=1e-3)
+
+
+def test_root_path_of_the_root_features_equals_de_normalizing_all_and_has_no_gradient_elsewhere():
+    mean, std = torch.linspace(-0.5, 0.5, 263), torch.linspace(0.5, 2.0, 263)
+    module = TokenizerModule(263, TokenizerConfig(width=8, num_codes=16), {}, {}, mean=mean, std=std)
+    x = torch.randn(3, 16, 263, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    path = module.root_path(x)
+    _, root = recover_root_rot_pos((x * std + mean).float())  # what it computed before: all 263
+    assert torch.equal(path, root[..., [0, 2]] * module.skeleton.unit_scale)
+    (grad,) = torch.autograd.grad(path.square().sum(), x)
+    assert grad[..., :4].abs().sum() > 0 and torch.count_nonzero(grad[..., 4:]) == 0
 
 
 def test_decoder_refinement_adds_the_root_path_distance_times_its_weight():

@@ -278,7 +278,8 @@ class TokenizerModule(L.LightningModule):
 
     def root_path(self, x: torch.Tensor) -> torch.Tensor:
         """Root x/z path (B, T, 2) in metres of normalized features (B, T, D), from 0 at the first frame."""
-        _, root = recover_root_rot_pos(self.denormalize(x).float())
+        # Only the root features (yaw and x/z velocity, height) are read: the rest is not de-normalized.
+        _, root = recover_root_rot_pos(self.denormalize(x[..., : self.layout.root_height.stop]).float())
         return root[..., [0, 2]] * self.skeleton.unit_scale
 
     def root_path_distance(self, recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
