@@ -23,6 +23,7 @@ from torchmetrics import MeanMetric
 from mmm.config import as_config
 from mmm.evaluation.contrastive import ContrastiveEvaluator, ContrastiveModelConfig, matching_ranks
 from mmm.training.optim import OptimConfig, build_optimizer
+from mmm.training.step_logging import logged_step
 
 
 @dataclass
@@ -140,6 +141,8 @@ class ContrastiveEvaluatorModule(L.LightningModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         loss, text, motion = self._loss(batch)
+        if not logged_step(self):  # the retrieval ranks below only go to the loggers
+            return loss
         t2m, _ = matching_ranks(F.normalize(text.detach(), dim=-1), F.normalize(motion.detach(), dim=-1))
         self.log_dict(
             {

@@ -20,6 +20,7 @@ from torchmetrics import MeanMetric
 from mmm.config import as_config
 from mmm.generation.length import LengthEstimator, LengthModelConfig, length_metrics, median_count
 from mmm.training.optim import OptimConfig, build_optimizer
+from mmm.training.step_logging import logged_step
 
 
 class LengthEstimatorModule(L.LightningModule):
@@ -75,6 +76,8 @@ class LengthEstimatorModule(L.LightningModule):
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         logits = self._logits(batch)
         loss = self._loss(logits, batch["codes"])
+        if not logged_step(self):
+            return loss
         hits = length_metrics(logits.argmax(-1) + 1, batch["codes"], self.model_cfg.unit_length)
         self.log_dict(
             {"train/loss": loss, "train/acc_within1": hits["acc_within1"].mean()},

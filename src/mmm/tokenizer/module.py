@@ -22,6 +22,7 @@ from mmm.tokenizer.parts import PartAwareTokenizer
 from mmm.tokenizer.quantizer import EMAQuantizer, metric_name
 from mmm.tokenizer.search import CodeSearchConfig, search_codes
 from mmm.training.optim import OptimConfig, build_optimizer
+from mmm.training.step_logging import logged_step
 
 
 @dataclass
@@ -191,6 +192,8 @@ class TokenizerModule(L.LightningModule):
             loss = loss + self.refine_cfg.path_weight * parts["path_m"]
         # DDP waits for a gradient of every parameter: the frozen ones get zeros, dropped before the step.
         loss = loss + 0.0 * sum(p.sum() for p in self._frozen_parameters())
+        if not logged_step(self):
+            return loss
         metrics = {"train/loss": loss, "train/recon": parts["recon"], "train/position": parts["position"]}
         if "path_m" in parts:
             metrics["train/root_path_m"] = parts["path_m"]
@@ -229,6 +232,8 @@ class TokenizerModule(L.LightningModule):
             parts["path_m"] = self.root_path_distance(out.reconstruction, batch)
             loss = loss + self.loss_cfg.path_weight * parts["path_m"]
         self.last_perplexities = {name: float(p) for name, p in out.perplexities.items()}
+        if not logged_step(self):  # the values below only go to the loggers
+            return loss
         metrics = {
             "train/loss": loss,
             "train/recon": parts["recon"],

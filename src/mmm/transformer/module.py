@@ -11,6 +11,7 @@ from torchmetrics import MeanMetric
 
 from mmm.config import as_config
 from mmm.training.optim import OptimConfig, build_optimizer
+from mmm.training.step_logging import logged_step
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 from mmm.transformer.schedules import TRAINING_SCHEDULES, check_schedule
 
@@ -193,14 +194,14 @@ class MaskedTransformerModule(L.LightningModule):
         )
         return tokens[..., 1], condition
 
-    def loss(
-        self, logits: torch.Tensor, targets: torch.Tensor, corrupted: Corrupted
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def loss(self, logits: torch.Tensor, targets: torch.Tensor, corrupted: Corrupted) -> torch.Tensor:
+        """The cross-entropy of logits (B, M, K) against targets (B, M), averaged over each
+        sequence's masked (loss_on: masked) or real positions, then over the batch."""
         ce = F.cross_entropy(
             logits.transpose(1, 2), targets.clamp(max=self.num_codes - 1), reduction="none"
         )  # (B, M); END/PAD are never targets
         weight = corrupted.masked if self.corruption_cfg.loss_on == "masked" else corrupted.real
-        return sequence_mean(ce, weight), logits.argmax(-1) == targets
+        return sequence_mean(ce, weight)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         targets, condition = self.targets_and_condition(batch)
@@ -213,7 +214,10 @@ class MaskedTransformerModule(L.LightningModule):
         logits = self.transformer(
             corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], drop, condition
         )
-        loss, correct = self.loss(logits, targets, corrupted)
+        loss = self.loss(logits, targets, corrupted)
+        if not logged_step(self):  # the accuracies below only go to the loggers
+            return loss
+        correct = logits.argmax(-1) == targets
         unmasked = corrupted.real & ~corrupted.masked
         self.log_dict(
             {
@@ -236,7 +240,7 @@ class MaskedTransformerModule(L.LightningModule):
         logits = self.transformer(
             corrupted.inputs, batch["sentence"], batch["words"], batch["word_mask"], None, condition
         )
-        loss, correct = self.loss(logits, targets, corrupted)
+        loss, correct = self.loss(logits, targets, corrupted), logits.argmax(-1) == targets
         unmasked = corrupted.real & ~corrupted.masked
         self.val_loss.update(loss, weight=len(batch["lengths"]))
         self.val_acc_masked.update(correct[corrupted.masked].float().mean(), weight=corrupted.masked.sum())
