@@ -101,7 +101,7 @@ def _stage2(size: str, batch: int, device: str, overrides: list[str]):
         logits = module.transformer(
             c.inputs, batch_dict["sentence"], batch_dict["words"], batch_dict["word_mask"], drop, None
         )
-        return module.loss(logits, tokens, c)[0]
+        return module.loss(logits, tokens, c)
 
     return module, loss, {"tokens": M, "codes": K}
 

@@ -235,6 +235,7 @@ def test_perplexity_ratio_is_against_the_peak_after_warm_up():
 
     class Trainer:
         global_step, strategy, is_global_zero, loggers = 0, Strategy(), True, []
+        fast_dev_run, log_every_n_steps, should_stop = False, 1, False  # every step is a logged one
 
     monitor, module, trainer = (
         CollapseMonitor(warmup_steps=5, window_steps=2, smoothing=0.0),

@@ -207,6 +207,22 @@ def test_window_dataset_switches_its_extra_share_to_clip_starts():
             MotionWindowDataset(motions, mean, std, window=64, start_windows=bad)
 
 
+def test_a_loader_batch_of_windows_equals_the_windows_one_by_one():
+    """__getitems__ normalizes a batch at once: the same numbers to the bit, clip starts included."""
+    rng = np.random.default_rng(0)
+    motions = [rng.normal(size=(n, D)).astype(np.float32) for n in (70, 96, 64)]
+    mean, std = rng.normal(size=D).astype(np.float32), rng.uniform(0.1, 3.0, D).astype(np.float32)
+    ds = MotionWindowDataset(motions, mean, std, window=64, start_windows=0.5)
+    indices = [0, 5, 40, 7, ds.num_anywhere + 3, len(ds) + 2, ds.num_anywhere]
+    for at_start in (False, True):
+        ds.at_start = at_start
+        batch = ds.__getitems__(indices)
+        assert len(batch) == len(indices)
+        assert all(torch.equal(window, ds[i]) for window, i in zip(batch, indices))
+        loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=False)
+        assert torch.equal(torch.cat(list(loader)), torch.stack([ds[i] for i in range(len(ds))]))
+
+
 def test_the_clip_start_switch_reaches_loader_workers():
     motions = [make_features(70, 0), make_features(80, 1)]
     ds = MotionWindowDataset(motions, np.zeros(D, np.float32), np.ones(D, np.float32), start_windows=0.5)

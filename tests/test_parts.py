@@ -178,6 +178,7 @@ def _fit(module, callbacks, steps, frames=32):
         limit_val_batches=0,
         accelerator="cpu",
         enable_model_summary=False,
+        log_every_n_steps=1,  # every step's values in callback_metrics (they are logged steps)
     )
     data = torch.randn(64, frames, 263)
     trainer.fit(module, torch.utils.data.DataLoader(data, batch_size=16, shuffle=True))

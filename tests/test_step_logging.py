@@ -1,5 +1,5 @@
-"""Training steps compute and log their on-step values only where Lightning writes them
-(mmm.training.step_logging): the loggers must receive exactly what logging at every step gives."""
+"""Training steps and callbacks compute and log their on-step values only where Lightning writes
+them (mmm.training.step_logging): the loggers must receive exactly what logging at every step gives."""
 
 import lightning as L
 import pytest
@@ -7,7 +7,7 @@ import torch
 from lightning.pytorch.loggers.logger import Logger
 from torch.utils.data import DataLoader, TensorDataset
 
-from mmm.training.step_logging import logged_step
+from mmm.training.step_logging import logged_batch_end, logged_step
 
 
 class RecordingLogger(Logger):
@@ -54,6 +54,19 @@ class Regression(L.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.1)
 
 
+class WeightNorm(L.Callback):
+    """Logs a value after each optimizer step, as the codebook callbacks do: every batch end, or
+    only where `logged_batch_end` says."""
+
+    def __init__(self, gated: bool):
+        self.gated = gated
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if self.gated and not logged_batch_end(trainer):
+            return
+        pl_module.log("train/weight_norm", pl_module.linear.weight.norm(), on_step=True, on_epoch=False)
+
+
 def fit(gated: bool, steps: int, accumulate: int = 1) -> tuple[Regression, RecordingLogger]:
     torch.manual_seed(0)
     x = torch.randn(256, 3)
@@ -69,6 +82,7 @@ def fit(gated: bool, steps: int, accumulate: int = 1) -> tuple[Regression, Recor
         enable_checkpointing=False,
         enable_progress_bar=False,
         enable_model_summary=False,
+        callbacks=[WeightNorm(gated)],
     )
     trainer.fit(module, DataLoader(data, batch_size=8, shuffle=False))
     return module, logger
@@ -80,7 +94,7 @@ def test_gated_logging_gives_the_loggers_what_logging_every_step_gives(accumulat
     gated_module, gated = fit(gated=True, steps=25, accumulate=accumulate)
     assert [step for step, _ in every.records] == [9, 19]  # Lightning's cadence at log_every_n_steps=10
     assert gated.records == every.records
-    assert all("train/loss" in metrics and "train/abs_error" in metrics for _, metrics in gated.records)
+    assert all({"train/loss", "train/abs_error", "train/weight_norm"} <= set(m) for _, m in gated.records)
     # The values were computed only for the steps written (each micro-batch of an accumulated one).
     assert gated_module.computed_at == [s for s in (9, 19) for _ in range(accumulate)]
 

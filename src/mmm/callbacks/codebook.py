@@ -19,6 +19,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities import rank_zero_warn
 
 from mmm.tokenizer.quantizer import metric_name
+from mmm.training.step_logging import logged_batch_end
 
 log = logging.getLogger(__name__)
 
@@ -26,9 +27,8 @@ log = logging.getLogger(__name__)
 class CodebookReset(L.Callback):
     """Every `every_n_steps` optimizer steps, replace the codes no latent used since the last
     reset by latents of the current batch, in every codebook (0 disables). Logs the running total
-    `codebook/codes_reset_total` at every step (`codebook/<part>/codes_reset_total` too when there
-    are several codebooks), so every logged step shows every reset so far whatever the logging
-    interval."""
+    `codebook/codes_reset_total` (`codebook/<part>/codes_reset_total` too when there are several
+    codebooks), so every logged step shows every reset so far whatever the logging interval."""
 
     def __init__(self, every_n_steps: int = 20):
         self.every_n_steps = every_n_steps
@@ -44,6 +44,8 @@ class CodebookReset(L.Callback):
             n = q.reset_unused() if due else 0
             self.total_by_codebook[name] = self.total_by_codebook.get(name, 0) + n
             self.total_reset += n
+        if not logged_batch_end(trainer):
+            return
         metrics = {"codebook/codes_reset_total": float(self.total_reset)}
         if len(self.total_by_codebook) > 1:
             metrics.update(
@@ -189,9 +191,10 @@ class CollapseMonitor(L.Callback):
             )
             reasons[name] = self.collapse_reason(health) if step >= self.warmup_steps else None
             health.strikes = health.strikes + 1 if reasons[name] else 0
-        pl_module.log_dict(metrics, on_step=True, on_epoch=False)
         collapsed = [name for name in reasons if self.codebooks[name].strikes >= self.patience]
         detected = trainer.strategy.reduce_boolean_decision(bool(collapsed), all=False)
+        if detected or logged_batch_end(trainer):  # a detection too: a stop makes its step the last logged
+            pl_module.log_dict(metrics, on_step=True, on_epoch=False)
         if not detected:
             return
         for health in self.codebooks.values():

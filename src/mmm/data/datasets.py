@@ -10,7 +10,7 @@ from mmm.data.humanml3d import MotionItem
 
 
 def normalize(features: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
-    return ((features - mean) / std).astype(np.float32)
+    return ((features - mean) / std).astype(np.float32, copy=False)
 
 
 class MotionWindowDataset(Dataset):
@@ -70,7 +70,8 @@ class MotionWindowDataset(Dataset):
     def __len__(self) -> int:
         return self.num_anywhere + self.num_at_start
 
-    def __getitem__(self, index: int) -> torch.Tensor:
+    def _window(self, index: int) -> np.ndarray:
+        """The raw frames (window, D) of window `index`: a view of its motion."""
         index %= len(self)  # samplers may tag indices with the epoch
         if index >= self.num_anywhere and self.at_start:
             k, offset = (index - self.num_anywhere) % len(self.motions), 0
@@ -79,9 +80,16 @@ class MotionWindowDataset(Dataset):
                 index = index * 2654435761 % self.num_anywhere
             k = int(np.searchsorted(self.starts, index, side="right")) - 1
             offset = index - int(self.starts[k])
-        return torch.from_numpy(
-            normalize(self.motions[k][offset : offset + self.window], self.mean, self.std)
-        )
+        return self.motions[k][offset : offset + self.window]
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        return torch.from_numpy(normalize(self._window(index), self.mean, self.std))
+
+    def __getitems__(self, indices: list[int]) -> list[torch.Tensor]:
+        """A loader's batch: the windows normalized in one operation, the same numbers as one by
+        one (elementwise), with a fraction of the per-window overhead."""
+        windows = normalize(np.stack([self._window(i) for i in indices]), self.mean, self.std)
+        return list(torch.from_numpy(windows))
 
 
 class TextMotionDataset(Dataset):
