@@ -1,12 +1,13 @@
 """Which training steps log their on-step values.
 
 Lightning writes the `log(..., on_step=True)` values of a training step to the loggers only every
-`log_every_n_steps` optimizer steps, but each `log` call costs its result collection a few tenths
-of a millisecond on a CPU (it copies the value's metadata), and some values take work of their own: the
-transformer's accuracies an argmax over the codebook, the evaluator's retrieval ranks. The
-package's training steps and callbacks compute and log those values only where the functions
-below say the loggers receive them, so every chart keeps the same points. No Lightning import
-here: the model packages import this module.
+`log_every_n_steps` optimizer steps, but each `log` call costs its result collection a few
+tenths of a millisecond on a CPU (it copies the value's metadata), and some values take work of
+their own: the transformer's accuracies an argmax over the codebook, the evaluator's retrieval
+ranks. The package's training steps and callbacks compute and log those values only where the
+functions below say the loggers receive them, so every chart keeps the same points; between
+those steps `trainer.callback_metrics` holds the training values of the last logged one. No
+Lightning import here: the model packages import this module.
 """
 
 from __future__ import annotations
