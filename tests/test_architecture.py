@@ -93,6 +93,29 @@ def test_cli_help_does_not_load_torch_or_mlflow():
     assert out == "[]"
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["generate", "--text", "a person walks", "--out", "o", "--temperature", "nan"],
+        ["generate", "--text", "a person walks", "--out", "o", "--candidates", "17"],
+        ["edit", "outpaint", "--source", "missing.npy", "--keep", "0:40", "--out", "o", "--seed", "-1"],
+        ["generate-long", "--text", "a person walks", "--text", " ", "--out", "o"],
+    ],
+    ids=["generate", "generate candidates", "edit", "generate-long"],
+)
+def test_generation_commands_refuse_bad_input_before_loading_model_libraries(argv, tmp_path):
+    """A refusal costs the interpreter, torch and the checks (about 2 s), not the 6-10 s of importing
+    Lightning and MLflow for a model that is never loaded."""
+    code = (
+        "import sys; from mmm.cli.app import main; rc = main(sys.argv[1:]); "
+        "print(rc, sorted(m for m in ('mlflow', 'lightning') if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=tmp_path, check=True
+    )
+    assert out.stdout.strip() == "2 []", out.stderr
+    assert out.stderr.startswith("error: ") and list(tmp_path.iterdir()) == []
+
 def test_model_kind_names_have_one_home():
     """Experiment, folder and registered names of the model kinds are string constants only in
     kinds.py (docstrings and messages may mention them)."""

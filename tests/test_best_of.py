@@ -8,7 +8,6 @@ from mmm.generation.best_of import (
     COUNTERFACTUAL_WEIGHT,
     MIN_JUDGED_FRAMES,
     caption_clauses,
-    check_candidates,
     check_judge,
     clause_scores,
     counterfactual_margins,
@@ -19,6 +18,7 @@ from mmm.generation.best_of import (
     judge_scores,
 )
 from mmm.generation.model import Generated
+from mmm.generation.sampler import check_candidates
 
 
 class Draws:

@@ -56,7 +56,7 @@ def load_best_of_judge(args: argparse.Namespace, model):
 
 
 def check_best_of_args(args: argparse.Namespace) -> None:
-    from mmm.generation.best_of import check_candidates
+    from mmm.generation.sampler import check_candidates
 
     try:
         check_candidates(args.candidates, "--candidates")
@@ -140,9 +140,6 @@ def add_generate_long(sub) -> None:
 
 
 def cmd_generate(args: argparse.Namespace) -> None:
-    # imported here: keeps `mmm --help` fast
-    from mmm.generation.best_of import generate_best_of
-    from mmm.generation.outputs import write_samples
     from mmm.generation.sampler import MAX_SAMPLES
 
     check_generation_args(args)
@@ -158,6 +155,10 @@ def cmd_generate(args: argparse.Namespace) -> None:
         raise CLIError(
             "--trace plots one draw's decoding: leave it out with --candidates, or use --candidates 1"
         )
+    # imported after the checks: keeps `mmm --help` and refusing bad input fast (no model libraries)
+    from mmm.generation.best_of import generate_best_of
+    from mmm.generation.outputs import write_samples
+
     model = load_model(args)
     if args.length is not None:
         model.check_frames(args.length, "--length")
@@ -211,9 +212,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 
 def cmd_edit(args: argparse.Namespace) -> None:
-    from mmm.generation.best_of import edit_best_of
     from mmm.generation.edits import EditRequest
-    from mmm.generation.outputs import write_samples
     from mmm.motion.features import joints_to_features
 
     check_generation_args(args)
@@ -242,6 +241,10 @@ def cmd_edit(args: argparse.Namespace) -> None:
         )
     if not np.isfinite(source).all():
         raise CLIError(f"{args.source}: contains NaN/Inf values")
+    # imported after the checks: keeps `mmm --help` and refusing bad input fast (no model libraries)
+    from mmm.generation.best_of import edit_best_of
+    from mmm.generation.outputs import write_samples
+
     model = load_model(args)
     source = source.astype(np.float32)
     extra = {"source": str(args.source)}
@@ -296,8 +299,6 @@ def cmd_edit(args: argparse.Namespace) -> None:
 
 
 def cmd_generate_long(args: argparse.Namespace) -> None:
-    from mmm.generation.best_of import generate_long_best_of
-    from mmm.generation.outputs import write_samples
     from mmm.generation.prompts import split_paragraph
 
     check_generation_args(args)
@@ -322,6 +323,10 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
         raise CLIError(f"--lengths has {len(lengths)} values for {len(texts)} prompts")
     if lengths is not None and len(lengths) == 1:
         lengths = lengths * len(texts)
+    # imported after the checks: keeps `mmm --help` and refusing bad input fast (no model libraries)
+    from mmm.generation.best_of import generate_long_best_of
+    from mmm.generation.outputs import write_samples
+
     model = load_model(args)
     for n in lengths or []:
         model.check_frames(n, "segment length")

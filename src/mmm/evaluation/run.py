@@ -48,8 +48,8 @@ from mmm.evaluation.evaluators import load_evaluator, load_judge
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.fingerprint import dataset_fingerprint
-from mmm.generation.best_of import check_candidates
 from mmm.generation.model import TextToMotion
+from mmm.generation.sampler import check_candidates
 from mmm.motion.features import recover_from_ric
 from mmm.tokenizer.load import load_tokenizer
 from mmm.tracking import (

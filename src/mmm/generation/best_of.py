@@ -37,24 +37,8 @@ import torch.nn.functional as F
 
 from mmm.evaluation.counterfactuals import counterfactual_captions
 from mmm.generation.model import Generated, TextToMotion
-from mmm.generation.sampler import SamplingConfig
+from mmm.generation.sampler import SamplingConfig, check_candidates
 from mmm.motion.features import pad_motions
-
-MAX_CANDIDATES = 16
-
-
-def check_candidates(candidates: int, name: str = "candidates") -> int:
-    if (
-        isinstance(candidates, bool)
-        or not isinstance(candidates, int)
-        or not 1 <= candidates <= MAX_CANDIDATES
-    ):
-        raise ValueError(
-            f"{name} {candidates!r} is not allowed: a whole number of motions drawn per prompt, "
-            f"1 to {MAX_CANDIDATES} (1: no judge; from text, 4 at guidance 1.5 follows the most prompts, "
-            "README 'Best of N')"
-        )
-    return candidates
 
 
 def check_judge(model: TextToMotion, judge) -> None:

@@ -43,6 +43,7 @@ MAX_TEMPERATURE = 100.0  # far past uniform sampling already
 MAX_GUIDANCE = 100.0  # larger scales only push the logits towards float overflow
 MAX_SEED = 2**63 - 1  # torch generators take 64 bits; one sign bit kept free so every tool agrees
 MAX_SAMPLES = 64  # samples of one command, rows of one served request (its default bound)
+MAX_CANDIDATES = 16  # best of N: motions drawn per prompt (mmm.generation.best_of)
 
 
 class SamplingValueError(ValueError):
@@ -83,6 +84,21 @@ def check_count(count, field: str, limit: int = MAX_SAMPLES) -> int:
     """A number of samples (or rows) in 1..limit, or SamplingValueError."""
     _check_integer(field, count, 1, limit, f"an integer from 1 to {limit}")
     return int(count)
+
+
+def check_candidates(candidates: int, name: str = "candidates") -> int:
+    """A number of motions drawn per prompt (best of N) in 1..MAX_CANDIDATES, or ValueError."""
+    if (
+        isinstance(candidates, bool)
+        or not isinstance(candidates, int)
+        or not 1 <= candidates <= MAX_CANDIDATES
+    ):
+        raise ValueError(
+            f"{name} {candidates!r} is not allowed: a whole number of motions drawn per prompt, "
+            f"1 to {MAX_CANDIDATES} (1: no judge; from text, 4 at guidance 1.5 follows the most prompts, "
+            "README 'Best of N')"
+        )
+    return candidates
 
 
 @dataclass

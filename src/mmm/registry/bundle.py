@@ -48,11 +48,18 @@ from mmm import __version__
 from mmm.checkpoints import load_checkpoint
 from mmm.evaluation.contrastive import EvaluatorEmbedder, load_contrastive_evaluator
 from mmm.fingerprint import tensors_fingerprint
-from mmm.generation.best_of import check_candidates, edit_best_of, generate_best_of
+from mmm.generation.best_of import edit_best_of, generate_best_of
 from mmm.generation.edits import UPPER_BODY, EditRequest, sampling_defaults
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_precision
-from mmm.generation.sampler import MAX_SAMPLES, SamplingConfig, SamplingValueError, check_count, check_seed
+from mmm.generation.sampler import (
+    MAX_SAMPLES,
+    SamplingConfig,
+    SamplingValueError,
+    check_candidates,
+    check_count,
+    check_seed,
+)
 from mmm.generation.upper_body import DEFAULT_LOWER_MASK
 from mmm.resolve import JUDGE, TOKENIZER, TRANSFORMER
 from mmm.tokenizer.load import load_tokenizer_checkpoint
