@@ -86,19 +86,17 @@ def check_count(count, field: str, limit: int = MAX_SAMPLES) -> int:
     return int(count)
 
 
-def check_candidates(candidates: int, name: str = "candidates") -> int:
-    """A number of motions drawn per prompt (best of N) in 1..MAX_CANDIDATES, or ValueError."""
-    if (
-        isinstance(candidates, bool)
-        or not isinstance(candidates, int)
-        or not 1 <= candidates <= MAX_CANDIDATES
-    ):
-        raise ValueError(
-            f"{name} {candidates!r} is not allowed: a whole number of motions drawn per prompt, "
-            f"1 to {MAX_CANDIDATES} (1: no judge; from text, 4 at guidance 1.5 follows the most prompts, "
-            "README 'Best of N')"
-        )
-    return candidates
+def check_candidates(candidates, field: str = "candidates") -> int:
+    """A number of motions drawn per prompt (best of N) in 1..MAX_CANDIDATES, or SamplingValueError."""
+    _check_integer(
+        field,
+        candidates,
+        1,
+        MAX_CANDIDATES,
+        f"a whole number of motions drawn per prompt, 1 to {MAX_CANDIDATES} (1: no judge; from text, 4 at "
+        "guidance 1.5 follows the most prompts, README 'Best of N')",
+    )
+    return int(candidates)
 
 
 @dataclass
