@@ -180,6 +180,18 @@ BEFORE_MODEL = {
     ),
     "split names a missing id": (["data", "check", "{missing_id}", "--on-invalid", "error"], ["000099"]),
     "misspelt config key": (["train", "stage1", "trainer.max_stepz=5"], ["max_stepz"]),
+    # a store that is not there is never created by a command that only reads, and a file that is
+    # not one is named
+    "generate with no store here": (GEN + ["--length", "60"], ["no text-to-motion model to use"]),
+    "models list with no store here": (["models", "list"], ["no MLflow store at"]),
+    "dashboard on a mistyped store": (
+        ["dashboard", "--tracking-uri", "sqlite:///{out}/typo/mlflow.db"],
+        ["no MLflow store at", "typo/mlflow.db"],
+    ),
+    "tracking uri not a database": (
+        GEN + ["--length", "60", "--tracking-uri", "sqlite:///{source}"],
+        ["source.npy is not an SQLite database"],
+    ),
     "released upper-body import": (
         ["import", "released-upperbody", "--vq", "{source}", "--stats", "{dataset}"],
         ["the released upper-body pair cannot be mapped"],
@@ -306,6 +318,23 @@ WITH_MODEL = {
         ],
         ["no-such-model"],
     ),
+    "edit source of 3 frames": (
+        [
+            "edit",
+            "complete",
+            "--model",
+            "{model}",
+            "--source",
+            "{short_source}",
+            "--keep",
+            "0:3",
+            "--length",
+            "80",
+            "--out",
+            "{out}",
+        ],
+        ["short_source.npy: 3 frames", "at least 4"],
+    ),
 }
 
 
@@ -314,9 +343,15 @@ def with_model_results(trained, tmp_path_factory):
     base = tmp_path_factory.mktemp("bad-input-model")
     store = Path(trained["uri"].removeprefix("sqlite:///"))
     digest = hashlib.sha256(store.read_bytes()).hexdigest()
+    short_source = base / "inputs" / "short_source.npy"
+    short_source.parent.mkdir()
+    np.save(short_source, np.random.default_rng(0).normal(size=(3, D)).astype(np.float32))
     started = time.perf_counter()
     results = _run_table(
-        WITH_MODEL, {"model": str(trained["checkpoint"])}, base, extra=["--tracking-uri", trained["uri"]]
+        WITH_MODEL,
+        {"model": str(trained["checkpoint"]), "short_source": str(short_source)},
+        base / "cases",
+        extra=["--tracking-uri", trained["uri"]],
     )
     print(f"[bad input] {len(results)} commands with a model in {time.perf_counter() - started:.1f} s")
     return results, digest, store

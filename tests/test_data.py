@@ -128,6 +128,23 @@ def test_bad_input_is_an_error_naming_the_file_or_a_counted_skip(tmp_path, break
     assert len(report.examples) == 1
 
 
+def test_a_byte_order_mark_is_not_text_and_a_repeated_id_is_kept_once_and_counted(tmp_path):
+    write_dataset(
+        tmp_path, {"000000": (80, [WHOLE]), "000001": (80, [WHOLE])}, {"train": ["000000", "000001"]}
+    )
+    # Files saved by editors that write UTF-8 with a byte-order mark (Windows Notepad, Excel)
+    (tmp_path / "train.txt").write_text("000000\r\n000001\r\n000000\r\n", encoding="utf-8-sig")
+    (tmp_path / "texts/000001.txt").write_text(WHOLE + "\n", encoding="utf-8-sig")
+    items, report = load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40)
+    assert [i.name for i in items] == ["000000", "000001"]
+    assert [c.text for c in items[1].captions] == ["a person walks forward"]
+    assert report.kept_clips == 2 and report.skipped == {"id listed again in the split (kept once)": 1}
+    assert "left out 1: id listed again in the split (kept once) (e.g. 000000)" in report.summary()
+    clips, report = load_clips(tmp_path, "train", feature_dim=D, min_length=40)
+    assert sorted(clips) == ["000000", "000001"] and report.kept_clips == 2
+    assert sum(report.skipped.values()) == 1
+
+
 def test_missing_split_and_stats_errors(tmp_path):
     write_dataset(tmp_path, {"000000": (80, [WHOLE])}, {"train": ["000000"]}, stats=False)
     with pytest.raises(DataError, match=r"val\.txt: split file is missing"):

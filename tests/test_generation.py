@@ -190,6 +190,26 @@ def test_kept_codes_never_change(model, keep, text, frames, place):
         assert out.features[0].shape[0] == (frames or 160)
 
 
+def test_an_edit_is_as_long_as_its_source_by_default(model):
+    source = model.generate(["source"], frames=[162], seed=1).features[0]
+    assert source.shape[0] == 162  # not a whole number of codes (4 frames each)
+    out = model.edit(source, [(0, 40), (120, 162)], "a person jumps", seed=0)
+    assert out.features[0].shape[0] == 162 and out.joints[0].shape[0] == 162
+    # 41 codes out; the source's encoding has 40 (its last 2 frames fill no code), so the last is drawn.
+    assert out.kept_codes.astype(int).tolist() == [1] * 10 + [0] * 20 + [1] * 10 + [0]
+    with pytest.raises(ValueError, match="at least 4"):
+        model.edit(source[:3], [(0, 3)], frames=80)
+
+
+def test_transition_codes_up_to_what_one_sequence_holds(model):
+    # 6 context codes of each side and the transition in one sequence of at most 196 / 4 = 49 codes
+    out = model.generate_long(["walk", "jump"], frames=[40, 40], seed=0, transition_codes=37)
+    assert out.features[0].shape[0] == 40 + 37 * 4 + 40
+    for bad in (38, 100, -1):
+        with pytest.raises(ValueError, match=rf"\(--transition-codes\) {bad} is outside 0\.\.37"):
+            model.generate_long(["walk", "jump"], frames=[40, 40], seed=0, transition_codes=bad)
+
+
 def test_keep_mask_and_edit_errors(model):
     assert model.keep_mask(10, [(0, 5), (33, 40)]).astype(int).tolist() == [1, 1, 0, 0, 0, 0, 0, 0, 1, 1]
     source = model.generate(["s"], frames=[80], seed=0).features[0]
@@ -268,8 +288,23 @@ def test_paragraph_splitter():
         "the man runs",
         "the man waves with the right hand",
     ]
-    with pytest.raises(ValueError, match="no action found"):
-        split_paragraph(" . ; ")
+    # order words are not actions; a fragment of a direction alone repeats the verb before it
+    assert split_paragraph("First, walk forward. Next, jump twice.") == [
+        "a person walks forward",
+        "a person jumps twice",
+    ]
+    assert split_paragraph("A person walks up the stairs then down the stairs") == [
+        "a person walks up the stairs",
+        "a person walks down the stairs",
+    ]
+    assert split_paragraph("someone slowly walks forward, then back. Lastly, she waves.") == [
+        "someone slowly walks forward",
+        "someone walks back",
+        "someone waves",
+    ]
+    for nothing in (" . ; ", "then, and finally.", "Then.", "and", "First, then"):
+        with pytest.raises(ValueError, match="no action found"):
+            split_paragraph(nothing)
 
 
 def test_trace_plot(model, tmp_path):
@@ -375,6 +410,17 @@ def test_cli_generate_draws_several_prompts_in_one_call(trained, tmp_path, capsy
     bad = tmp_path / "bad"
     assert main(["generate", "--text", prompts[0], "--text", " ", *common, "--out", str(bad)]) != 0
     assert "--text is empty" in capsys.readouterr().err and not bad.exists()
+    # A prompt longer than the text encoder reads is drawn from its first tokens, and says so.
+    long_prompt = "a person walks forward and then turns around " * 80
+    argv = ["generate", "--text", long_prompt, "--text", prompts[0], *common, "--out", str(tmp_path / "cut")]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert err.count("warning: 'a person walks forward and then turns around") == 1
+    assert "the rest is left out" in err
+    metas = [json.loads((tmp_path / "cut" / str(k) / "meta.json").read_text()) for k in range(4)]
+    cut = metas[0]["text_cut"]
+    assert cut["tokens"] > cut["read"] > 0 and metas[1]["text_cut"] == cut
+    assert "text_cut" not in metas[2] and "text_cut" not in metas[3]
 
 
 @pytest.mark.slow

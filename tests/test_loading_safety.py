@@ -165,6 +165,14 @@ def test_generate_refuses_a_stage1_checkpoint_as_the_model(files, tmp_path, monk
 def test_generate_refuses_an_unknown_run_id(files, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
+    # No store there: said so, and none is created.
+    code, err = run_cli(generate_argv(UNKNOWN_RUN, tmp_path / "out", "--tracking-uri", uri), capsys)
+    assert code == 2 and f"{UNKNOWN_RUN}: no MLflow store at {uri}" in err and "Traceback" not in err
+    assert not (tmp_path / "mlflow.db").exists()
+    # A store without that run.
+    from mlflow.tracking import MlflowClient
+
+    MlflowClient(uri).search_experiments()
     code, err = run_cli(generate_argv(UNKNOWN_RUN, tmp_path / "out", "--tracking-uri", uri), capsys)
     assert code == 2 and f"{UNKNOWN_RUN}: no such run" in err and "Traceback" not in err
     with pytest.raises(ModelNotFound, match=UNKNOWN_RUN):
@@ -292,7 +300,7 @@ def test_tokenize_refuses_a_stage2_checkpoint_and_an_unknown_run(files, tmp_path
         and f"{files['stage2']} is a stage-2 (text-to-motion transformer) checkpoint, not a stage-1" in err
     )
     code, err = run_cli(["tokenize", f"stage1={UNKNOWN_RUN}", uri], capsys)
-    assert code == 2 and f"{UNKNOWN_RUN}: no such run" in err and "Traceback" not in err
+    assert code == 2 and f"{UNKNOWN_RUN}: no MLflow store at" in err and "Traceback" not in err
 
 
 # -- the Python API: the package's exception types ------------------------------------------------

@@ -457,6 +457,12 @@ def _bad_inputs(release, tmp):
         {"net": {"encoder_upper.model.0.weight": torch.zeros(2), "quantizer_lower.codebook": torch.zeros(2)}},
         upper,
     )
+    empty = tmp / "empty.pth"
+    empty.write_bytes(b"")
+    mixed_keys = tmp / "mixed-keys.pth"
+    torch.save({1: "x", "b": 2}, mixed_keys)
+    int_names = tmp / "int-names.pth"
+    torch.save({"net": {1: torch.zeros(2), "a": torch.zeros(2)}}, int_names)
     wrong_stats = tmp / "stats"
     wrong_stats.mkdir()
     np.save(wrong_stats / "mean.npy", np.zeros(251, np.float32))
@@ -466,6 +472,9 @@ def _bad_inputs(release, tmp):
         ({"--vq": str(tmp)}, str(tmp)),
         ({"--vq": str(text)}, "notes.txt"),
         ({"--vq": str(truncated)}, "truncated.pth"),
+        ({"--vq": str(empty)}, "empty.pth"),
+        ({"--vq": str(mixed_keys)}, "mixed-keys.pth"),
+        ({"--vq": str(int_names)}, "not parameter names"),
         ({"--transformer": str(stage1_as_stage2)}, "net-as-trans.pth"),
         ({"--vq": str(release["transformer"])}, "trans.pth"),
         ({"--vq": str(upper)}, "upper-body pair cannot be mapped"),

@@ -203,6 +203,8 @@ def test_render_files_gif_with_skeleton_fps(tmp_path):
         assert gif.info["loop"] == 0
     (png,) = render_files([path], tmp_path / "sheet.png")
     assert Image.open(png).size == (6 * 240, 240)
+    # readable like every other output (the temporary file they are written to is owner-only)
+    assert (out.stat().st_mode & 0o777, png.stat().st_mode & 0o777) == (0o644, 0o644)
 
 
 def test_png_contact_sheet_size(tmp_path):

@@ -4,7 +4,13 @@ from pathlib import Path
 
 import pytest
 
-from mmm.tracking import artifact_location, prepare_experiment
+from mmm.tracking import (
+    StoreNotFound,
+    artifact_location,
+    existing_store,
+    prepare_experiment,
+    store_for_reading,
+)
 
 
 @pytest.mark.parametrize(
@@ -49,3 +55,29 @@ def test_a_store_in_another_folder_never_writes_into_the_working_directory(tmp_p
     logged = list((store / "mlartifacts").rglob("note.txt"))
     assert len(logged) == 1
     assert sorted(p.name for p in work.iterdir()) == ["note.txt"]
+
+
+def test_reading_a_store_never_creates_one_and_names_a_file_that_is_not_one(tmp_path, monkeypatch):
+    from mmm.resolve import ModelNotFound, champion_reference, newest_run_checkpoint, registered_version
+
+    monkeypatch.chdir(tmp_path)
+    missing = f"sqlite:///{tmp_path}/typo/mlflow.db"
+    assert existing_store(missing) is False and existing_store("http://127.0.0.1:5000") is True
+    assert champion_reference(missing) is None
+    assert newest_run_checkpoint(missing, "mmm-stage2", tmp_path / "cache") is None
+    with pytest.raises(ModelNotFound, match="no MLflow store at"):
+        registered_version("models:/mmm-text2motion@champion", missing)
+    with pytest.raises(StoreNotFound, match="no MLflow store at .*typo/mlflow.db"):
+        store_for_reading(missing)
+    assert not (tmp_path / "typo").exists()
+    # A relative store resolves in the working directory, and is not created there either.
+    with pytest.raises(StoreNotFound, match=str(tmp_path / "mlflow.db")):
+        store_for_reading("sqlite:///mlflow.db")
+    assert list(tmp_path.iterdir()) == []
+
+    not_a_store = tmp_path / "motion.npy"
+    not_a_store.write_bytes(b"\x93NUMPY" + bytes(100))
+    with pytest.raises(StoreNotFound, match="motion.npy is not an SQLite database"):
+        champion_reference(f"sqlite:///{not_a_store}")
+    (tmp_path / "empty.db").touch()  # an empty file is a new database to SQLite: opened as one
+    assert existing_store(f"sqlite:///{tmp_path}/empty.db") is True

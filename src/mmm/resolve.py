@@ -42,6 +42,7 @@ from mlflow.tracking import MlflowClient
 
 from mmm.atomic import atomic_write, atomic_write_text, file_lock, fsync_directory, sha256_file
 from mmm.kinds import STAGE2, ModelKind
+from mmm.tracking import existing_store
 
 _RUN_ID = re.compile(r"^[0-9a-f]{32}$")
 
@@ -119,6 +120,11 @@ def download_artifact(
     recorded one is refused (ArtifactMismatch, a ModelNotFound), never served."""
     cache_dir = Path(cache_dir)
     name = artifact_path.rsplit("/", 1)[-1]
+    if not existing_store(tracking_uri):
+        raise ModelNotFound(
+            f"runs:/{run_id}: no MLflow store at {tracking_uri}; give --tracking-uri the store the run is "
+            "in, or the checkpoint file's path"
+        )
     client = MlflowClient(tracking_uri)
     problem = ""
     for _attempt in range(2):  # a second look, in case the run was uploading this file meanwhile
@@ -168,6 +174,8 @@ def newest_run_checkpoint(
     tracking_uri: str, experiment: str, cache_dir: str | Path
 ) -> tuple[str, str] | None:
     """(run id, local best.ckpt) of the newest finished run of `experiment` that has one."""
+    if not existing_store(tracking_uri):
+        return None
     client = MlflowClient(tracking_uri)
     found = client.get_experiment_by_name(experiment)
     if found is None:
@@ -188,6 +196,11 @@ def newest_run_checkpoint(
 
 def registered_version(reference: str, tracking_uri: str):
     """The ModelVersion of models:/NAME@ALIAS or models:/NAME/VERSION (ModelNotFound otherwise)."""
+    if not existing_store(tracking_uri):
+        raise ModelNotFound(
+            f"{reference}: no MLflow store at {tracking_uri}; give --tracking-uri the store the model is "
+            "registered in"
+        )
     client = MlflowClient(tracking_uri)
     body = reference[len("models:/") :]
     try:
@@ -316,6 +329,8 @@ BUNDLE_CACHE = "outputs/cache/bundles"
 
 def champion_reference(tracking_uri: str, name: str = STAGE2.registered) -> str | None:
     """models:/<name>@champion when that alias exists, else None (the newest stage-2 run)."""
+    if not existing_store(tracking_uri):
+        return None
     try:
         MlflowClient(tracking_uri).get_model_version_by_alias(name, "champion")
     except MlflowException:

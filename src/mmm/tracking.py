@@ -69,6 +69,44 @@ def resolve_tracking_uri(uri: str) -> str:
     return uri
 
 
+SQLITE_HEADER = b"SQLite format 3\x00"
+
+
+class StoreNotFound(FileNotFoundError):
+    """A store a command only reads from that is not there, or not an MLflow database."""
+
+
+def existing_store(uri: str) -> bool:
+    """Whether a command that only reads may open `uri`: False for a sqlite store whose database
+    file does not exist (opening it would create an empty one, e.g. at a mistyped path); a file
+    that is not an SQLite database is a StoreNotFound naming it. Other stores (servers): True."""
+    database = sqlite_database(uri)
+    if database in (None, "", ":memory:"):
+        return True
+    path = Path(database)
+    if not path.is_file():
+        return False
+    with open(path, "rb") as fh:
+        header = fh.read(len(SQLITE_HEADER))
+    if header and header != SQLITE_HEADER:  # an empty file is a new database to SQLite
+        raise StoreNotFound(
+            f"--tracking-uri {uri}: {path} is not an SQLite database; give the mlflow.db of a store "
+            "(sqlite:///path/to/mlflow.db) or a tracking server's http:// address"
+        )
+    return True
+
+
+def store_for_reading(uri: str) -> str:
+    """`uri` resolved, for a command that only reads the store; StoreNotFound when it is not there."""
+    uri = resolve_tracking_uri(uri)
+    if not existing_store(uri):
+        raise StoreNotFound(
+            f"--tracking-uri {uri}: no MLflow store at {sqlite_database(uri)} (nothing trained, imported or "
+            "promoted there yet); run the command where the store is or give its path"
+        )
+    return uri
+
+
 def artifact_location(tracking_uri: str, artifact_root: str) -> str | None:
     """Where a new experiment keeps its artifacts: artifact_root as given when it is a URI
     (s3://...), None against a tracking server (the server's own store, which it serves to every

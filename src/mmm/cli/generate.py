@@ -12,6 +12,7 @@ from mmm.cli.options import (
     add_generation_options,
     check_generation_args,
     check_texts,
+    cut_texts,
     load_model,
     meta,
     sampling_config,
@@ -174,6 +175,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
         judged = {"candidates": args.candidates, "judge": judge.identity}
     else:
         out = model.generate(texts, lengths, sampling_config(args), args.seed, trace=bool(args.trace))
+    cut = cut_texts(model, args.text)
     samples = [
         {
             "features": f,
@@ -189,6 +191,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
                     "length_frames": int(f.shape[0]),
                     "sample": k % args.num_samples,
                     "iterations": out.iterations[k],
+                    **({"text_cut": cut[texts[k]]} if texts[k] in cut else {}),
                     **judged,
                     **({"judge_scores": [round(float(v), 4) for v in out.scores[k]]} if judged else {}),
                 },
@@ -246,8 +249,16 @@ def cmd_edit(args: argparse.Namespace) -> None:
     from mmm.generation.outputs import write_samples
 
     model = load_model(args)
+    if source.shape[0] < model.unit:
+        raise CLIError(
+            f"{args.source}: {source.shape[0]} frames of features; an edit needs at least {model.unit} "
+            "(one code of the tokenizer): give a longer source"
+        )
     source = source.astype(np.float32)
     extra = {"source": str(args.source)}
+    cut = cut_texts(model, [args.text])
+    if cut:
+        extra["text_cut"] = cut[args.text]
     if args.candidates > 1:
         judge = load_best_of_judge(args, model)
         out, span = edit_best_of(
@@ -345,12 +356,19 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
     else:
         out = model.generate_long(texts, lengths, sampling_config(args), args.seed, args.transition_codes)
     frames = int(out.features[0].shape[0])
+    cut = cut_texts(model, texts)
     info = meta(
         args,
         model,
         out,
         "generate-long",
-        {"prompts": texts, "segments_frames": out.segments, "length_frames": frames, **judged},
+        {
+            "prompts": texts,
+            "segments_frames": out.segments,
+            "length_frames": frames,
+            **({"texts_cut": cut} if cut else {}),
+            **judged,
+        },
     )
     caption = " / ".join(texts)
     sample = {"features": out.features[0], "joints": out.joints[0], "caption": caption, "meta": info}

@@ -10,6 +10,7 @@ default applies then, or the edit kind's (upper-body edits sample with guidance 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from mmm.cli.common import DEFAULT_TRACKING_URI, CLIError
 from mmm.generation.edits import UPPER_BODY
@@ -178,6 +179,24 @@ def load_model(args: argparse.Namespace):
     )
     model.compiled = getattr(args, "compile", False)
     return model
+
+
+def cut_texts(model, texts) -> dict[str, dict]:
+    """The texts longer than the text encoder reads (it keeps the first `max_words` tokens), each
+    with {"tokens": its count, "read": max_words} for meta.json, and named once on stderr."""
+    encoder = model.text_encoder
+    texts = [t for t in dict.fromkeys(texts) if t]
+    counts = dict(zip(texts, encoder.count_tokens(texts)))
+    cut = {t: {"tokens": n, "read": encoder.max_words} for t, n in counts.items() if n > encoder.max_words}
+    for text, n in ((t, c["tokens"]) for t, c in cut.items()):
+        shown = text if len(text) <= 60 else text[:57] + "..."
+        print(
+            f"warning: {shown!r} is {n} tokens; the text encoder ({encoder.name}) reads its first "
+            f"{encoder.max_words}, the rest is left out: shorten it, or split it into prompts "
+            "(generate-long --paragraph)",
+            file=sys.stderr,
+        )
+    return cut
 
 
 def meta(args, model, out, kind: str, extra: dict) -> dict:

@@ -178,11 +178,12 @@ def cmd_export(args: argparse.Namespace) -> None:
 def cmd_dashboard(args: argparse.Namespace) -> None:
     from mlflow.tracking import MlflowClient
 
-    from mmm.tracking import dashboard_links, resolve_tracking_uri
+    from mmm.tracking import dashboard_links, store_for_reading
 
+    client = MlflowClient(store_for_reading(args.tracking_uri))
     base = args.url or f"http://{args.host}:{args.port}"
     print(f"The MLflow dashboard (make mlflow-ui serves it on {base}); each experiment in its training view:")
-    for line in dashboard_links(MlflowClient(resolve_tracking_uri(args.tracking_uri)), base):
+    for line in dashboard_links(client, base):
         print(f"  {line}")
 
 
@@ -190,6 +191,6 @@ def cmd_models(args: argparse.Namespace) -> None:
     from mlflow.tracking import MlflowClient
 
     from mmm.registry.versions import list_models
-    from mmm.tracking import resolve_tracking_uri
+    from mmm.tracking import store_for_reading
 
-    print(list_models(MlflowClient(resolve_tracking_uri(args.tracking_uri))))
+    print(list_models(MlflowClient(store_for_reading(args.tracking_uri))))

@@ -147,7 +147,7 @@ def parse_caption_line(line: str, path: str | Path = "<text>", lineno: int = 0) 
 def read_captions(path: str | Path) -> list[Caption]:
     path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # -sig: a byte-order mark is not text
     except FileNotFoundError:
         raise DataError(path, "caption file is missing", "every id in a split needs texts/<id>.txt") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -157,13 +157,31 @@ def read_captions(path: str | Path) -> list[Caption]:
     return [parse_caption_line(line, path, i + 1) for i, line in enumerate(lines)]
 
 
+DUPLICATE_ID = "id listed again in the split (kept once)"
+
+
+def _unique(ids: list[str], report: LoadReport) -> list[str]:
+    """`ids` in order without repeats; each repeat is counted in `report` (the reference loader
+    keys its clips by id, so a repeat never counted twice there either)."""
+    seen: set[str] = set()
+    for motion_id in ids:
+        if motion_id in seen:
+            report.skip(DUPLICATE_ID, motion_id)
+        seen.add(motion_id)
+    return list(dict.fromkeys(ids))
+
+
 def read_split(root: str | Path, split: str) -> list[str]:
     path = Path(root) / f"{split}.txt"
     if not path.exists():
         raise DataError(
             path, "split file is missing", f"expected {', '.join(s + '.txt' for s in SPLITS)} in {root}"
         )
-    ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    try:
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # -sig: a byte-order mark is not an id
+    except (OSError, UnicodeDecodeError) as e:
+        raise DataError(path, f"unreadable split file ({e})", "write it as UTF-8, one id per line") from None
+    ids = [line.strip() for line in lines if line.strip()]
     if not ids:
         raise DataError(path, "split file lists no ids", "write one id per line")
     return ids
@@ -637,7 +655,7 @@ def load_items(
     store, caption_store = FeatureStore(root, feature_dim), CaptionStore(root)
     report = LoadReport()
     items: list[MotionItem] = []
-    for motion_id in ids:
+    for motion_id in _unique(ids, report):
         try:
             features = store.load(motion_id)
             captions = caption_store.load(motion_id)
@@ -701,7 +719,7 @@ def load_clips(
     root = Path(root)
     report = LoadReport()
     clips: dict[str, np.ndarray] = {}
-    ids = read_split(root, split)
+    ids = _unique(read_split(root, split), report)
     store = FeatureStore(root, feature_dim)
     for motion_id in ids:
         try:

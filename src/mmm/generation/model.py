@@ -590,6 +590,10 @@ class TextToMotion:
     def _check_source(self, source: np.ndarray, place: int) -> None:
         if source.ndim != 2 or source.shape[1] != self.feature_dim:
             raise ValueError(f"source features have shape {source.shape}, expected (T, {self.feature_dim})")
+        if source.shape[0] < self.unit:  # the encoder's convolutions need one code's worth of frames
+            raise ValueError(
+                f"the source has {source.shape[0]} frames; an edit needs at least {self.unit} (one code)"
+            )
         if place < 0 or place % self.unit:
             raise ValueError(f"place {place} must be 0 or more and a multiple of {self.unit} frames")
 
@@ -692,8 +696,9 @@ class TextToMotion:
         self._whole_body_only("temporal editing")
         started = time.perf_counter()
         self._check_source(source, place)
+        # The source's own length by default, not cut to whole codes: the kept ranges name its frames.
         row = self._edit_row(
-            source, self.encode_motion(source), keep_frames, frames, place, check_lengths=True
+            source, self.encode_motion(source), keep_frames, frames or len(source), place, check_lengths=True
         )
         out = self._sample_edits(
             [row] * num_samples, [text] * num_samples, sampling or SamplingConfig(), seed, started
@@ -791,6 +796,14 @@ class TextToMotion:
         check_lengths=False admits segments below the usual minimum length (as `generate`).
         segments: one already drawn per text (best of N: mmm.generation.best_of), used as they are."""
         sampling = sampling or SamplingConfig()
+        # a transition is drawn in one sequence with the context codes of both sides
+        most = self.max_frames // self.unit - 2 * context_codes
+        if not 0 <= transition_codes <= most:
+            raise ValueError(
+                f"transition codes (--transition-codes) {transition_codes} is outside 0..{most}: the codes "
+                f"drawn between neighbouring segments, with {context_codes} codes of each side in the same "
+                f"sequence of at most {self.max_frames // self.unit}"
+            )
         started = time.perf_counter()
         if segments is None:
             segments = self.generate(texts, frames, sampling, seed, check_lengths=check_lengths)

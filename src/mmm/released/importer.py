@@ -89,20 +89,23 @@ def read_released(path: str | Path, key: str, what: str) -> dict[str, torch.Tens
         raise FileNotFoundError(f"{path}: no such file; give the released {what} checkpoint (net_last.pth)")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # a truncated file, another format, a pickle that needs code
+    except Exception as e:  # an empty or truncated file, another format, a pickle that needs code
+        reason = (str(e).splitlines() or ["no message"])[0][:200]
         raise ImportRefused(
             f"{path}: cannot be read as a released {what} checkpoint with weights_only=True "
-            f"({type(e).__name__}: {str(e).splitlines()[0][:200]}); download it again"
+            f"({type(e).__name__}: {reason}); download it again"
         ) from None
     if not isinstance(obj, dict) or not isinstance(obj.get(key), dict):
-        found = sorted(obj)[:6] if isinstance(obj, dict) else type(obj).__name__
+        found = sorted(map(str, obj))[:6] if isinstance(obj, dict) else type(obj).__name__
         raise ImportRefused(
             f"{path}: a released {what} checkpoint is {{'{key}': state_dict}}, this holds {found}"
         )
     state = obj[key]
-    bad = [k for k, v in state.items() if not torch.is_tensor(v)]
+    bad = [k for k, v in state.items() if not isinstance(k, str) or not torch.is_tensor(v)]
     if bad:
-        raise ImportRefused(f"{path}: entries that are not tensors: {', '.join(map(str, bad[:5]))}")
+        raise ImportRefused(
+            f"{path}: entries that are not parameter names with tensors: {', '.join(map(str, bad[:5]))}"
+        )
     if any("_upper" in k or "_lower" in k for k in state):
         raise ImportRefused(f"{path}: {UPPER_BODY_REFUSAL}")
     return state

@@ -716,6 +716,7 @@ def _write_atomic(out_path, write) -> Path:
     tmp = _temp_path(out_path)
     try:
         write(tmp)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; the real file gets the usual permissions
         os.replace(tmp, out_path)
     except BaseException:
         tmp.unlink(missing_ok=True)
