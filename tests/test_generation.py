@@ -280,28 +280,29 @@ def test_untrained_unconditional_branch_is_warned_about_once(model, caplog):
         model._warned.clear()
 
 
+# (paragraph, prompts): order words are not actions; a fragment of a direction alone repeats the
+# verb before it
+PARAGRAPHS = [
+    (
+        "A person walks forward, then turns left. After that they jump twice and finally sit down.",
+        ["a person walks forward", "a person turns left", "a person jumps twice", "a person sits down"],
+    ),
+    ("The man runs; he waves with the right hand", ["the man runs", "the man waves with the right hand"]),
+    ("First, walk forward. Next, jump twice.", ["a person walks forward", "a person jumps twice"]),
+    (
+        "A person walks up the stairs then down the stairs",
+        ["a person walks up the stairs", "a person walks down the stairs"],
+    ),
+    (
+        "someone slowly walks forward, then back. Lastly, she waves.",
+        ["someone slowly walks forward", "someone walks back", "someone waves"],
+    ),
+]
+
+
 def test_paragraph_splitter():
-    assert split_paragraph(
-        "A person walks forward, then turns left. After that they jump twice and finally sit down."
-    ) == ["a person walks forward", "a person turns left", "a person jumps twice", "a person sits down"]
-    assert split_paragraph("The man runs; he waves with the right hand") == [
-        "the man runs",
-        "the man waves with the right hand",
-    ]
-    # order words are not actions; a fragment of a direction alone repeats the verb before it
-    assert split_paragraph("First, walk forward. Next, jump twice.") == [
-        "a person walks forward",
-        "a person jumps twice",
-    ]
-    assert split_paragraph("A person walks up the stairs then down the stairs") == [
-        "a person walks up the stairs",
-        "a person walks down the stairs",
-    ]
-    assert split_paragraph("someone slowly walks forward, then back. Lastly, she waves.") == [
-        "someone slowly walks forward",
-        "someone walks back",
-        "someone waves",
-    ]
+    for paragraph, prompts in PARAGRAPHS:
+        assert split_paragraph(paragraph) == prompts
     for nothing in (" . ; ", "then, and finally.", "Then.", "and", "First, then"):
         with pytest.raises(ValueError, match="no action found"):
             split_paragraph(nothing)

@@ -186,9 +186,11 @@ def cut_texts(model, texts) -> dict[str, dict]:
     with {"tokens": its count, "read": max_words} for meta.json, and named once on stderr."""
     encoder = model.text_encoder
     texts = [t for t in dict.fromkeys(texts) if t]
-    counts = dict(zip(texts, encoder.count_tokens(texts)))
-    cut = {t: {"tokens": n, "read": encoder.max_words} for t, n in counts.items() if n > encoder.max_words}
-    for text, n in ((t, c["tokens"]) for t, c in cut.items()):
+    cut = {}
+    for text, n in zip(texts, encoder.count_tokens(texts)):
+        if n <= encoder.max_words:
+            continue
+        cut[text] = {"tokens": n, "read": encoder.max_words}
         shown = text if len(text) <= 60 else text[:57] + "..."
         print(
             f"warning: {shown!r} is {n} tokens; the text encoder ({encoder.name}) reads its first "

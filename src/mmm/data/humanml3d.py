@@ -163,12 +163,12 @@ DUPLICATE_ID = "id listed again in the split (kept once)"
 def _unique(ids: list[str], report: LoadReport) -> list[str]:
     """`ids` in order without repeats; each repeat is counted in `report` (the reference loader
     keys its clips by id, so a repeat never counted twice there either)."""
-    seen: set[str] = set()
+    unique: dict[str, None] = {}
     for motion_id in ids:
-        if motion_id in seen:
+        if motion_id in unique:
             report.skip(DUPLICATE_ID, motion_id)
-        seen.add(motion_id)
-    return list(dict.fromkeys(ids))
+        unique[motion_id] = None
+    return list(unique)
 
 
 def read_split(root: str | Path, split: str) -> list[str]:
