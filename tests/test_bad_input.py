@@ -180,10 +180,25 @@ BEFORE_MODEL = {
     ),
     "split names a missing id": (["data", "check", "{missing_id}", "--on-invalid", "error"], ["000099"]),
     "misspelt config key": (["train", "stage1", "trainer.max_stepz=5"], ["max_stepz"]),
+    "feat bias zero": (
+        ["data", "stats", "{dataset}", "--evaluator-style", "--feat-bias", "0", "--write"],
+        ["--feat-bias 0 is not allowed", "above 0"],
+    ),
+    "no training steps": (["train", "stage1", "trainer.max_steps=0"], ["trainer.max_steps=0", "at least 1"]),
+    "fit ends before its first validation": (
+        ["train", "stage1", "trainer.max_steps=5", "refine.steps=0"],
+        ["the fit's 5 steps end before its first validation", "trainer.val_check_interval=100"],
+    ),
+    "window not a multiple of the unit": (
+        ["train", "evaluator", "data.window=30"],
+        ["data.window=30", "data.unit_length=4", "data.window=28"],
+    ),
+    "empty promotion criteria": (["promote", "tokenizer", "criteria.tokenizer=[]"], ["is empty"]),
     # a store that is not there is never created by a command that only reads, and a file that is
     # not one is named
     "generate with no store here": (GEN + ["--length", "60"], ["no text-to-motion model to use"]),
     "models list with no store here": (["models", "list"], ["no MLflow store at"]),
+    "promote with no store here": (["promote", "tokenizer", "candidate=deadbeef"], ["no MLflow store at"]),
     "dashboard on a mistyped store": (
         ["dashboard", "--tracking-uri", "sqlite:///{out}/typo/mlflow.db"],
         ["no MLflow store at", "typo/mlflow.db"],

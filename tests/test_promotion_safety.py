@@ -140,6 +140,18 @@ def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_else
         )
 
 
+@pytest.mark.slow
+def test_an_unknown_candidate_is_named(stage1_run, walker_dataset):
+    from mmm.registry.promote import load_promote_config, promote
+    from mmm.resolve import ModelNotFound
+
+    config = load_promote_config(
+        [f"data.root={walker_dataset}", f"logger.tracking_uri={stage1_run['uri']}", "candidate=deadbeef"]
+    )
+    with pytest.raises(ModelNotFound, match=r"candidate=deadbeef: no such run in the tracking store sqlite:"):
+        promote("tokenizer", config)
+
+
 # -- item 10: a resume that would silently change the run is refused
 # ---------------------------------------------
 @pytest.mark.slow
@@ -159,7 +171,17 @@ def test_resume_refuses_another_batch_size_or_learning_rate_and_writes_nothing(s
         train_stage1(
             stage1_config(walker_dataset, out, "trainer.max_steps=8", "optim.lr=0.0005"), resume=str(last)
         )
+    # Another model size: refused before Lightning's load fails halfway and marks the run FAILED.
+    with pytest.raises(
+        ValueError, match=r"weights do not fit the model this config builds \(.*of another shape \(tokenizer"
+    ) as refused:
+        train_stage1(
+            stage1_config(walker_dataset, out, "trainer.max_steps=8", "model.tokenizer.code_dim=16"),
+            resume=str(last),
+        )
+    assert "resume with the settings it was trained with" in str(refused.value)
     assert {p.name: sha256(p) for p in last.parent.iterdir()} == before
+    assert MlflowClient(stage1_run["uri"]).get_run(first.run_id).info.status == "FINISHED"
 
 
 def test_a_changed_global_batch_is_refused_unless_the_epoch_restarts_and_the_same_one_resumes():
@@ -171,7 +193,7 @@ def test_a_changed_global_batch_is_refused_unless_the_epoch_restarts_and_the_sam
             "loops": {"fit_loop": {"state_dict": {"combined_loader": [{"epoch": 3, "batches": 5}]}}},
         }
 
-    module = SimpleNamespace(hparams={})
+    module = SimpleNamespace(hparams={}, state_dict=dict)
     with pytest.raises(ValueError, match=r"global batch \(world_size 1 in the checkpoint, 2 now\)"):
         RunState(batch_size=8).check_resume(SimpleNamespace(world_size=2), module, checkpoint())
     with pytest.raises(
@@ -278,6 +300,7 @@ def test_a_candidate_measured_with_another_protocol_is_not_compared(client):
             "{metric: generated/fid, mode: min, margin: nan}",
             "criteria.text2motion[0].margin=nan must be a finite number >= 0",
         ),
+        ("", "criteria.text2motion is empty: a candidate would become champion compared on nothing"),
     ],
 )
 def test_criteria_are_validated_when_the_config_is_loaded(criterion, complaint):

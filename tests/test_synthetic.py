@@ -290,8 +290,14 @@ def test_refuses_to_overwrite_and_replaces_atomically(tmp_path):
     with pytest.raises(FileExistsError, match=r"data.*not empty.*overwrite=True"):
         gen.generate_dataset(out, num_clips=3, seed=0, progress=False)
     assert (out / "keep.txt").read_text() == "mine"
+    # overwrite replaces only a dataset this generator made, never a folder of someone's own files
+    with pytest.raises(FileExistsError, match=r"data holds files but no synthetic dataset \(no synthesis"):
+        gen.generate_dataset(out, num_clips=3, seed=0, progress=False, overwrite=True)
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    (out / "keep.txt").unlink()
+    gen.generate_dataset(out, num_clips=2, seed=1, progress=False)
     summary = gen.generate_dataset(out, num_clips=3, seed=0, progress=False, overwrite=True)
-    assert summary["clips"] == 3 and not (out / "keep.txt").exists()
+    assert summary["clips"] == 3 and json.loads((out / "synthesis.json").read_text())["seed"] == 0
     assert (out / "all.txt").read_text().split() == [
         "000000",
         "000001",

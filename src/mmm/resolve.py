@@ -87,8 +87,8 @@ def _artifact_record(client, run_id: str, artifact_path: str) -> tuple[int | Non
         listed = {f.path: f for f in client.list_artifacts(run_id, parent)}
     except MlflowException as e:
         raise ModelNotFound(
-            f"runs:/{run_id}: no such run in the tracking store ({e.message.splitlines()[0]}); `mmm runs "
-            "list` shows what exists"
+            f"runs:/{run_id}: no such run in the tracking store ({e.message.splitlines()[0]}); `mmm "
+            "dashboard` links to every experiment's runs"
         ) from None
     info = listed.get(artifact_path)
     if info is None or info.is_dir:

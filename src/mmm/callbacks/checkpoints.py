@@ -84,6 +84,7 @@ class RunState(L.Callback):
 
     def check_resume(self, trainer, pl_module, checkpoint: dict) -> None:
         """Raise ValueError when resuming `checkpoint` would silently change the run (see the class)."""
+        self._check_weights(pl_module, checkpoint)
         self._check_optimizer(pl_module, checkpoint)
         self._check_data_position(trainer, checkpoint)
 
@@ -97,6 +98,37 @@ class RunState(L.Callback):
         np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
         version, state, gauss = rng["python"]
         random.setstate((version, tuple(state), gauss))
+
+    @staticmethod
+    def _check_weights(pl_module, checkpoint: dict) -> None:
+        """Refuse weights that do not fit the module (another model size or variant, or another
+        stage's checkpoint) before Lightning's load fails halfway and marks the run FAILED."""
+        saved = checkpoint.get("state_dict") or {}
+        ours = pl_module.state_dict()
+        missing = sorted(set(ours) - set(saved))
+        unexpected = sorted(set(saved) - set(ours))
+        reshaped = [
+            f"{k} {tuple(saved[k].shape)} in the checkpoint, {tuple(ours[k].shape)} now"
+            for k in sorted(set(ours) & set(saved))
+            if tuple(saved[k].shape) != tuple(ours[k].shape)
+        ]
+        if not (missing or unexpected or reshaped):
+            return
+
+        def some(keys: list[str]) -> str:
+            return ", ".join(keys[:3]) + (f" and {len(keys) - 3} more" if len(keys) > 3 else "")
+
+        problems = [
+            *([f"{len(missing)} weights missing ({some(missing)})"] if missing else []),
+            *([f"{len(unexpected)} unknown weights ({some(unexpected)})"] if unexpected else []),
+            *([f"{len(reshaped)} of another shape ({some(reshaped)})"] if reshaped else []),
+        ]
+        raise ValueError(
+            f"cannot resume: the checkpoint's weights do not fit the model this config builds "
+            f"({'; '.join(problems)}); the model settings (model=..., model.*) changed since it was written, "
+            "or it is another stage's checkpoint: resume with the settings it was trained with, or start a "
+            "new run (without --resume)"
+        )
 
     @staticmethod
     def _check_optimizer(pl_module, checkpoint: dict) -> None:

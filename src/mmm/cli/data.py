@@ -161,6 +161,11 @@ def cmd_data_stats(args: argparse.Namespace) -> None:
     from mmm.motion.features import FeatureLayout
     from mmm.motion.skeleton import SKELETONS
 
+    if not (math.isfinite(args.feat_bias) and args.feat_bias > 0):
+        raise CLIError(
+            f"--feat-bias {args.feat_bias:g} is not allowed: the root and foot-contact Std are divided by "
+            "it, so it must be a finite number above 0 (the released MMM uses 25)"
+        )
     root = Path(args.root)
     num_joints = SKELETONS[args.skeleton].num_joints
     mean, std, report = compute_stats(root, num_joints)

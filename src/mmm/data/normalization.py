@@ -34,8 +34,8 @@ class NormalizationConfig:
             raise ValueError(
                 f"normalization.statistics must be one of {', '.join(STATISTICS)}, got {self.statistics!r}"
             )
-        if not self.feat_bias > 0:
-            raise ValueError(f"normalization.feat_bias must be positive, got {self.feat_bias}")
+        if not (np.isfinite(self.feat_bias) and self.feat_bias > 0):
+            raise ValueError(f"normalization.feat_bias must be a finite number above 0, got {self.feat_bias}")
         if self.statistics == "files" and not self.dir:
             raise ValueError(
                 "normalization.statistics=files needs normalization.dir=FOLDER (with mean.npy and std.npy)"

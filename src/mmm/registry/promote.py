@@ -54,7 +54,7 @@ from mmm.registry.versions import (
 )
 from mmm.resolve import ModelNotFound, download_artifact
 from mmm.tokenizer.load import load_tokenizer_checkpoint
-from mmm.tracking import TrackingConfig, resolve_tracking_uri
+from mmm.tracking import TrackingConfig, store_for_reading
 
 log = logging.getLogger(__name__)
 
@@ -214,10 +214,16 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     if kind not in PROMOTABLE:
         raise ValueError(f"unknown model kind {kind!r}; choose {', '.join(PROMOTABLE)}")
     cfg: PromoteConfig = to_object(cfg_node)
-    uri = resolve_tracking_uri(cfg.logger.tracking_uri)
+    uri = store_for_reading(cfg.logger.tracking_uri)  # a candidate is read from a store that exists
     client = MlflowClient(uri)
     run_id = cfg.candidate or _newest_run(client, PROMOTABLE[kind].experiment)
-    run = client.get_run(run_id)
+    try:
+        run = client.get_run(run_id)
+    except MlflowException as e:
+        raise ModelNotFound(
+            f"candidate={run_id}: no such run in the tracking store {uri} ({e.message.splitlines()[0]}); "
+            f"name a run of experiment {PROMOTABLE[kind].experiment!r}, or leave candidate out for its newest"
+        ) from None
     criteria = getattr(cfg.criteria, kind)
     config_hash = run.data.tags.get("config.hash")
     root = Path(cfg.data.root)

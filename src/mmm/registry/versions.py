@@ -57,6 +57,11 @@ def criteria_errors(criteria: list[Criterion], key: str) -> list[str]:
     """What is wrong with `criteria` (configured under `key`, e.g. criteria.text2motion), one
     line per problem naming the key; empty when they are valid."""
     errors = []
+    if not criteria:
+        errors.append(
+            f"{key} is empty: a candidate would become champion compared on nothing; name at least one "
+            "metric, e.g. {metric: generated/fid, mode: min, margin: 0.0}"
+        )
     for i, c in enumerate(criteria):
         at = f"{key}[{i}]"
         if not isinstance(c.metric, str) or not c.metric.strip():

@@ -28,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mmm.callbacks.checkpoints import RunState, checkpoint_callbacks
 from mmm.checkpoints import load_checkpoint
-from mmm.config import conf_dir, config_hash
+from mmm.config import ConfigError, conf_dir, config_hash
 from mmm.generation.precision import cpu_has_bf16_matmul
 from mmm.kinds import ModelKind
 from mmm.resolve import log_artifact_with_digest
@@ -268,10 +268,31 @@ class RunTarget:
     run_id: str | None = None
 
 
+def check_schedule(trainer: TrainerConfig) -> None:
+    """Checkpoints are written at validations: refuse a fit that ends before its first one (it
+    would finish with no model), and warn when its last steps come after the last one."""
+    steps, every = trainer.max_steps, trainer.val_check_interval
+    if every > steps:
+        raise ConfigError(
+            f"the fit's {steps} steps end before its first validation (trainer.val_check_interval={every}), "
+            f"so no checkpoint would be written: set trainer.val_check_interval to at most {steps}"
+        )
+    if steps % every:
+        log.warning(
+            "the last %d of the fit's %d steps come after its last validation (step %d): no checkpoint "
+            "holds them; make trainer.max_steps a multiple of trainer.val_check_interval=%d to keep them",
+            steps % every,
+            steps,
+            steps - steps % every,
+            every,
+        )
+
+
 def run_target(cfg, resume: str | None = None, check: Callable[[Path], None] | None = None) -> RunTarget:
     """A new run folder under `cfg.output_dir`, or with `resume` ("last" or a checkpoint path) the
     checkpoint to continue and the folder it continues in (`resume_target`); `check(checkpoint)`
     refuses a resume that would silently change the run (raises) before anything is written."""
+    check_schedule(cfg.trainer)
     if not resume:
         return RunTarget(run_directory(cfg.output_dir))
     ckpt_path, run_dir = resume_target(resume, cfg.output_dir)

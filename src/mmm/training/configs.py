@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from mmm.config import ConfigError
 from mmm.tokenizer.network import TokenizerConfig
 from mmm.transformer.network import TransformerConfig
 
@@ -38,3 +39,14 @@ class TrainerConfig:
     # A resume continues mid-epoch at the batch it stopped at, which is only the same data position
     # with the same batch size and number of processes; true: start the interrupted epoch over instead.
     resume_restart_epoch: bool = False
+
+    def __post_init__(self):
+        # Lightning takes max_steps -1 as "no limit" and 0 as "train nothing", and divides by the
+        # other two: none of that is a training run here.
+        for name in ("max_steps", "val_check_interval", "log_every_n_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(
+                    f"trainer.{name}={value!r}: must be a whole number of at least 1 (steps"
+                    + (", e.g. trainer.max_steps=1000)" if name == "max_steps" else ")")
+                )

@@ -70,11 +70,10 @@ def train_stage1(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     """Train a tokenizer as configured; `resume` = "last" or a checkpoint path continues a run
     (a checkpoint outside this stage's run folders is only read: the run goes on in a new folder)."""
     cfg: Stage1Config = to_object(cfg_node)
-    if cfg.refine.steps < 0 or (cfg.refine.steps > 0 and cfg.trainer.max_steps <= 0):
+    if cfg.refine.steps < 0:  # (trainer.max_steps >= 1 is TrainerConfig's own check)
         raise ConfigError(
-            f"refine.steps={cfg.refine.steps} with trainer.max_steps={cfg.trainer.max_steps}: the decoder "
-            "refinement runs after trainer.max_steps steps of the whole tokenizer; set trainer.max_steps > 0 "
-            "or refine.steps=0"
+            f"refine.steps={cfg.refine.steps}: the decoder refinement's steps after trainer.max_steps steps "
+            "of the whole tokenizer must be 0 or more (0: no refinement)"
         )
     cfg.trainer.max_steps += cfg.refine.steps  # the fit: the whole tokenizer, then the decoder alone
     L.seed_everything(cfg.seed, workers=True)

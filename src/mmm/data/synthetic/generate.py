@@ -377,6 +377,12 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
             f"{out} already exists and is not empty; pass overwrite=True (mmm data synth --overwrite) "
             f"to replace it, or choose another output folder"
         )
+    if out.is_dir() and any(out.iterdir()) and not (out / SYNTHESIS_FILE).is_file():
+        # --overwrite replaces what this command made, never a folder of someone's own files
+        raise FileExistsError(
+            f"{out} holds files but no synthetic dataset (no {SYNTHESIS_FILE}); overwrite only replaces a "
+            "dataset `mmm data synth` made: choose another output folder, or empty this one yourself"
+        )
 
 
 def _add_paraphrases(clip: Clip, seed: int, index: int, whole: int) -> int:
