@@ -184,6 +184,18 @@ BEFORE_MODEL = {
         ["data", "stats", "{dataset}", "--evaluator-style", "--feat-bias", "0", "--write"],
         ["--feat-bias 0 is not allowed", "above 0"],
     ),
+    "convert output is a folder": (
+        ["convert", "features-to-joints", "{source}", "{dataset}"],
+        ["dataset is a folder", "motion.npy"],
+    ),
+    "convert output under a file": (
+        ["convert", "features-to-joints", "{source}", "{source}/joints.npy"],
+        ["source.npy is a file, not a folder"],
+    ),
+    "evaluate with no replications": (["evaluate", "protocol.replications=0"], ["protocol.replications=0"]),
+    "ablation with an empty grid": (["ablate", "temperature", "grids.temperature=[]"], ["grid is empty"]),
+    "ablation of a negative reset": (["ablate", "reset", "grids.reset=[20,-5]"], ["grids.reset=[-5]"]),
+    "ablation of top-k 0": (["ablate", "topk", "grids.topk=[0.5,0]"], ["top_k", "(0, 1]"]),
     "no training steps": (["train", "stage1", "trainer.max_steps=0"], ["trainer.max_steps=0", "at least 1"]),
     "fit ends before its first validation": (
         ["train", "stage1", "trainer.max_steps=5", "refine.steps=0"],

@@ -37,6 +37,8 @@ def test_convert_features_to_joints_and_back(reference_dir, tmp_path):
             r"shape \(10, 22, 3\), expected features \(T, 263\)",
         ),
         ("features-to-joints", np.full((10, 263), np.nan, np.float32), "NaN/Inf"),
+        # every joint at one point: no facing to measure, so the features would be NaN
+        ("joints-to-features", np.zeros((10, 22, 3), np.float32), r"NaN/Inf in 9 of 9 frames .*degenerate"),
     ],
 )
 def test_convert_rejects_bad_input(tmp_path, capsys, direction, array, message):
@@ -66,3 +68,17 @@ def test_missing_input_and_console_entry_point(tmp_path):
     )
     assert result.returncode == 2
     assert "nope.npy: no such file" in result.stderr
+
+
+def test_overrides_may_follow_an_option():
+    from mmm.cli.app import parse_arguments
+
+    after = parse_arguments(["train", "stage1", "--resume", "last", "trainer.max_steps=20", "seed=1"])
+    assert after.resume == "last" and after.overrides == ["trainer.max_steps=20", "seed=1"]
+    around = parse_arguments(["train", "stage1", "data=kit", "--resume", "last", "trainer.max_steps=20"])
+    assert around.overrides == ["data=kit", "trainer.max_steps=20"]
+    with pytest.raises(SystemExit) as refused:
+        parse_arguments(["train", "stage1", "--resume", "last", "--bogus"])
+    assert refused.value.code == 2
+    with pytest.raises(SystemExit):  # a command without overrides takes no key=value
+        parse_arguments(["render", "a.npy", "--out", "a.gif", "fps=5"])

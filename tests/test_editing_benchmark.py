@@ -55,6 +55,10 @@ def test_kept_ranges_on_a_hand_checked_length():
         EditingConfig(inbetween_keep=0.5).validate()
     with pytest.raises(ValueError, match="lower mask 1.5"):
         EditingConfig(lower_masks=[0.0, 1.5]).validate()
+    with pytest.raises(ValueError, match=r"editing.context_codes=-2: .* at least 1"):
+        EditingConfig(context_codes=-2).validate()
+    with pytest.raises(ValueError, match=r"editing.transition_codes=-1: .* at least 0"):
+        EditingConfig(transition_codes=-1).validate()
 
 
 def test_a_bad_task_name_is_an_error_naming_the_choices():
@@ -212,6 +216,8 @@ def test_labelled_checks_count_every_edit(model, synthetic_small):
 
 @pytest.mark.slow
 def test_long_task_scores_segments_and_transitions(model, walker_items, trained, tmp_path):
+    with pytest.raises(ValueError, match=r"long_prompts=9: .* at most protocol.batch_size=8"):
+        _edit_walker("long", model, walker_items, trained, EditingConfig(long_prompts=9), tmp_path)
     out = _edit_walker("long", model, walker_items, trained, EditingConfig(long_prompts=4), tmp_path)
     smooth = out["results"]["smoothness"]
     assert all(math.isfinite(v) and v > 0 for v in smooth.values()), smooth

@@ -23,6 +23,19 @@ def test_interval_is_the_protocols_95_percent_half_width():
     assert "| Real | 0.500 ± 0.010 | - | - | 0.000 ± 0.000 |" in table
 
 
+@pytest.mark.parametrize(
+    "field, value, bound",
+    [("replications", 0, 1), ("batch_size", 0, 1), ("max_batches", 0, 1), ("mm_texts", -1, 0)],
+)
+def test_protocol_sizes_below_their_bound_are_refused_naming_the_key(field, value, bound):
+    from mmm.config import ConfigError
+
+    with pytest.raises(ConfigError) as refused:
+        ProtocolConfig(**{field: value})
+    assert f"protocol.{field}={value}: must be a whole number of at least {bound}" in str(refused.value)
+    assert ProtocolConfig(max_batches=None, mm_texts=0).max_batches is None  # the whole split, no MM
+
+
 class MeanEvaluator:
     """Embeds a motion by its mean features over its length and a text by its characters."""
 

@@ -189,6 +189,11 @@ def test_bad_files_raise_value_error_naming_file_and_shape(tmp_path):
         render_files([good], tmp_path / "out.webp")
     with pytest.raises(ValueError, match="captions"):
         frames([rest_pose(2)], ["a", "b"])
+    (tmp_path / "folder.gif").mkdir()
+    with pytest.raises(ValueError, match=r"folder.gif is a folder: name the file to write, e.g. .*motion"):
+        render_files([good], tmp_path / "folder.gif")
+    with pytest.raises(ValueError, match=r"good.npy is a file, not a folder"):
+        render_files([good], good / "sub" / "out.gif")
     assert not (tmp_path / "out.gif").exists()
 
 

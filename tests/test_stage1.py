@@ -274,6 +274,11 @@ def test_decoder_refinement_needs_a_step_budget(walker_dataset, tmp_path):
         cfg = load_stage1_config([*_stage1_overrides(walker_dataset, tmp_path, 4), f"trainer.{key}={value}"])
         with pytest.raises(ConfigError, match=rf"trainer.{key}={value}: must be a whole number of at least"):
             train_stage1(cfg)
+    # A negative reset interval used to turn the resets off silently.
+    no_resets = {"callbacks.reset_every_n_steps": -5}
+    cfg = load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, 4, **no_resets))
+    with pytest.raises(ConfigError, match=r"callbacks.reset_every_n_steps=-5: must be a whole number, 0 or"):
+        train_stage1(cfg)
     for key, value, fix in (
         ("batch_size", 0, "at least 1"),
         ("window", 0, "at least 4"),

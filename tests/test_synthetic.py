@@ -444,6 +444,10 @@ def test_extra_train_clips_add_training_clips_and_leave_the_held_out_splits_alon
         gen.generate_dataset(tmp_path / "x", num_clips=3, seed=0, progress=False, extra_train_clips=-1)
     with pytest.raises(ValueError, match="workers must be >= 1, got 0"):
         gen.generate_dataset(tmp_path / "x", num_clips=3, seed=0, progress=False, workers=0)
+    # Refused before a list of ten billion clips is made (a MemoryError before), naming the disk.
+    with pytest.raises(ValueError, match=r"10000000005 clips need about 5,400,000.0 GB on disk .* GB free"):
+        gen.generate_dataset(tmp_path / "huge", num_clips=5, seed=0, progress=False, extra_train_clips=10**10)
+    assert not (tmp_path / "huge").exists()
 
 
 @pytest.mark.slow

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 
@@ -68,9 +69,22 @@ def _configure_logging(verbose: bool) -> None:
         ours.propagate = False
 
 
+def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line as a Namespace. argparse stops a command's `key=value` overrides at its
+    first option, so overrides after one (`mmm train stage1 --resume last trainer.max_steps=20`)
+    are appended to the others here, in their order, instead of refused as unrecognized."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra and hasattr(args, "overrides") and all("=" in a and not a.startswith("-") for a in extra):
+        args.overrides = [*args.overrides, *extra]
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
     """Exit status 0 on success, 2 with a one-paragraph error (file, value, fix) on bad input."""
-    args = build_parser().parse_args(argv)
+    args = parse_arguments(argv)
     _configure_logging(args.verbose)
     from mmm.config import ConfigError
     from mmm.data.humanml3d import DataError

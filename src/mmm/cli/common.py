@@ -60,6 +60,11 @@ def save_npy(path: str, array: np.ndarray) -> None:
     from mmm.data.humanml3d import save_array_atomic
 
     out = Path(path)
+    if out.is_dir():
+        raise CLIError(f"{out} is a folder: name the .npy file to write, e.g. {out / 'motion.npy'}")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise CLIError(f"cannot write {out}: {blocking} is a file, not a folder; choose another path")
     out.parent.mkdir(parents=True, exist_ok=True)
     save_array_atomic(out, array)
     print(f"wrote {out} {tuple(array.shape)}")

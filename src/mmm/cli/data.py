@@ -120,6 +120,13 @@ def cmd_convert(args: argparse.Namespace) -> None:
         if arr.ndim != 2 or arr.shape[1] not in (263, 251) or arr.shape[0] < 1:
             raise CLIError(f"{args.input}: shape {arr.shape}, expected features (T, 263) or (T, 251)")
         out = recover_from_ric(arr.astype(np.float32))
+    bad = np.flatnonzero(~np.isfinite(out.reshape(len(out), -1)).all(axis=1))
+    if bad.size:  # never write a file that every later command would refuse
+        raise CLIError(
+            f"{args.input}: converting it gave NaN/Inf in {bad.size} of {len(out)} frames (first: {bad[0]}); "
+            "the skeleton is degenerate there (e.g. every joint on one vertical line, so no facing, or "
+            "zero-length bones): check that it holds (T, joints, xyz) positions in metres, y up"
+        )
     save_npy(args.output, out.astype(np.float32))
 
 

@@ -28,7 +28,7 @@ from matplotlib.figure import Figure
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
-from mmm.config import compose, to_object
+from mmm.config import ConfigError, compose, to_object
 from mmm.data.datamodule import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.evaluation.evaluators import load_evaluator
@@ -107,6 +107,23 @@ def settings(kind: str, grids: Grids) -> list[tuple[str, dict]]:
     raise ValueError(f"unknown ablation {kind!r}; choose one of {', '.join(KINDS)}")
 
 
+def _check_settings(kind: str, rows_spec: list[tuple[str, dict]], cfg: AblationConfig) -> None:
+    """Refuse a sweep with nothing to run or a setting its rows would refuse, before any run,
+    folder or training exists."""
+    if not rows_spec:
+        raise ConfigError(
+            f"ablation {kind}: its grid is empty (grids.* in conf/ablate.yaml or on the command line), so "
+            "there is nothing to sweep; give at least one value"
+        )
+    if kind == "reset":
+        bad = [n for n in cfg.grids.reset if isinstance(n, bool) or not isinstance(n, int) or n < 0]
+        if bad:
+            raise ConfigError(f"grids.reset={bad}: reset intervals are whole numbers of steps, 0 or more")
+    for _, change in rows_spec:
+        if "sampling" in change:  # refused on construction, naming the setting
+            SamplingConfig(**{**asdict(cfg.protocol.sampling), **change["sampling"]})
+
+
 def _train_models(change: dict, cfg: AblationConfig, parent_run_id: str):
     """Train what a training sweep's setting changes; returns the stage-2 checkpoint."""
     tracking = [
@@ -147,6 +164,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     cfg: AblationConfig = to_object(cfg_node)
     table_no, title = KINDS[kind] if kind in KINDS else (None, None)
     rows_spec = settings(kind, cfg.grids)
+    _check_settings(kind, rows_spec, cfg)
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     mlflow.set_tracking_uri(tracking_uri)
 

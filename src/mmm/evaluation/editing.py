@@ -114,6 +114,14 @@ class EditingConfig:
             )
         if self.far_frames < 0:
             raise ValueError(f"editing.far_frames={self.far_frames}: a number of frames, 0 or more")
+        for name, least, what in (
+            ("transition_codes", 0, "new codes between two segments"),
+            ("context_codes", 1, "codes of each segment a transition sees"),
+            ("upper_body_sources", 1, "labelled clips edited"),
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"editing.{name}={value!r}: {what}, a whole number of at least {least}")
 
 
 def task_label(task: str, cfg: EditingConfig) -> str:
@@ -594,6 +602,11 @@ def evaluate_editing(
     sweep, step = the lower mask in percent), "artifacts" (files written under out_dir)}.
     adherence=False skips the labelled checks; max_items caps their items."""
     cfg.validate()
+    if task == "long" and cfg.long_prompts > protocol.batch_size:
+        raise ValueError(
+            f"editing.long_prompts={cfg.long_prompts}: the captions of one long motion come from one batch, "
+            f"so at most protocol.batch_size={protocol.batch_size}"
+        )
     check_task_model(task, model)
     head = f"{title}, {protocol.replications} replications" + (
         f" of at most {protocol.max_batches} batches" if protocol.max_batches else ""

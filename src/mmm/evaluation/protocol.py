@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from mmm.config import ConfigError
 from mmm.data.datasets import TextMotionDataset
 from mmm.data.humanml3d import MotionItem
 from mmm.evaluation.metrics import diversity, fid, matching_score, multimodality, r_precision_hits
@@ -54,6 +55,18 @@ class ProtocolConfig:
     max_batches: int | None = None  # cap per replication (quick runs on a CPU); None: the whole split
     seed: int = 0
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
+
+    def __post_init__(self):
+        least = dict(replications=1, batch_size=1, max_batches=1, diversity_times=0, mm_texts=0)
+        for name, bound in {**least, "mm_generations": 0, "mm_times": 0}.items():
+            value = getattr(self, name)
+            if name == "max_batches" and value is None:
+                continue  # the whole split
+            if isinstance(value, bool) or not isinstance(value, int) or value < bound:
+                raise ConfigError(
+                    f"protocol.{name}={value!r}: must be a whole number of at least {bound}"
+                    + (" (or null: the whole split)" if name == "max_batches" else "")
+                )
 
 
 def interval(values: list[float]) -> tuple[float, float]:

@@ -942,6 +942,11 @@ def render_files(
             f"{out_path}: unknown output type {suffix or '(no suffix)'!r}; "
             "expected a path ending in .gif, .mp4 or .png"
         )
+    if out_path.is_dir():
+        raise ValueError(f"{out_path} is a folder: name the file to write, e.g. {out_path / 'motion.gif'}")
+    blocking = next((p for p in out_path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"cannot write {out_path}: {blocking} is a file, not a folder; choose another path")
     if captions is None:
         captions = [p.stem for p in paths]
     arrays = [load_motion_file(p) for p in paths]

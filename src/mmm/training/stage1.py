@@ -31,6 +31,12 @@ class Stage1Callbacks:
     usage_plot: bool = True  # CodebookUsagePlot at each validation
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
 
+    def __post_init__(self):
+        for name in ("reset_every_n_steps", "preview_clips"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ConfigError(f"callbacks.{name}={value!r}: must be a whole number, 0 or more (0: off)")
+
 
 @dataclass
 class Stage1Config:

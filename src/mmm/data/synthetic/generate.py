@@ -385,6 +385,23 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
         )
 
 
+# A clip and its mirror on disk: the default dataset's 1,500 clips take 804 MB (`du -s`, file
+# blocks included), about 0.54 MB each.
+BYTES_PER_CLIP = 540_000
+
+
+def _check_disk(out: Path, clips: int) -> None:
+    """Refuse a dataset that cannot fit on the disk it is written to, before anything is drawn."""
+    place = next(p for p in (out, *out.parents) if p.exists())
+    free = shutil.disk_usage(place).free
+    if clips * BYTES_PER_CLIP > free:
+        raise ValueError(
+            f"{clips} clips need about {clips * BYTES_PER_CLIP / 1e9:,.1f} GB on disk (about "
+            f"{BYTES_PER_CLIP / 1e6:.2f} MB per clip with its mirror), but {place} has {free / 1e9:,.1f} GB "
+            "free: ask for fewer clips or write to another disk"
+        )
+
+
 def _add_paraphrases(clip: Clip, seed: int, index: int, whole: int) -> int:
     """Append whole-clip paraphrases to clip (and its mirror) until it has `whole`; returns how
     many it was short of that (the templates ran out)."""
@@ -433,6 +450,7 @@ def generate_dataset(
     if int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     total = int(num_clips) + int(extra_train_clips)
+    _check_disk(Path(out_dir), total)
     extra = [float(extra_composite_fraction)] * int(extra_train_clips)
     fractions = [COMPOSITE_FRACTION] * int(num_clips) + extra  # per clip index
     splits = split_ids(int(num_clips), seed)
