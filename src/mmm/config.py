@@ -30,6 +30,13 @@ class ConfigError(ValueError):
     pass
 
 
+def check_whole(key: str, value, least: int, note: str = "") -> None:
+    """ConfigError `<key>=<value>: must be a whole number of at least <least><note>` unless value is
+    an int (not a bool) of at least `least`."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ConfigError(f"{key}={value!r}: must be a whole number of at least {least}{note}")
+
+
 def conf_dir() -> Path:
     """The conf/ folder: $MMM_CONF_DIR, else the repository's, else ./conf."""
     if os.environ.get("MMM_CONF_DIR"):

@@ -11,7 +11,7 @@ import lightning as L
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from torch.utils.data import DataLoader
 
-from mmm.config import ConfigError
+from mmm.config import ConfigError, check_whole
 from mmm.data.datasets import (
     MotionClipDataset,
     MotionWindowDataset,
@@ -72,9 +72,7 @@ class DataConfig:
     def __post_init__(self):
         bounds = (("batch_size", 1), ("unit_length", 1), ("window", self.unit_length), ("num_workers", 0))
         for name, least in bounds:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ConfigError(f"data.{name}={value!r}: must be a whole number of at least {least}")
+            check_whole(f"data.{name}", getattr(self, name), least)
         if self.window % self.unit_length:
             raise ConfigError(
                 f"data.window={self.window} is not a multiple of data.unit_length={self.unit_length} (the "

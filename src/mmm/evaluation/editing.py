@@ -57,6 +57,7 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
+from mmm.config import check_whole
 from mmm.data.humanml3d import MotionItem
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import item_parts, parts_in_span
@@ -119,9 +120,7 @@ class EditingConfig:
             ("context_codes", 1, "codes of each segment a transition sees"),
             ("upper_body_sources", 1, "labelled clips edited"),
         ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"editing.{name}={value!r}: {what}, a whole number of at least {least}")
+            check_whole(f"editing.{name}", getattr(self, name), least, f" ({what})")
 
 
 def task_label(task: str, cfg: EditingConfig) -> str:

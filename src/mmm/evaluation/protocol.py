@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from mmm.config import ConfigError
+from mmm.config import check_whole
 from mmm.data.datasets import TextMotionDataset
 from mmm.data.humanml3d import MotionItem
 from mmm.evaluation.metrics import diversity, fid, matching_score, multimodality, r_precision_hits
@@ -60,13 +60,10 @@ class ProtocolConfig:
         least = dict(replications=1, batch_size=1, max_batches=1, diversity_times=0, mm_texts=0)
         for name, bound in {**least, "mm_generations": 0, "mm_times": 0}.items():
             value = getattr(self, name)
-            if name == "max_batches" and value is None:
-                continue  # the whole split
-            if isinstance(value, bool) or not isinstance(value, int) or value < bound:
-                raise ConfigError(
-                    f"protocol.{name}={value!r}: must be a whole number of at least {bound}"
-                    + (" (or null: the whole split)" if name == "max_batches" else "")
-                )
+            if name != "max_batches":
+                check_whole(f"protocol.{name}", value, bound)
+            elif value is not None:  # None: the whole split
+                check_whole("protocol.max_batches", value, bound, " (or null: the whole split)")
 
 
 def interval(values: list[float]) -> tuple[float, float]:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from mmm.config import ConfigError
+from mmm.config import check_whole
 from mmm.tokenizer.network import TokenizerConfig
 from mmm.transformer.network import TransformerConfig
 
@@ -44,9 +44,5 @@ class TrainerConfig:
         # Lightning takes max_steps -1 as "no limit" and 0 as "train nothing", and divides by the
         # other two: none of that is a training run here.
         for name in ("max_steps", "val_check_interval", "log_every_n_steps"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(
-                    f"trainer.{name}={value!r}: must be a whole number of at least 1 (steps"
-                    + (", e.g. trainer.max_steps=1000)" if name == "max_steps" else ")")
-                )
+            example = ", e.g. trainer.max_steps=1000" if name == "max_steps" else ""
+            check_whole(f"trainer.{name}", getattr(self, name), 1, f" (steps{example})")
