@@ -116,6 +116,7 @@ def test_generation_commands_refuse_bad_input_before_loading_model_libraries(arg
     assert out.stdout.strip() == "2 []", out.stderr
     assert out.stderr.startswith("error: ") and list(tmp_path.iterdir()) == []
 
+
 def test_model_kind_names_have_one_home():
     """Experiment, folder and registered names of the model kinds are string constants only in
     kinds.py (docstrings and messages may mention them)."""

@@ -223,6 +223,44 @@ BEFORE_MODEL = {
         ["import", "released-upperbody", "--vq", "{source}", "--stats", "{dataset}"],
         ["the released upper-body pair cannot be mapped"],
     ),
+    # a device this machine does not have (cuda:7: refused with or without a GPU here), or no device
+    "generate on a GPU not here": (GEN + ["--device", "cuda:7"], ["--device='cuda:7'"]),
+    "generate on no device": (GEN + ["--device", "banana"], ["--device='banana' is not a device"]),
+    "evaluate on a GPU not here": (["evaluate", "device=cuda:7"], ["device='cuda:7'"]),
+    # nothing replaced unasked; no motion that is not numbers; no render too large for memory
+    "convert over an existing file": (
+        ["convert", "features-to-joints", "{source}", "{existing_npy}"],
+        ["existing.npy already exists", "--overwrite"],
+    ),
+    "convert of true/false values": (
+        ["convert", "features-to-joints", "{mask}", "{out}.npy"],
+        ["mask.npy", "bool values"],
+    ),
+    "render over an existing file": (
+        ["render", "{joints}", "--out", "{existing_gif}"],
+        ["existing.gif already exists", "--overwrite"],
+    ),
+    "render too long to hold": (
+        ["render", "{long_joints}", "--out", "{out}.gif"],
+        ["long_joints.npy: 6001 frames x 1 motion(s)", "6000 panel frames"],
+    ),
+    "export over existing files": (
+        ["export", "released", "--model", "{source}", "--out", "{exported}"],
+        ["trans.pth already exists", "--overwrite"],
+    ),
+    "dashboard port 0": (["dashboard", "--port", "0"], ["--port 0", "1 to 65535"]),
+    "data check min-length 0": (
+        ["data", "check", "{dataset}", "--min-length", "0"],
+        ["--min-length 0", "1 or more"],
+    ),
+    "crop shorter than a code": (
+        ["train", "stage1", "data.max_length=0"],
+        ["data.max_length=0", "at least 4"],
+    ),
+    "text always dropped": (
+        ["train", "stage2", "corruption.cond_drop=1"],
+        ["corruption.cond_drop", "[0, 1)"],
+    ),
 }
 
 
@@ -237,6 +275,12 @@ def _inputs(folder: Path) -> dict[str, str]:
     np.save(folder / "nan_source.npy", nan_source)
     joints = rng.normal(size=(20, 22, 3)).astype(np.float32)
     np.save(folder / "joints.npy", joints)
+    np.save(folder / "long_joints.npy", np.tile(joints, (301, 1, 1))[:6001])
+    np.save(folder / "mask.npy", np.ones((80, D), bool))
+    np.save(folder / "existing.npy", np.zeros(3, np.float32))
+    (folder / "existing.gif").write_bytes(b"GIF89a")
+    (folder / "exported").mkdir()
+    (folder / "exported" / "trans.pth").write_bytes(b"kept")
     good_line = "a person walks#a/DET person/NOUN walk/VERB#0.0#0.0"
     inf_caption = folder / "inf_caption"
     write_dataset(
@@ -265,6 +309,11 @@ def _inputs(folder: Path) -> dict[str, str]:
         "bad_shape": str(folder / "bad_shape.npy"),
         "nan_source": str(folder / "nan_source.npy"),
         "joints": str(folder / "joints.npy"),
+        "long_joints": str(folder / "long_joints.npy"),
+        "mask": str(folder / "mask.npy"),
+        "existing_npy": str(folder / "existing.npy"),
+        "existing_gif": str(folder / "existing.gif"),
+        "exported": str(folder / "exported"),
         "inf_caption": str(inf_caption),
         "dataset": str(dataset),
     }
@@ -290,19 +339,33 @@ def _run_table(table: dict, files: dict[str, str], base: Path, extra: list[str] 
 def before_model_results(tmp_path_factory):
     base = tmp_path_factory.mktemp("bad-input")
     files = _inputs(base / "inputs")
+    inputs_before = tree(base / "inputs")
     started = time.perf_counter()
     results = _run_table(BEFORE_MODEL, files, base / "cases")
     print(f"[bad input] {len(results)} commands in {time.perf_counter() - started:.1f} s")
-    return results
+    return {"cases": results, "inputs": (inputs_before, tree(base / "inputs"))}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(BEFORE_MODEL))
 def test_refused_before_any_model_loads(before_model_results, name):
-    result, cwd, before, after = before_model_results[name]
+    result, cwd, before, after = before_model_results["cases"][name]
     assert_refused(result, BEFORE_MODEL[name][1])
     # No output folder, no MLflow store, no cache: the case's folder is exactly as it was (empty).
     assert after == before == {}
+
+
+@pytest.mark.slow
+def test_refusals_leave_the_input_files_as_they_were(before_model_results):
+    """The files named as outputs that already existed (existing.npy, existing.gif, exported/)
+    and every input are byte for byte as written (hidden caches the data commands keep beside a
+    dataset, such as .captions-pack/, aside)."""
+
+    def visible(files: dict[str, str]) -> dict[str, str]:
+        return {k: v for k, v in files.items() if not any(part.startswith(".") for part in Path(k).parts)}
+
+    before, after = (visible(files) for files in before_model_results["inputs"])
+    assert after == before and "exported/trans.pth" in after
 
 
 # -- inputs refused once the model is known (lengths depend on it; README) ------------------------

@@ -21,6 +21,12 @@ def test_convert_features_to_joints_and_back(reference_dir, tmp_path):
     assert back.shape == (169, 263)
     assert np.abs(back[:89] - np.load(features)[:89]).max() < 2e-5
     assert not list(tmp_path.glob("**/.*tmp*"))  # atomic writes leave nothing behind
+    # An existing output is replaced only when asked: first refused and kept, then replaced.
+    kept = joints_out.read_bytes()
+    assert main(["convert", "joints-to-features", str(features_out), str(joints_out)]) == 2
+    assert joints_out.read_bytes() == kept
+    assert main(["convert", "joints-to-features", str(joints_out), str(joints_out), "--overwrite"]) == 0
+    assert np.load(joints_out).shape == (169, 263)
 
 
 @pytest.mark.parametrize(

@@ -307,6 +307,28 @@ def test_config_overrides_and_errors():
         compose("data_check", ["data.batch_size"], schema=_DataOnly)
 
 
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("data.min_length=0", "data.min_length=0: must be a whole number of at least 1"),
+        ("data.length_limit=40", r"data.length_limit=40: must be a whole number of at least 41 \(more than"),
+        ("data.max_length=2", "data.max_length=2: must be a whole number of at least 4"),
+        ("data.fps=0", "data.fps=0.0: must be a number of frames per second above 0"),
+        ("data.fps=nan", "data.fps=nan"),
+    ],
+)
+def test_length_rules_and_frame_rate_out_of_range_are_refused(override, message):
+    with pytest.raises(ConfigError, match=message):
+        to_object(compose("data_check", [override], schema=_DataOnly))
+    # The edges that are allowed: one frame, a limit one above it, a crop of one code.
+    edge = to_object(
+        compose(
+            "data_check", ["data.min_length=1", "data.length_limit=2", "data.max_length=4"], schema=_DataOnly
+        )
+    ).data
+    assert (edge.min_length, edge.length_limit, edge.max_length) == (1, 2, 4)
+
+
 def test_datamodules_produce_batches(tmp_path):
     clips = {f"{i:06d}": (60 + 10 * i, [WHOLE]) for i in range(6)}
     write_dataset(

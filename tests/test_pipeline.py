@@ -161,6 +161,12 @@ def test_rerun_skips_unchanged_steps_and_force_reruns_what_depends(workdir, monk
     assert newest.aliases == ["challenger"] and newest.tags["promotion"].startswith(
         "challenger: does not beat the champion"
     )
+    # The same run promoted again is measured again in its own version (and bundle), never
+    # registered twice.
+    assert pipeline(workdir, monkeypatch, "--force", "promote-text2motion") == 0
+    again = max(client.search_model_versions("name='mmm-text2motion'"), key=lambda v: int(v.version))
+    assert (again.version, again.source) == (newest.version, newest.source)
+    assert client.get_model_version("mmm-text2motion", again.version).aliases == ["challenger"]
 
     # A changed step override reruns that step (and its dependants) without --force.
     assert (

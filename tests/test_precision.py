@@ -8,6 +8,7 @@ from mmm.generation.model import TextToMotion
 from mmm.generation.precision import (
     PRECISIONS,
     Int8Linear,
+    check_device,
     check_precision,
     default_precision,
     inference_copy,
@@ -46,6 +47,31 @@ def test_unknown_precision_names_the_choices(t2m):
         TextToMotion.load("nowhere.ckpt", precision="half")
     assert t2m.precision == default_precision("cpu") == "int8" and PRECISIONS == ("fp32", "bf16", "int8")
     assert default_precision("cuda") == "fp32"  # int8 is CPU-only; bf16 is slower at batch 1 on a GPU
+
+
+def test_devices_this_machine_lacks_are_refused_by_name(monkeypatch, t2m):
+    assert check_device("cpu") == torch.device("cpu")
+    with pytest.raises(ValueError, match=r"device='banana' is not a device: use cpu, or cuda"):
+        check_device("banana")
+    with pytest.raises(ValueError, match=r"device='meta': this package runs on cpu, cuda or mps, not meta"):
+        check_device("meta")
+    # No GPU (as on CI), and a machine with one GPU asked for its second: named, with the fix.
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(
+        ValueError, match=r"--device='cuda': no CUDA GPU is available here .*use --device=cpu"
+    ):
+        check_device("cuda", "--device")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert check_device("cuda:0") == torch.device("cuda", 0)
+    with pytest.raises(
+        ValueError, match=r"device='cuda:1': this machine has 1 CUDA GPU\(s\), cuda:0 to cuda:0"
+    ):
+        check_device("cuda:1")
+    # A model is never half-built on a device that is not there.
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="no CUDA GPU"):
+        TextToMotion(t2m.tokenizer, t2m.transformer, FakeText(), {"reference": "test"}, device="cuda")
 
 
 def test_inference_copies_never_touch_the_trained_weights():

@@ -50,22 +50,29 @@ def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_else
 
     monkeypatch.chdir(tmp_path)  # the download cache (outputs/cache/models) lands here
     out, first, uri = stage1_run["out"], stage1_run["result"], stage1_run["uri"]
-    decision = promote(
-        "tokenizer",
-        load_promote_config(
-            [
-                f"data.root={walker_dataset}",
-                "data.synthesize=null",
-                f"logger.tracking_uri={uri}",
-                f"logger.artifact_root={out}/art",
-                f"candidate={first.run_id}",
-            ]
-        ),
-    )
+    overrides = [
+        f"data.root={walker_dataset}",
+        "data.synthesize=null",
+        f"logger.tracking_uri={uri}",
+        f"logger.artifact_root={out}/art",
+        f"candidate={first.run_id}",
+    ]
+    decision = promote("tokenizer", load_promote_config(overrides))
     client = MlflowClient(uri)
     version = client.get_model_version("mmm-tokenizer", decision.version)
     registered_digest = sha256(first.best_checkpoint)
     assert version.tags["weights.sha256"] == registered_digest
+    # The same weights promoted again (pipeline --force) are measured again in their own version,
+    # never registered twice: a copy of the champion would become its own challenger.
+    client.set_model_version_tag("mmm-tokenizer", decision.version, "metric.stale/metric", "1.0")
+    again = promote("tokenizer", load_promote_config(overrides))
+    assert (again.version, again.alias, again.promoted) == (decision.version, "champion", True)
+    assert [v.version for v in client.search_model_versions("name='mmm-tokenizer'")] == [decision.version]
+    retagged = client.get_model_version("mmm-tokenizer", decision.version).tags
+    assert "metric.stale/metric" not in retagged and retagged["weights.sha256"] == registered_digest
+    assert (
+        retagged["metric.recon/mpjpe_root_aligned_mm"] == version.tags["metric.recon/mpjpe_root_aligned_mm"]
+    )
     assert version.source == f"runs:/{first.run_id}/registered/mmm-tokenizer-{registered_digest[:12]}"
     assert version.tags["protocol.hash"] and '"split": "test"' in version.tags["protocol.settings"]
     assert f"**Protocol** `{version.tags['protocol.hash']}`" in version.description
@@ -180,6 +187,27 @@ def test_resume_refuses_another_batch_size_or_learning_rate_and_writes_nothing(s
             resume=str(last),
         )
     assert "resume with the settings it was trained with" in str(refused.value)
+    # Nothing left to train (the checkpoint is at the step the fit ends at): refused, not a launch
+    # that uploads the same checkpoints again and reports no validation.
+    step = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
+    with pytest.raises(
+        ValueError, match=rf"nothing to resume: the checkpoint is at step {step} and this fit"
+    ):
+        train_stage1(
+            stage1_config(walker_dataset, out, f"trainer.max_steps={step}", "refine.steps=0"),
+            resume=str(last),
+        )
+    # A copy outside the stage's folder would continue in a new run folder: refused, none is left.
+    runs = sorted(p.name for p in (out / "s1").iterdir())
+    foreign = out / "elsewhere" / "copy.ckpt"
+    foreign.parent.mkdir(exist_ok=True)
+    shutil.copyfile(last, foreign)
+    with pytest.raises(ValueError, match="weights do not fit"):
+        train_stage1(
+            stage1_config(walker_dataset, out, "trainer.max_steps=8", "model.tokenizer.code_dim=16"),
+            resume=str(foreign),
+        )
+    assert sorted(p.name for p in (out / "s1").iterdir()) == runs
     assert {p.name: sha256(p) for p in last.parent.iterdir()} == before
     assert MlflowClient(stage1_run["uri"]).get_run(first.run_id).info.status == "FINISHED"
 

@@ -443,6 +443,14 @@ def test_cli_export_writes_the_released_layout(imported, tmp_path):
     assert len(torch.load(tmp_path / "trans.pth", weights_only=True)["trans"]) == len(
         trans_layout(**SMALL_TRANS)
     ) + len(vq_layout(**SMALL_VQ))
+    # The files are replaced only with --overwrite (the same model writes the same weights again).
+    argv = ["export", "released", "--model", "models:/mmm-text2motion@released"]
+    argv += ["--tracking-uri", imported["uri"], "--out", str(tmp_path)]
+    written = (tmp_path / "vq.pth").stat().st_mtime_ns
+    assert main(argv) == 2 and (tmp_path / "vq.pth").stat().st_mtime_ns == written
+    assert main([*argv, "--overwrite"]) == 0
+    net = torch.load(tmp_path / "vq.pth", weights_only=True)["net"]
+    assert (tmp_path / "vq.pth").stat().st_mtime_ns > written and len(net) == len(vq_layout(**SMALL_VQ))
 
 
 def _bad_inputs(release, tmp):

@@ -194,7 +194,30 @@ def test_bad_files_raise_value_error_naming_file_and_shape(tmp_path):
         render_files([good], tmp_path / "folder.gif")
     with pytest.raises(ValueError, match=r"good.npy is a file, not a folder"):
         render_files([good], good / "sub" / "out.gif")
+    mask = tmp_path / "mask.npy"
+    np.save(mask, np.ones((4, 22, 3), bool))
+    with pytest.raises(ValueError, match=r"mask.npy: holds bool values, not motion numbers"):
+        render_files([mask], tmp_path / "out.gif")
+    # Longer than a render holds in memory: refused by the longest file, with the part that fits.
+    long = tmp_path / "long.npy"
+    np.save(long, rest_pose(3001).astype(np.float32))
+    with pytest.raises(ValueError, match=r"long.npy: 3001 frames x 2 motion\(s\) .*\[:3000\]"):
+        render_files([good, long], tmp_path / "out.gif")
     assert not (tmp_path / "out.gif").exists()
+
+
+def test_render_command_replaces_a_file_only_when_asked(tmp_path, capsys):
+    from mmm.cli import main
+
+    path, out = tmp_path / "m.npy", tmp_path / "m.gif"
+    np.save(path, rest_pose(5, step=(0.01, 0.0, 0.0)).astype(np.float32))
+    assert main(["render", str(path), "--out", str(out)]) == 0
+    first = out.read_bytes()
+    assert main(["render", str(path), str(path), "--out", str(out)]) == 2
+    assert "m.gif already exists: give --overwrite" in capsys.readouterr().err and out.read_bytes() == first
+    assert main(["render", str(path), str(path), "--out", str(out), "--overwrite"]) == 0
+    with Image.open(out) as gif:
+        assert gif.size == (640, 320) and gif.n_frames == 5
 
 
 def test_render_files_gif_with_skeleton_fps(tmp_path):

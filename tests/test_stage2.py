@@ -106,6 +106,16 @@ def test_dropped_text_and_zero_cross_layers_are_finite():
     assert (dropped[1] - other_text[1]).abs().max() > 1e-5  # a kept one is not
 
 
+def test_corruption_probabilities_out_of_range_are_refused():
+    for value in (1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match=rf"corruption.cond_drop .* in \[0, 1\) .*got {value}"):
+            CorruptionConfig(cond_drop=value)
+    for value in (1.5, -0.5):
+        with pytest.raises(ValueError, match=rf"corruption.pkeep .* in \[0, 1\], got {value}"):
+            CorruptionConfig(pkeep=value)
+    assert CorruptionConfig(cond_drop=0.999, pkeep=0.0).cond_drop == 0.999
+
+
 def test_corruption_follows_the_released_scheme():
     lengths = torch.tensor([49, 10, 1, 4] * 50)
     tokens = batch_of(lengths.tolist(), M=50)["tokens"]

@@ -84,6 +84,7 @@ class RunState(L.Callback):
 
     def check_resume(self, trainer, pl_module, checkpoint: dict) -> None:
         """Raise ValueError when resuming `checkpoint` would silently change the run (see the class)."""
+        self._check_progress(trainer, checkpoint)
         self._check_weights(pl_module, checkpoint)
         self._check_optimizer(pl_module, checkpoint)
         self._check_data_position(trainer, checkpoint)
@@ -98,6 +99,18 @@ class RunState(L.Callback):
         np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
         version, state, gauss = rng["python"]
         random.setstate((version, tuple(state), gauss))
+
+    @staticmethod
+    def _check_progress(trainer, checkpoint: dict) -> None:
+        """Refuse a resume with nothing left to train: Lightning would stop at once, upload the
+        same checkpoints again and report no validation."""
+        step, max_steps = checkpoint.get("global_step"), getattr(trainer, "max_steps", None)
+        if step is None or max_steps is None or max_steps < 0 or step < max_steps:
+            return
+        raise ValueError(
+            f"nothing to resume: the checkpoint is at step {step} and this fit ends at step {max_steps} "
+            "(trainer.max_steps), so the run is complete; raise trainer.max_steps to train on"
+        )
 
     @staticmethod
     def _check_weights(pl_module, checkpoint: dict) -> None:

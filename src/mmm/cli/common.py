@@ -47,13 +47,20 @@ class Parser(argparse.ArgumentParser):
 def load_npy(path: str) -> np.ndarray:
     """A motion .npy (numbers only, never unpickled); DataError naming the file otherwise."""
     # imported here: keeps `mmm --help` fast (the data modules import torch)
-    from mmm.data.arrays import load_array
+    from mmm.data.arrays import DataError, load_array
 
-    return load_array(
-        path,
-        "motion (.npy of features or joints)",
-        "give a .npy of features (T, 263) or joints (T, 22, 3) written with numpy.save",
-    )
+    fix = "give a .npy of features (T, 263) or joints (T, 22, 3) written with numpy.save"
+    array = load_array(path, "motion (.npy of features or joints)", fix)
+    if array.dtype.kind == "b":  # numbers to numpy, but true/false is no motion (a mask saved by mistake?)
+        raise DataError(path, "holds bool values (true/false), not motion numbers", fix)
+    return array
+
+
+def refuse_existing(path: str | Path, overwrite: bool, instead: str = "path") -> None:
+    """CLIError when the file `path` exists and --overwrite was not given: nothing is replaced
+    unasked (a folder there is refused by the writer itself). `instead`: what else to choose."""
+    if not overwrite and Path(path).is_file():
+        raise CLIError(f"{path} already exists: give --overwrite to replace it, or choose another {instead}")
 
 
 def save_npy(path: str, array: np.ndarray) -> None:

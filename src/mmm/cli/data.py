@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mmm.cli.common import CLIError, load_npy, save_npy
+from mmm.cli.common import CLIError, load_npy, refuse_existing, save_npy
 from mmm.cli.options import option_error
 
 SKELETON_NAMES = ["t2m", "kit"]
@@ -20,6 +20,7 @@ def add_convert(sub) -> None:
     convert.add_argument("input", help="(T, 22, 3) joints or (T, 263) features .npy")
     convert.add_argument("output", help=".npy to write")
     convert.add_argument("--no-retarget", action="store_true", help="keep the motion's own bone lengths")
+    convert.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     convert.set_defaults(func=cmd_convert)
 
 
@@ -99,6 +100,7 @@ def add_render(sub) -> None:
     render.add_argument("--out", required=True, help="FILE.gif, FILE.mp4 or FILE.png (contact sheet)")
     render.add_argument("--caption", action="append", help="one per input, in order")
     render.add_argument("--fps", type=float, default=None)
+    render.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     render.set_defaults(func=cmd_render)
 
 
@@ -106,6 +108,7 @@ def cmd_convert(args: argparse.Namespace) -> None:
     from mmm.motion.features import joints_to_features, recover_from_ric
     from mmm.motion.skeleton import skeleton_for
 
+    refuse_existing(args.output, args.overwrite, "output path")
     arr = load_npy(args.input)
     if not np.isfinite(arr).all():
         raise CLIError(f"{args.input}: contains NaN/Inf values; fix the motion first")
@@ -222,7 +225,9 @@ def cmd_data_check(args: argparse.Namespace) -> None:
     from mmm.motion.skeleton import SKELETONS
 
     sk = SKELETONS[args.skeleton]
-    min_length = args.min_length or (24 if sk.name == "kit" else 40)
+    if args.min_length is not None and args.min_length < 1:
+        raise CLIError(f"--min-length {args.min_length} is not allowed: 1 or more frames")
+    min_length = args.min_length if args.min_length is not None else (24 if sk.name == "kit" else 40)
     root = Path(args.root)
     load_stats(root, sk.feature_dim)
     for split in ("train", "val", "test"):
@@ -256,5 +261,6 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     if args.fps is not None and not (math.isfinite(args.fps) and 0 < args.fps <= 1000):
         raise CLIError(f"--fps {args.fps} is not allowed: frames per second, more than 0 and at most 1000")
+    refuse_existing(args.out, args.overwrite, "--out")
     for path in render_files(args.inputs, args.out, captions=args.caption or None, fps=args.fps):
         print(f"wrote {path}")

@@ -140,6 +140,7 @@ def check_generation_args(args: argparse.Namespace) -> None:
     """Refuse out-of-range sampling settings, seeds, sample counts and transition lengths before
     any model is loaded or anything written. The ranges are those of mmm.generation.sampler, which
     the served bundle checks its requests against too."""
+    from mmm.generation.precision import check_device
     from mmm.generation.sampler import SamplingValueError, check_count, check_seed
 
     try:
@@ -149,6 +150,10 @@ def check_generation_args(args: argparse.Namespace) -> None:
             check_count(args.num_samples, "num_samples")
     except SamplingValueError as e:
         raise option_error(e) from None
+    try:
+        check_device(args.device, "--device")
+    except ValueError as e:
+        raise CLIError(str(e)) from None
     if getattr(args, "transition_codes", 0) < 0:
         raise CLIError(
             f"--transition-codes {args.transition_codes} is not allowed: "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from mmm.cli.common import DEFAULT_TRACKING_URI, CLIError
+from mmm.cli.common import DEFAULT_TRACKING_URI, CLIError, refuse_existing
 from mmm.kinds import KINDS, PROMOTABLE
 
 
@@ -85,6 +85,7 @@ def add_export(sub) -> None:
         "--out", required=True, help="folder for vq.pth ({'net': ...}) and trans.pth ({'trans': ...})"
     )
     exp.add_argument("--tracking-uri", default=DEFAULT_TRACKING_URI)
+    exp.add_argument("--overwrite", action="store_true", help="replace vq.pth and trans.pth already in --out")
     exp.set_defaults(func=cmd_export)
 
 
@@ -164,11 +165,16 @@ def cmd_export(args: argparse.Namespace) -> None:
     from mmm.generation.model import TextToMotion
     from mmm.released.importer import export_released
 
+    out = Path(args.out)
+    names = ("vq.pth", "trans.pth")
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out {out} is a file: name a folder for {' and '.join(names)}")
+    for name in names:
+        refuse_existing(out / name, args.overwrite, "--out folder")
     model = TextToMotion.load(args.model, tracking_uri=args.tracking_uri)
     net, trans = export_released(model.tokenizer, model.transformer)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for name, obj in (("vq.pth", net), ("trans.pth", trans)):
+    for name, obj in zip(names, (net, trans)):
         tmp = out / f".{name}.tmp"
         torch.save(obj, tmp)
         tmp.replace(out / name)
@@ -180,6 +186,10 @@ def cmd_dashboard(args: argparse.Namespace) -> None:
 
     from mmm.tracking import dashboard_links, store_for_reading
 
+    if not 1 <= args.port <= 65535:
+        raise CLIError(
+            f"--port {args.port} is not allowed: a TCP port from 1 to 65535 (make mlflow-ui uses 5000)"
+        )
     client = MlflowClient(store_for_reading(args.tracking_uri))
     base = args.url or f"http://{args.host}:{args.port}"
     print(f"The MLflow dashboard (make mlflow-ui serves it on {base}); each experiment in its training view:")

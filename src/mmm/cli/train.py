@@ -106,7 +106,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     print(f"MLflow run: {result.run_id}")
     print(f"checkpoints: best {result.best_checkpoint}, last {result.last_checkpoint}")
     shown = {k: v for k, v in sorted(result.metrics.items()) if k.startswith("val/")}
-    print("validation: " + ", ".join(f"{k}={v:.4g}" for k, v in shown.items()))
+    print("validation: " + (", ".join(f"{k}={v:.4g}" for k, v in shown.items()) or "none in this launch"))
     if getattr(result, "model_version", None):
         tested = [
             (k, v)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,9 +71,26 @@ class DataConfig:
     oversample: OversampleConfig = field(default_factory=OversampleConfig)
 
     def __post_init__(self):
-        bounds = (("batch_size", 1), ("unit_length", 1), ("window", self.unit_length), ("num_workers", 0))
+        bounds = (
+            ("batch_size", 1),
+            ("unit_length", 1),
+            ("window", self.unit_length),
+            ("num_workers", 0),
+            ("min_length", 1),
+            ("max_length", self.unit_length),
+        )
         for name, least in bounds:
             check_whole(f"data.{name}", getattr(self, name), least)
+        check_whole(
+            "data.length_limit",
+            self.length_limit,
+            self.min_length + 1,
+            f" (more than data.min_length={self.min_length})",
+        )
+        if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
+            raise ConfigError(
+                f"data.fps={self.fps!r}: must be a number of frames per second above 0 (20 for HumanML3D)"
+            )
         if self.window % self.unit_length:
             raise ConfigError(
                 f"data.window={self.window} is not a multiple of data.unit_length={self.unit_length} (the "

@@ -34,6 +34,7 @@ from mmm.data.humanml3d import load_stats
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.generation.model import TextToMotion
+from mmm.generation.precision import check_device
 from mmm.generation.sampler import SamplingConfig
 from mmm.tracking import TrackingConfig, artifact_location, prepare_experiment, resolve_tracking_uri
 from mmm.training.stage1 import load_stage1_config, train_stage1
@@ -162,6 +163,7 @@ def _train_models(change: dict, cfg: AblationConfig, parent_run_id: str):
 def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     """Run a sweep; returns {"rows": {label: results}, "table": markdown, "files": [...]}."""
     cfg: AblationConfig = to_object(cfg_node)
+    check_device(cfg.device)
     table_no, title = KINDS[kind] if kind in KINDS else (None, None)
     rows_spec = settings(kind, cfg.grids)
     _check_settings(kind, rows_spec, cfg)

@@ -49,6 +49,7 @@ from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.fingerprint import dataset_fingerprint
 from mmm.generation.model import TextToMotion
+from mmm.generation.precision import check_device
 from mmm.generation.sampler import check_candidates
 from mmm.motion.features import recover_from_ric
 from mmm.tokenizer.load import load_tokenizer
@@ -183,6 +184,7 @@ def evaluate(cfg_node: DictConfig) -> dict:
     """Evaluate (see the module's docstring); returns the results with `table`, `metrics` (what is
     charted), `intervals` (metric -> interval) and `run_id` (when logged)."""
     cfg: EvaluateConfig = to_object(cfg_node)
+    check_device(cfg.device)
     if cfg.task not in TASKS:
         raise ValueError(f"task={cfg.task!r} is not a task; choose from {'|'.join(TASKS)}")
     cfg.editing.validate()

@@ -36,7 +36,7 @@ from mmm.checkpoints import (
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.compiled import CompiledDecoding, default_compile_mode
 from mmm.generation.length import load_length_estimator
-from mmm.generation.precision import check_precision, default_precision, inference_copy
+from mmm.generation.precision import check_device, check_precision, default_precision, inference_copy
 from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
 from mmm.generation.upper_body import UPPER_BODY_GUIDANCE, edit_upper_body
 from mmm.kinds import LENGTH, STAGE2, STAGE2_PARTS
@@ -82,7 +82,7 @@ class TextToMotion:
         precision: str | None = None,
         compiled: bool = False,
     ):
-        self.device = torch.device(device)
+        self.device = check_device(device)
         self._length_source = length_source  # (reference, tracking uri): loaded on first use
         self.tokenizer = tokenizer.to(self.device).eval()
         self.transformer = transformer.to(self.device).eval()
@@ -179,6 +179,7 @@ class TextToMotion:
         precision: fp32 | bf16 | int8 for the decoding passes (None: the device's default;
         mmm.generation.precision).
         """
+        check_device(device)  # before anything is downloaded or read
         if precision is not None:
             check_precision(precision)
         tracking_uri = resolve_tracking_uri(tracking_uri)
@@ -252,6 +253,7 @@ class TextToMotion:
         against the identity the transformer was trained on (and `expected_identity["stage1"]`);
         the text encoder's identity against the recorded one.
         """
+        check_device(device)
         expected_identity = expected_identity or {}
         ckpt = load_checkpoint(checkpoint, "stage2", expected_identity.get("transformer"))
         hp = ckpt["hyper_parameters"]

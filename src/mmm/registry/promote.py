@@ -35,6 +35,7 @@ from mmm.evaluation.run import reconstruction_metrics
 from mmm.evaluation.upper_body import upper_body_adherence
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
 from mmm.generation.model import TextToMotion
+from mmm.generation.precision import check_device
 from mmm.kinds import PROMOTABLE
 from mmm.registry.bundle import JudgeMismatch, log_bundle
 from mmm.registry.versions import (
@@ -50,6 +51,8 @@ from mmm.registry.versions import (
     freeze_weights,
     promote_version,
     register_version,
+    registered_before,
+    retag_version,
     version_tags,
 )
 from mmm.resolve import ModelNotFound, download_artifact
@@ -214,6 +217,7 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     if kind not in PROMOTABLE:
         raise ValueError(f"unknown model kind {kind!r}; choose {', '.join(PROMOTABLE)}")
     cfg: PromoteConfig = to_object(cfg_node)
+    check_device(cfg.device)
     uri = store_for_reading(cfg.logger.tracking_uri)  # a candidate is read from a store that exists
     client = MlflowClient(uri)
     run_id = cfg.candidate or _newest_run(client, PROMOTABLE[kind].experiment)
@@ -230,7 +234,7 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
     intervals: dict[str, float] = {}
     if kind == "evaluator":
         metrics = {k: v for k, v in run.data.metrics.items() if k.startswith("test/")}
-        existing = [v for v in client.search_model_versions(f"name='{EVALUATOR}'") if v.run_id == run_id]
+        existing = registered_before(client, EVALUATOR, run_id, {})
         fingerprint = run.data.tags.get("data.fingerprint", "")
         params = run.data.params
         protocol = {
@@ -256,10 +260,8 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
             "of its best checkpoint kept "
             "in its training run under `registered/` (a resumed run never rewrites it)."
         )
-        if existing:
-            version = existing[0]
-            for key, value in tags.items():
-                client.set_model_version_tag(EVALUATOR, version.version, key, value)
+        if existing is not None:
+            version = retag_version(client, EVALUATOR, existing, tags)
             if version.description and not version.description.startswith("### "):
                 about += f" Registered by its training: {version.description}"
         else:
@@ -328,14 +330,14 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
             + _measurements(metrics, intervals)
         )
         source, digest = freeze_weights(client, run_id, checkpoint, TOKENIZER)
-        version = register_version(
-            client,
-            TOKENIZER,
-            source,
-            run_id,
-            {**tags, WEIGHTS_SHA256: digest},
-            about,
-            MODEL_DESCRIPTIONS[TOKENIZER],
+        tags[WEIGHTS_SHA256] = digest
+        existing = registered_before(client, TOKENIZER, run_id, {WEIGHTS_SHA256: digest})
+        version = (
+            retag_version(client, TOKENIZER, existing, tags)
+            if existing is not None
+            else register_version(
+                client, TOKENIZER, source, run_id, tags, about, MODEL_DESCRIPTIONS[TOKENIZER]
+            )
         )
         return promote_version(
             client,
@@ -457,17 +459,22 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         if adherence is not None:
             measured += f"; prompt adherence (`adherence/*`) of {adherence['count']} labelled captions"
     metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
-    info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint, judge)
     # The bundle holds copies of both checkpoints (logged with the model); their digests say which files they
-    # are.
-    extra.update(
-        {
-            "weights.transformer.sha256": sha256_file(checkpoint),
-            "weights.tokenizer.sha256": sha256_file(tokenizer_checkpoint),
-            # the evaluator the bundle's `candidates` param picks with ("" when it carries none)
-            "judge.identity": ((info.metadata or {}).get("mmm") or {}).get("judge") or "",
-        }
-    )
+    # are. The same weights promoted again keep their version and bundle, measured anew.
+    weights = {
+        "weights.transformer.sha256": sha256_file(checkpoint),
+        "weights.tokenizer.sha256": sha256_file(tokenizer_checkpoint),
+    }
+    existing = registered_before(client, name, run_id, weights)
+    extra.update(weights)
+    if existing is None:
+        info = _log_bundle(uri, run_id, checkpoint, tokenizer_checkpoint, judge)
+        bundle_uri = info.model_uri
+        # the evaluator the bundle's `candidates` param picks with ("" when it carries none)
+        extra["judge.identity"] = ((info.metadata or {}).get("mmm") or {}).get("judge") or ""
+    else:
+        bundle_uri = existing.source
+        extra["judge.identity"] = existing.tags.get("judge.identity", "")
     tags = version_tags(
         _decision_metrics(metrics, intervals, criteria),
         fingerprint,
@@ -477,11 +484,15 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         protocol=protocol,
     )
     about = (
-        f"{description[0].upper()}{description[1:]}. An MLflow pyfunc model (`{info.model_uri}`, logged in "
+        f"{description[0].upper()}{description[1:]}. An MLflow pyfunc model (`{bundle_uri}`, logged in "
         "the candidate's run as "
         f"`bundle`); stage-1 weights `{extra['stage1.identity']}`, text encoder `{extra['text_encoder']}`."
     )
-    version = register_version(client, name, info.model_uri, run_id, tags, about, MODEL_DESCRIPTIONS[name])
+    version = (
+        retag_version(client, name, existing, tags)
+        if existing is not None
+        else register_version(client, name, bundle_uri, run_id, tags, about, MODEL_DESCRIPTIONS[name])
+    )
     return promote_version(
         client,
         name,

@@ -205,6 +205,27 @@ def register_version(
     return version
 
 
+def registered_before(client, name: str, run_id: str, same: dict[str, str]):
+    """The version of `name` already registered from run `run_id` whose tags hold `same` (e.g. the
+    weights' sha256), or None: promoting the same weights again re-measures that version rather
+    than registering a copy of it (a copy of the champion would become its own challenger)."""
+    for version in sorted(client.search_model_versions(f"name='{name}'"), key=lambda v: int(v.version)):
+        if version.run_id == run_id and all(version.tags.get(k) == v for k, v in same.items()):
+            return version
+    return None
+
+
+def retag_version(client, name: str, version, tags: dict[str, str]):
+    """`version` measured anew: `tags` set over its own, and its `metric.*` tags that the new
+    measurement lacks removed (they would mix two measurements); returns it as it is now."""
+    for key in version.tags:
+        if key.startswith("metric.") and key not in tags:
+            client.delete_model_version_tag(name, version.version, key)
+    for key, value in tags.items():
+        client.set_model_version_tag(name, version.version, key, value)
+    return client.get_model_version(name, version.version)
+
+
 def link_logged_model(client, model_id: str, name: str, version) -> None:
     """Record `name` `version` on logged model `model_id` the way `mlflow.register_model` does (its
     `mlflow.modelVersions` tag, a JSON list of {name, version}), which the dashboard reads for the

@@ -54,6 +54,9 @@ FOLLOW_SIGMA_S = 0.4  # Gaussian smoothing of the followed root path, seconds
 GRID_SPACING = 0.5  # metres
 GRID_RADIUS = 3.0  # metres around the camera's target
 NEAR = 0.3  # metres: nearer points are clipped / clamped
+# A GIF is assembled in memory (Pillow keeps every frame), about 0.22 MB per 320-pixel panel and
+# frame: render_files draws at most this many panel frames (5 minutes of one motion at 20 fps).
+MAX_PANEL_FRAMES = 6000
 
 # Palette roles (index = position). Index 0 is the background.
 _ROLES: tuple[tuple[str, tuple[int, int, int]], ...] = (
@@ -909,9 +912,9 @@ def load_motion_file(path) -> np.ndarray:
             f"{p}: is an archive with arrays {list(arr.keys())}, not a single array; "
             f"expected a .npy file holding {_JOINT_SHAPES}"
         )
-    if arr.dtype.kind not in "biuf":  # strings or bytes are no motion
+    if arr.dtype.kind not in "iuf":  # strings, bytes or true/false are no motion
         raise ValueError(
-            f"{p}: holds {arr.dtype} values, not numbers; expected a .npy file holding {_JOINT_SHAPES}"
+            f"{p}: holds {arr.dtype} values, not motion numbers; expected a .npy file holding {_JOINT_SHAPES}"
         )
     return arr
 
@@ -952,6 +955,16 @@ def render_files(
     arrays = [load_motion_file(p) for p in paths]
     names = [str(p) for p in paths]
     loaded = [as_joints(a, n) for a, n in zip(arrays, names)]  # validate all before rendering
+    longest = max(range(len(loaded)), key=lambda i: len(loaded[i][0]))
+    if suffix != ".png" and len(loaded[longest][0]) * len(loaded) > MAX_PANEL_FRAMES:
+        T = len(loaded[longest][0])
+        raise ValueError(
+            f"{names[longest]}: {T} frames x {len(loaded)} motion(s) side by side is more than a render "
+            f"holds in memory ({MAX_PANEL_FRAMES} panel frames, about "
+            f"{MAX_PANEL_FRAMES * 0.22 / 1000:.1f} GB); render a part (save np.load(path)"
+            f"[:{MAX_PANEL_FRAMES // len(loaded)}] to a new .npy), fewer motions at once, or a .png "
+            "contact sheet"
+        )
     if fps is None:
         fps = loaded[0][1].fps
     if suffix == ".png":

@@ -44,7 +44,13 @@ from mmm.tracking import (
 )
 from mmm.training.checkpoint_io import AtomicCheckpointIO
 from mmm.training.configs import TrainerConfig
-from mmm.training.runs import claim_run_directory, resume_target, run_directory, shared_run_directory
+from mmm.training.runs import (
+    claim_run_directory,
+    discard_unused_run_directory,
+    resume_target,
+    run_directory,
+    shared_run_directory,
+)
 
 log = logging.getLogger(__name__)
 
@@ -325,9 +331,16 @@ def tracked_fit(
     metrics while it trains. A target with a checkpoint resumes it (and its MLflow run). Only
     rank 0 writes to MLflow. `result_type` may add `fields` to the TrainResult.
     """
+    created = not target.run_dir.exists()
     lock = claim_run_directory(target.run_dir, resuming=target.ckpt_path is not None)
     try:
         return _fit(run, cfg, module, target, callbacks, datamodule, loaders, result_type, fields)
+    except BaseException:
+        if lock is not None and created:  # e.g. a refused resume: no empty run folder left behind
+            lock.release()
+            lock = None
+            discard_unused_run_directory(target.run_dir)
+        raise
     finally:
         if lock is not None:
             lock.release()

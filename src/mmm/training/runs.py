@@ -207,3 +207,21 @@ def claim_run_directory(run_dir: Path, resuming: bool) -> RunLock | None:
             "step)"
         )
     return lock
+
+
+def discard_unused_run_directory(run_dir: Path) -> bool:
+    """Remove `run_dir` when it holds nothing but its lock file (a fit that failed before writing
+    anything, e.g. a refused resume); True when removed. A folder with anything else in it is kept."""
+    try:
+        entries = list(run_dir.iterdir())
+    except FileNotFoundError:
+        return False
+    if any(entry.name != LOCK_NAME for entry in entries):
+        return False
+    for entry in entries:
+        entry.unlink(missing_ok=True)
+    try:
+        run_dir.rmdir()
+    except OSError:  # another process wrote into it meanwhile
+        return False
+    return True

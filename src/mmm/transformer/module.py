@@ -32,6 +32,15 @@ class CorruptionConfig:
         check_schedule(self.mask_schedule, TRAINING_SCHEDULES, "corruption.mask_schedule")
         if self.loss_on not in ("all", "masked"):
             raise ValueError(f"corruption.loss_on must be all or masked, got {self.loss_on!r}")
+        if not 0.0 <= self.cond_drop < 1.0:
+            raise ValueError(
+                "corruption.cond_drop is the probability of dropping the text, in [0, 1) (1 would never "
+                f"show the model a caption; 0.1 enables classifier-free guidance), got {self.cond_drop}"
+            )
+        if not 0.0 <= self.pkeep <= 1.0:
+            raise ValueError(
+                f"corruption.pkeep is the share of real tokens kept, in [0, 1], got {self.pkeep}"
+            )
         if not 0.0 <= self.lower_mask <= 1.0:
             raise ValueError(f"corruption.lower_mask is a share in [0, 1], got {self.lower_mask}")
 
