@@ -274,6 +274,10 @@ def test_overwrite_with_fewer_samples_replaces_the_whole_folder(tmp_path):
     out = tmp_path / "gen"
     outputs.write_samples(out, _samples(3, "old"), T2M_SKELETON)
     assert _runs(out) == {"0": "old", "1": "old", "2": "old"}
+    # readable by others like every other output (its staging folder was mkdtemp's 0700)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (out.stat().st_mode & 0o777, (out / "0").stat().st_mode & 0o777) == (0o755, 0o777 & ~umask)
     with pytest.raises(FileExistsError, match="pass --overwrite"):
         outputs.write_samples(out, _samples(1, "new"), T2M_SKELETON)
     folders = outputs.write_samples(out, _samples(1, "new"), T2M_SKELETON, overwrite=True)

@@ -249,6 +249,18 @@ BEFORE_MODEL = {
         ["trans.pth already exists", "--overwrite"],
     ),
     "dashboard port 0": (["dashboard", "--port", "0"], ["--port 0", "1 to 65535"]),
+    "a folder as the store": (
+        ["models", "list", "--tracking-uri", "{dataset}"],
+        ["--tracking-uri", "dataset: not an MLflow store", "sqlite:///path/to/mlflow.db"],
+    ),
+    "data check min-length at the limit": (
+        ["data", "check", "{dataset}", "--min-length", "200"],
+        ["--min-length 200", "below the length limit 200"],
+    ),
+    "overlapping kept ranges": (
+        ["edit", "inbetween", "--source", "{source}", "--keep", "0:100,50:170", "--out", "{out}"],
+        ["--keep ranges 0:100 and 50:170 overlap"],
+    ),
     "data check min-length 0": (
         ["data", "check", "{dataset}", "--min-length", "0"],
         ["--min-length 0", "1 or more"],
@@ -425,6 +437,21 @@ WITH_MODEL = {
         ],
         ["short_source.npy: 3 frames", "at least 4"],
     ),
+    "edit source of another skeleton": (
+        [
+            "edit",
+            "complete",
+            "--model",
+            "{model}",
+            "--source",
+            "{kit_joints}",
+            "--keep",
+            "0:40",
+            "--out",
+            "{out}",
+        ],
+        ["kit_joints.npy: joints (60, 21, 3), read as features (59, 251), but the model reads 263-d"],
+    ),
 }
 
 
@@ -436,10 +463,16 @@ def with_model_results(trained, tmp_path_factory):
     short_source = base / "inputs" / "short_source.npy"
     short_source.parent.mkdir()
     np.save(short_source, np.random.default_rng(0).normal(size=(3, D)).astype(np.float32))
+    kit_joints = base / "inputs" / "kit_joints.npy"  # a KIT-ML skeleton for a HumanML3D model
+    np.save(kit_joints, np.random.default_rng(1).normal(size=(60, 21, 3)).astype(np.float32))
     started = time.perf_counter()
     results = _run_table(
         WITH_MODEL,
-        {"model": str(trained["checkpoint"]), "short_source": str(short_source)},
+        {
+            "model": str(trained["checkpoint"]),
+            "short_source": str(short_source),
+            "kit_joints": str(kit_joints),
+        },
         base / "cases",
         extra=["--tracking-uri", trained["uri"]],
     )

@@ -88,3 +88,27 @@ def test_overrides_may_follow_an_option():
     assert refused.value.code == 2
     with pytest.raises(SystemExit):  # a command without overrides takes no key=value
         parse_arguments(["render", "a.npy", "--out", "a.gif", "fps=5"])
+
+
+def test_data_stats_writes_a_usable_std_for_a_constant_feature_and_names_a_foreign_mean(tmp_path, capsys):
+    """Foot contacts that never change have Std 0, which every loader refuses: written as 1 (a
+    constant feature normalizes to 0) and named; a saved Mean of another size is not compared."""
+    from mmm.data.humanml3d import load_stats
+    from tests.helpers import make_features, write_dataset
+
+    clips = {}
+    for i in range(4):
+        features = make_features(60, i)
+        features[:, -4:] = 1.0  # contacts constant over the whole dataset
+        clips[f"{i:06d}"] = (features, ["a person walks#a/DET person/NOUN walk/VERB#0.0#0.0"])
+    write_dataset(tmp_path, clips, {s: list(clips) for s in ("train", "val", "test")}, stats=False)
+    np.save(tmp_path / "Mean.npy", np.zeros(251, np.float32))
+    np.save(tmp_path / "Std.npy", np.ones(251, np.float32))
+    assert main(["data", "stats", str(tmp_path), "--write"]) == 0
+    out, err = capsys.readouterr()
+    assert "the saved Mean.npy (251,) and Std.npy (251,) are not of this dataset's (263,)" in out
+    assert "warning: Std is 0 for contacts (dims 259-262): constant over the dataset; written as 1" in err
+    mean, std = load_stats(tmp_path, 263)  # refuses a zero or negative Std
+    assert (
+        std.shape == (263,) and np.all(std[-4:] == 1.0) and np.all(std[:-4] > 0) and np.all(mean[-4:] == 1.0)
+    )

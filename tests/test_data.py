@@ -25,6 +25,7 @@ from mmm.data.humanml3d import (
     load_stats,
     mirror_id,
     parse_caption_line,
+    read_captions,
 )
 from tests.helpers import D, make_features, write_dataset
 
@@ -47,10 +48,26 @@ def test_parse_caption_line():
         parse_caption_line("#a/DET#0.0#0.0", "t.txt", 1)
     with pytest.raises(DataError, match="empty caption line"):
         parse_caption_line("   ", "t.txt", 2)
+    # A '#' inside the caption is text (the four fields are split from the right).
+    assert parse_caption_line("jumps #2 of 3#jump/VERB#0.0#0.0").text == "jumps #2 of 3"
     with pytest.raises(DataError, match="not numbers"):
         parse_caption_line("x#x/NOUN#a#b", "t.txt", 1)
     with pytest.raises(DataError, match="empty or negative"):
         parse_caption_line("x#x/NOUN#3.0#2.0", "t.txt", 1)
+
+
+def test_blank_caption_lines_are_passed_over_and_errors_keep_their_line_numbers(tmp_path):
+    path = tmp_path / "000000.txt"
+    path.write_bytes(
+        b"a man walks#a/DET man/NOUN walk/VERB#0.0#0.0\r\n\r\n  \na man jumps#x/NOUN#0.0#0.0\n\n\n"
+    )
+    assert [c.text for c in read_captions(path)] == ["a man walks", "a man jumps"]
+    path.write_text("a man walks#a/DET#0.0#0.0\n\nbroken\n\n")
+    with pytest.raises(DataError, match=r"000000\.txt:3: malformed caption line"):
+        read_captions(path)
+    path.write_text("\n \n")
+    with pytest.raises(DataError, match="caption file is empty"):
+        read_captions(path)
 
 
 def test_mirror_id():
@@ -93,7 +110,7 @@ def test_load_items_length_rules_and_sub_spans(tmp_path):
         ),
         (
             lambda r: np.save(r / "new_joint_vecs/000001.npy", np.zeros((80, 251), np.float32)),
-            r"000001\.npy: wrong feature shape \(80, 251\), expected \(T, 263\)",
+            r"000001\.npy: wrong feature shape \(T, 251\), expected \(T, 263\); 251-d features are KIT-ML",
         ),
         (
             lambda r: np.save(r / "new_joint_vecs/000001.npy", np.full((80, 263), np.nan, np.float32)),

@@ -130,7 +130,7 @@ def test_a_damaged_pack_is_not_used(tmp_path, settled, caplog):
         ),
         (
             lambda r: np.save(r / "new_joint_vecs/000001.npy", np.zeros((80, 251), np.float32)),
-            r"000001\.npy: wrong feature shape \(80, 251\), expected \(T, 263\)",
+            r"000001\.npy: wrong feature shape \(T, 251\), expected \(T, 263\); 251-d features are KIT-ML",
         ),
         (
             lambda r: np.save(r / "new_joint_vecs/000001.npy", np.full((80, D), np.nan, np.float32)),

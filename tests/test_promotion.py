@@ -30,12 +30,16 @@ CRITERIA = [Criterion("generated/fid", "min", 0.01)]
 def test_first_candidate_becomes_champion_and_tags_are_recorded(client):
     v1 = add(client, fid=0.5)
     decision = promote_version(client, "m", v1, CRITERIA)
-    assert (decision.promoted, decision.alias, decision.reason) == (True, "champion", "no champion yet")
+    assert (decision.promoted, decision.alias, decision.reason) == (
+        True,
+        "champion",
+        "the first version promoted (no champion yet)",
+    )
     version = client.get_model_version_by_alias("m", "champion")
     assert version.version == v1
     assert version.tags["metric.generated/fid"] == "0.5" and version.tags["data.fingerprint"] == "d1"
     assert version.tags["config.hash"] == "cfg123" and version.tags["code.version"] == code_version() != ""
-    assert version.tags["promotion"] == "champion: no champion yet"
+    assert version.tags["promotion"] == "champion: the first version promoted (no champion yet)"
 
 
 @pytest.mark.slow

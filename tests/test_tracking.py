@@ -9,6 +9,7 @@ from mmm.tracking import (
     artifact_location,
     existing_store,
     prepare_experiment,
+    resolve_tracking_uri,
     store_for_reading,
 )
 
@@ -81,3 +82,20 @@ def test_reading_a_store_never_creates_one_and_names_a_file_that_is_not_one(tmp_
         champion_reference(f"sqlite:///{not_a_store}")
     (tmp_path / "empty.db").touch()  # an empty file is a new database to SQLite: opened as one
     assert existing_store(f"sqlite:///{tmp_path}/empty.db") is True
+
+
+def test_a_database_path_is_its_sqlite_uri_and_a_file_store_is_refused_with_the_uri_to_give(
+    tmp_path, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)
+    assert resolve_tracking_uri("mlflow.db") == f"sqlite:///{tmp_path}/mlflow.db"
+    assert resolve_tracking_uri(f"{tmp_path}/runs/store.sqlite") == f"sqlite:///{tmp_path}/runs/store.sqlite"
+    # What MLflow reads as its file store (in maintenance mode in MLflow 3): named, with the fix.
+    (tmp_path / "mlruns").mkdir()
+    for uri in ("mlruns", f"file://{tmp_path}/mlruns", "outputs/experiments"):
+        with pytest.raises(
+            ValueError, match=rf"--tracking-uri {uri}: not an MLflow store .*sqlite:///path/to/mlflow.db"
+        ):
+            resolve_tracking_uri(uri)
+    for uri in ("http://127.0.0.1:5000", "databricks", "sqlite:////data/mlflow.db"):
+        assert resolve_tracking_uri(uri) == uri

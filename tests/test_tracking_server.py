@@ -110,7 +110,7 @@ def test_pipeline_and_promotion_over_a_tracking_server(tmp_path, monkeypatch, ca
         assert version["run_id"] == tags(by_step["stage2"])["output.run_id"]
         version_tags = {t["key"]: t["value"] for t in version["tags"]}
         assert (
-            version_tags["promotion"] == "champion: no champion yet"
+            version_tags["promotion"] == "champion: the first version promoted (no champion yet)"
             and "metric.generated/fid" in version_tags
         )
         status, missing = get(f"{base}{API}/registered-models/alias", name="mmm-text2motion", alias="nope")

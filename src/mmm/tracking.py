@@ -54,6 +54,7 @@ class TrackingConfig:
 
 
 SQLITE = "sqlite:///"
+BARE_SCHEMES = ("databricks", "databricks-uc", "uc")  # MLflow URIs with no "://"
 
 
 def sqlite_database(uri: str) -> str | None:
@@ -63,9 +64,24 @@ def sqlite_database(uri: str) -> str | None:
 
 
 def resolve_tracking_uri(uri: str) -> str:
-    """Make a relative sqlite path absolute, so every process and the dashboard agree on it."""
-    if uri.startswith(SQLITE) and not uri[len(SQLITE) :].startswith("/"):
-        return SQLITE + str(Path(uri[len(SQLITE) :]).resolve())
+    """Make a relative sqlite path absolute, so every process and the dashboard agree on it. A
+    plain path to a database file (`mlflow.db`, `/path/to/mlflow.db`) is read as its sqlite:///
+    URI; a folder or file:// store (MLflow's file store, in maintenance mode in MLflow 3) is
+    refused with the URI to give instead."""
+    if uri.startswith(SQLITE):
+        if not uri[len(SQLITE) :].startswith("/"):
+            return SQLITE + str(Path(uri[len(SQLITE) :]).resolve())
+        return uri
+    if uri.startswith("file:") or (uri and "://" not in uri and ":" not in uri and uri not in BARE_SCHEMES):
+        path = Path(uri.removeprefix("file://").removeprefix("file:")).expanduser()
+        if uri.startswith("file:") or path.is_dir() or path.suffix not in (".db", ".sqlite", ".sqlite3"):
+            raise ValueError(
+                f"--tracking-uri {uri}: not an MLflow store this package uses (a folder or file:// store is "
+                "MLflow's file store, which MLflow 3 no longer develops); give the store's database as "
+                "sqlite:///path/to/mlflow.db (or a path ending in .db), or a tracking server's http:// "
+                "address"
+            )
+        return SQLITE + str(path.resolve())
     return uri
 
 

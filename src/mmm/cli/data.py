@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ from mmm.cli.common import CLIError, load_npy, refuse_existing, save_npy
 from mmm.cli.options import option_error
 
 SKELETON_NAMES = ["t2m", "kit"]
+LENGTH_LIMIT = 200  # data.length_limit of every conf/data/*.yaml
 
 
 def add_convert(sub) -> None:
@@ -197,7 +199,7 @@ def cmd_data_stats(args: argparse.Namespace) -> None:
             folder = root / "evaluator_style"
             folder.mkdir(exist_ok=True)
             save_array_atomic(folder / "mean.npy", mean)
-            save_array_atomic(folder / "std.npy", scaled)
+            save_array_atomic(folder / "std.npy", usable_std(scaled, names, layout))
             print(
                 f"wrote {folder / 'mean.npy'} and {folder / 'std.npy'} "
                 f"(stage 1: normalization.statistics=files normalization.dir={folder})"
@@ -207,6 +209,13 @@ def cmd_data_stats(args: argparse.Namespace) -> None:
     fix = f"delete it and write it again with `mmm data stats {root} --write`"
     old_mean = load_array(root / "Mean.npy", "saved Mean", fix) if have else None
     old_std = load_array(root / "Std.npy", "saved Std", fix) if have else None
+    if have and (old_mean.shape != mean.shape or old_std.shape != std.shape):
+        print(
+            f"the saved Mean.npy {old_mean.shape} and Std.npy {old_std.shape} are not of this dataset's "
+            f"{mean.shape} (another skeleton? --skeleton kit for 251-d KIT-ML): not compared"
+            + ("; --write replaces them" if not args.write else "")
+        )
+        have = False
     saved = f" {'saved std':>10s} {'max|dmean|':>10s}" if have else ""
     print(f"{'group':14s} {'mean(avg)':>10s} {'std':>10s}" + saved)
     for name, sl in zip(names, layout.groups()):
@@ -216,8 +225,26 @@ def cmd_data_stats(args: argparse.Namespace) -> None:
         print(row)
     if args.write:
         save_array_atomic(root / "Mean.npy", mean)
-        save_array_atomic(root / "Std.npy", std)
+        save_array_atomic(root / "Std.npy", usable_std(std, names, layout))
         print(f"wrote {root / 'Mean.npy'} and {root / 'Std.npy'}")
+
+
+def usable_std(std: np.ndarray, names, layout) -> np.ndarray:
+    """`std` with its zero entries (a feature constant over the whole dataset, e.g. foot contacts
+    that never change) set to 1, each group named on stderr: a constant feature then normalizes
+    to 0, where a zero Std would divide by zero (and every loader refuses it)."""
+    zero = std <= 0
+    if not zero.any():
+        return std
+    for name, sl in zip(names, layout.groups()):
+        dims = np.flatnonzero(zero[sl]) + (sl.start or 0)
+        if dims.size:
+            print(
+                f"warning: Std is 0 for {name} (dims {dims[0]}-{dims[-1]}): constant over the dataset; "
+                "written as 1, so it normalizes to 0",
+                file=sys.stderr,
+            )
+    return np.where(zero, 1.0, std).astype(std.dtype)
 
 
 def cmd_data_check(args: argparse.Namespace) -> None:
@@ -225,8 +252,11 @@ def cmd_data_check(args: argparse.Namespace) -> None:
     from mmm.motion.skeleton import SKELETONS
 
     sk = SKELETONS[args.skeleton]
-    if args.min_length is not None and args.min_length < 1:
-        raise CLIError(f"--min-length {args.min_length} is not allowed: 1 or more frames")
+    if args.min_length is not None and not 1 <= args.min_length < LENGTH_LIMIT:
+        raise CLIError(
+            f"--min-length {args.min_length} is not allowed: 1 or more frames, below the length limit "
+            f"{LENGTH_LIMIT} (clips this long or longer are left out, as in HumanML3D)"
+        )
     min_length = args.min_length if args.min_length is not None else (24 if sk.name == "kit" else 40)
     root = Path(args.root)
     load_stats(root, sk.feature_dim)
@@ -237,6 +267,7 @@ def cmd_data_check(args: argparse.Namespace) -> None:
             feature_dim=sk.feature_dim,
             fps=sk.fps,
             min_length=min_length,
+            length_limit=LENGTH_LIMIT,
             on_invalid=args.on_invalid,
         )
         print(f"{split}: {report.summary()}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -236,8 +237,16 @@ def cmd_edit(args: argparse.Namespace) -> None:
         names=EDIT_OPTIONS,
     )
     source = load_npy(args.source)
+    given = f"{source.shape}"
     if source.ndim == 3 and source.shape[1:] in ((22, 3), (21, 3)):
         source = joints_to_features(source.astype(np.float32))
+        given = f"joints {given}, read as features {source.shape}"
+        # the features hold the motion between joint frames: one frame fewer, which --keep counts
+        print(
+            f"{args.source}: {given} (one frame fewer: --keep, --place and --lower-keep count feature "
+            "frames)",
+            file=sys.stderr,
+        )
     elif not (source.ndim == 2 and source.shape[1] in (263, 251)):
         raise CLIError(
             f"{args.source}: shape {source.shape}, expected features (T, 263) or joints (T, 22, 3)"
@@ -249,6 +258,12 @@ def cmd_edit(args: argparse.Namespace) -> None:
     from mmm.generation.outputs import write_samples
 
     model = load_model(args)
+    if source.shape[1] != model.feature_dim:
+        raise CLIError(
+            f"{args.source}: {given}, but the model reads {model.feature_dim}-d features "
+            f"({'HumanML3D, 22 joints' if model.feature_dim == 263 else 'KIT-ML, 21 joints'}): give a source "
+            "of its skeleton, or a model trained on this one"
+        )
     if source.shape[0] < model.unit:
         raise CLIError(
             f"{args.source}: {source.shape[0]} frames of features; an edit needs at least {model.unit} "
@@ -375,4 +390,5 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
     for folder in write_samples(args.out, [sample], model.skeleton, overwrite=args.overwrite):
         print(f"wrote {folder}")
     seconds = out.seconds["total"]
-    print(f"{len(texts)} prompts, {frames} frames ({frames / model.fps:.1f} s) in {seconds:.2f} s")
+    prompts = f"{len(texts)} prompt" + ("s" if len(texts) != 1 else "")
+    print(f"{prompts}, {frames} frames ({frames / model.fps:.1f} s) in {seconds:.2f} s")

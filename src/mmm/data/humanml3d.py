@@ -102,9 +102,10 @@ def mirror_id(motion_id: str) -> str:
 
 
 def parse_caption_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> Caption:
-    """Parse `caption#tokens#start#end`; raises DataError naming file and line."""
+    """Parse `caption#tokens#start#end` (split from the right: a '#' inside the caption is text);
+    raises DataError naming file and line."""
     where = f"{path}:{lineno}"
-    fields = line.rstrip("\r\n").split("#")
+    fields = line.rstrip("\r\n").rsplit("#", 3)
     if not line.strip():
         raise DataError(where, "empty caption line", "remove it or write 'caption#word/POS ...#0.0#0.0'")
     if len(fields) != 4:
@@ -144,6 +145,21 @@ def parse_caption_line(line: str, path: str | Path = "<text>", lineno: int = 0) 
     return Caption(text.strip(), tuple(tokens.split()), start, end)
 
 
+FEATURE_SKELETONS = {
+    263: "HumanML3D (data=humanml3d or synthetic; --skeleton t2m)",
+    251: "KIT-ML (data=kit; --skeleton kit)",
+}
+
+
+def skeleton_hint(width: int) -> str:
+    """What to choose for features `width` wide (HumanML3D 263, KIT-ML 251)."""
+    if width in FEATURE_SKELETONS:
+        return f"{width}-d features are {FEATURE_SKELETONS[width]}: choose that dataset config"
+    return (
+        "HumanML3D features are 263 wide (data=humanml3d), KIT-ML 251 (data=kit; --skeleton kit for mmm data)"
+    )
+
+
 def read_captions(path: str | Path) -> list[Caption]:
     path = Path(path)
     try:
@@ -152,9 +168,11 @@ def read_captions(path: str | Path) -> list[Caption]:
         raise DataError(path, "caption file is missing", "every id in a split needs texts/<id>.txt") from None
     except (OSError, UnicodeDecodeError) as e:
         raise DataError(path, f"unreadable caption file ({e})", "rewrite it as UTF-8 text") from None
-    if not lines:
+    # Blank lines (an editor's trailing newline) hold no caption: passed over, not counted as bad.
+    numbered = [(i + 1, line) for i, line in enumerate(lines) if line.strip()]
+    if not numbered:
         raise DataError(path, "caption file is empty", "write at least one caption line")
-    return [parse_caption_line(line, path, i + 1) for i, line in enumerate(lines)]
+    return [parse_caption_line(line, path, lineno) for lineno, line in numbered]
 
 
 DUPLICATE_ID = "id listed again in the split (kept once)"
@@ -207,10 +225,10 @@ def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
             "regenerate it, or remove it and its id from the splits",
         )
     if arr.ndim != 2 or arr.shape[1] != feature_dim:
+        # (T, D) without T: one reason per width, not one per clip length, in the skip reports
+        shape = f"(T, {arr.shape[1]})" if arr.ndim == 2 else str(arr.shape)
         raise DataError(
-            path,
-            f"wrong feature shape {arr.shape}, expected (T, {feature_dim})",
-            "check that data.feature_dim matches the dataset (263 HumanML3D, 251 KIT-ML)",
+            path, f"wrong feature shape {shape}, expected (T, {feature_dim})", skeleton_hint(arr.shape[-1])
         )
     if not np.isfinite(arr).all():
         bad = int((~np.isfinite(arr)).any(axis=1).sum())
@@ -221,9 +239,9 @@ def load_motion(path: str | Path, feature_dim: int) -> np.ndarray:
 
 
 PACK_DIR = ".features-pack"
-PACK_FORMAT = 1
+PACK_FORMAT = 2  # 2: wrong feature shapes reported as (T, D)
 CAPTION_PACK_DIR = ".captions-pack"
-CAPTION_PACK_FORMAT = 1
+CAPTION_PACK_FORMAT = 2  # 2: blank lines passed over, captions split from the right
 # Files changed less than this many seconds before a pack would be built are not packed yet: a
 # rewrite within the file system's timestamp granularity could keep size, mtime and ctime.
 PACK_SETTLE_S = 2.0
@@ -573,7 +591,8 @@ def load_stats(root: str | Path, feature_dim: int) -> tuple[np.ndarray, np.ndarr
             raise DataError(
                 path,
                 f"shape {arr.shape}, expected ({feature_dim},)",
-                f"recompute with `mmm data stats {root} --write`",
+                f"recompute with `mmm data stats {root} --write`"
+                + (f", or {skeleton_hint(arr.shape[0])}" if arr.shape[0] in FEATURE_SKELETONS else ""),
             )
         if not np.isfinite(arr).all():
             raise DataError(path, "NaN/Inf values", f"recompute with `mmm data stats {root} --write`")
@@ -605,15 +624,20 @@ def compute_stats(
     # np.concatenate(...).mean/.std without holding every frame in memory at once.
     total = np.zeros(feature_dim, dtype=np.float64)
     frames = 0
+    hint = ""  # another skeleton's features: say which to choose
     for block, errors in store.blocks(ids):
         for e in errors:
             report.skip(e.problem, e.path)
+            if e.problem.startswith("wrong feature shape") and not hint:
+                hint = f" ({e.fix})"
         if block is not None:
             total += block.sum(axis=0, dtype=np.float64)
             frames += block.shape[0]
     report.kept_clips = len(ids) - sum(report.skipped.values())
     if not frames:
-        raise DataError(vec_dir, "no usable feature files to compute statistics from", report.summary())
+        raise DataError(
+            vec_dir, f"no usable feature files to compute statistics from{hint}", report.summary()
+        )
     mean = total / frames
     squares = np.zeros(feature_dim, dtype=np.float64)
     for block, _ in store.blocks(ids):
@@ -664,7 +688,8 @@ def load_items(
                 raise DataError(
                     e.path,
                     e.problem,
-                    f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)",
+                    f"{e.fix}; or set data.on_invalid=skip (mmm data check: --on-invalid skip) to leave such "
+                    "clips out (they are counted)",
                 ) from None
             report.skip(e.problem.split(" (")[0], e.path)
             continue
@@ -729,7 +754,8 @@ def load_clips(
                 raise DataError(
                     e.path,
                     e.problem,
-                    f"{e.fix}; or set data.on_invalid=skip to leave such clips out (they are counted)",
+                    f"{e.fix}; or set data.on_invalid=skip (mmm data check: --on-invalid skip) to leave such "
+                    "clips out (they are counted)",
                 ) from None
             report.skip(e.problem.split(" (")[0], e.path)
             continue

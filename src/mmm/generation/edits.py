@@ -142,6 +142,14 @@ class EditRequest:
                     "keep", f"{kind} needs {n['keep']} START:END[,START:END] (source frames to keep)"
                 )
             keep = parse_ranges(keep, n["keep"]) if isinstance(keep, str) else keep
+            ordered = sorted(keep, key=lambda r: r[0])
+            for (a, b), (c, d) in zip(ordered, ordered[1:]):
+                if c < b:
+                    raise EditRequestError(
+                        "keep",
+                        f"{n['keep']} ranges {a}:{b} and {c}:{d} overlap: give each kept frame once, e.g. "
+                        "0:40,150:196",
+                    )
         if text is not None and not text.strip():
             raise EditRequestError(
                 "text",

@@ -110,6 +110,7 @@ def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite:
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.new-", dir=target.parent))
     try:
+        os.chmod(staging, 0o755)  # mkdtemp creates 0700; --out gets the usual folder permissions
         for k, sample in enumerate(samples):
             _write_sample(
                 staging / str(k),

@@ -89,6 +89,7 @@ class Decision:
     comparisons: list[str] = field(default_factory=list)
 
 
+NO_CHAMPION = "the first version promoted (no champion yet)"  # the reason a first version wins
 CI_SUFFIX = "_ci"  # the protocol's interval of a metric (1.96·std/sqrt(n)), logged alongside it
 
 
@@ -312,7 +313,7 @@ def decide(
             [],
         )
     if champion is None:
-        return True, "no champion yet", []
+        return True, NO_CHAMPION, []
     if candidate.tags.get("data.fingerprint") != champion.tags.get("data.fingerprint"):
         return (
             False,
@@ -510,7 +511,7 @@ def describe_version(
     for c in criteria:
         new, old = _metric(candidate, c.metric), _metric(champion, c.metric) if champion is not None else None
         if champion is None:
-            needs, result = "-", "no champion to beat" if decision.reason == "no champion yet" else "-"
+            needs, result = "-", "no champion to beat" if decision.reason == NO_CHAMPION else "-"
         elif old is None:
             needs, result = "-", "champion not measured"
         else:
