@@ -14,7 +14,7 @@ from mmm.pipeline.steps import PIPELINES
 from mmm.registry.promote import load_promote_config
 from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, dashboard_links, git_commit
 from tests.helpers import PIPELINE_TINY as TINY
-from tests.helpers import pipeline_args
+from tests.helpers import newest_parent, pipeline_args, steps_of
 
 RUN_LINK = re.compile(r"\]\(#/experiments/([^/)\s]+)/runs/([0-9a-f]+)\?workflowType=machine_learning\)")
 VERSION_LINK = re.compile(r"\]\(#/models/([^/)\s]+)/versions/(\d+)\)")
@@ -41,16 +41,8 @@ def records(tmp_path_factory):
         try:
             assert main(["pipeline", "full", *pipeline_args(workdir, uri)]) == 0
             client = MlflowClient(uri)
-            experiment = client.get_experiment_by_name("mmm-pipeline")
-            parent = client.search_runs(
-                [experiment.experiment_id],
-                "attributes.run_name LIKE 'pipeline-full-%'",
-                order_by=["attributes.start_time DESC"],
-            )[0]
-            children = client.search_runs(
-                [experiment.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-            )
-            steps = {r.data.tags["mmm.step"]: r for r in children}
+            parent = newest_parent(client)
+            steps = steps_of(client, parent)
             assert sorted(steps) == sorted(PIPELINES["full"]), (
                 parent.info.run_name,
                 parent.info.status,
@@ -58,15 +50,8 @@ def records(tmp_path_factory):
                 parent.data.tags.get(DESCRIPTION_TAG),
             )
             assert main(["pipeline", "full", *pipeline_args(workdir, uri), "--force", "stage2"]) == 0
-            newest = client.search_runs(
-                [experiment.experiment_id],
-                "attributes.run_name LIKE 'pipeline-full-%'",
-                order_by=["attributes.start_time DESC"],
-            )[0]
-            retrained = client.search_runs(
-                [experiment.experiment_id],
-                f"tags.mlflow.parentRunId = '{newest.info.run_id}' and tags.`mmm.step` = 'stage2'",
-            )[0]
+            newest = newest_parent(client)
+            retrained = steps_of(client, newest)["stage2"]
             criterion = f"[{{metric: generated/fid, mode: min, margin: {MARGIN}}}]"
             assert (
                 main(

@@ -12,7 +12,7 @@ from mlflow.tracking import MlflowClient
 from mmm.cli import main
 from mmm.pipeline.steps import PIPELINES
 from tests.helpers import PIPELINE_TINY as TINY
-from tests.helpers import pipeline_args
+from tests.helpers import newest_parent, pipeline_args, steps_of
 
 
 @pytest.fixture(scope="module")
@@ -31,27 +31,6 @@ def pipeline(workdir, monkeypatch, *extra):
         return main(argv)
     finally:
         mlflow.set_tracking_uri(previous)  # promotion sets the process-wide store; other tests expect theirs
-
-
-def steps_of(client, parent):
-    """The parent's nested runs by step (their names are `01-<step>`, `02-<step>`, ...)."""
-    children = client.search_runs(
-        [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-    )
-    assert all(
-        r.info.run_name == f"{int(r.data.tags['mmm.step.order']):02d}-{r.data.tags['mmm.step']}"
-        for r in children
-    )
-    return {r.data.tags["mmm.step"]: r for r in children}
-
-
-def newest_parent(client):
-    experiment = client.get_experiment_by_name("mmm-pipeline")
-    return client.search_runs(
-        [experiment.experiment_id],
-        "tags.`mmm.pipeline` = 'full' and attributes.run_name LIKE 'pipeline-%'",
-        order_by=["attributes.start_time DESC"],
-    )[0]
 
 
 @pytest.mark.slow

@@ -223,3 +223,25 @@ def pipeline_args(workdir, tracking_uri: str) -> list[str]:
         f"state_file={workdir}/state.json",
         *[f"overrides.{step}=[{','.join(items)}]" for step, items in PIPELINE_TINY.items()],
     ]
+
+
+def steps_of(client, parent):
+    """The parent's nested runs by step (their names are `01-<step>`, `02-<step>`, ...)."""
+    children = client.search_runs(
+        [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    assert all(
+        r.info.run_name == f"{int(r.data.tags['mmm.step.order']):02d}-{r.data.tags['mmm.step']}"
+        for r in children
+    )
+    return {r.data.tags["mmm.step"]: r for r in children}
+
+
+def newest_parent(client):
+    """The newest run of `mmm pipeline full` in the store of `client`."""
+    experiment = client.get_experiment_by_name("mmm-pipeline")
+    return client.search_runs(
+        [experiment.experiment_id],
+        "tags.`mmm.pipeline` = 'full' and attributes.run_name LIKE 'pipeline-%'",
+        order_by=["attributes.start_time DESC"],
+    )[0]
