@@ -112,3 +112,24 @@ def test_data_stats_writes_a_usable_std_for_a_constant_feature_and_names_a_forei
     assert (
         std.shape == (263,) and np.all(std[-4:] == 1.0) and np.all(std[:-4] > 0) and np.all(mean[-4:] == 1.0)
     )
+
+
+def test_data_check_reports_every_split_and_names_each_unusable_one(tmp_path, capsys):
+    """A dataset whose val and test splits are both unusable: both are named in one run, and the
+    usable train split is still reported."""
+    from tests.helpers import write_dataset
+
+    caption = ["a person walks#a/DET person/NOUN walk/VERB#0.0#0.0"]
+    clips = {f"{i:06d}": (60, caption) for i in range(3)}
+    clips["000009"] = (20, caption)  # below the 40-frame minimum
+    write_dataset(tmp_path, clips, {"train": ["000000", "000001", "000002"], "val": ["000009"]})
+    (tmp_path / "test.txt").write_text("\n")  # no ids at all
+    assert main(["data", "check", str(tmp_path)]) == 2
+    out, err = capsys.readouterr()
+    assert "train: kept 3 items from 3 clips" in out, out
+    assert "val: cannot be used (below)" in out and "test: cannot be used (below)" in out
+    assert "mirrored ids in a different split from their original: not checked" in out
+    error = err.strip().splitlines()[-1]
+    assert error.startswith("error: 2 of 3 splits cannot be used: val: ")
+    assert "no usable items in split 'val'" in error and "split file lists no ids" in error
+    assert f"{tmp_path / 'val.txt'}" in error and f"{tmp_path / 'test.txt'}" in error

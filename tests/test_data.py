@@ -172,6 +172,16 @@ def test_missing_split_and_stats_errors(tmp_path):
         load_stats(tmp_path, D)
 
 
+def test_split_ids_written_with_an_extension_are_refused_with_the_fix(tmp_path):
+    write_dataset(tmp_path, {"000000": (80, [WHOLE])}, {"train": ["000000", "000001.npy", "M000002.NPY"]})
+    with pytest.raises(DataError) as err:
+        load_items(tmp_path, "train", feature_dim=D, fps=20, min_length=40, on_invalid="skip")
+    assert str(err.value) == (
+        f"{tmp_path / 'train.txt'}: 2 of 3 ids end in a file extension (e.g. 000001.npy, M000002.NPY); "
+        "write the ids without .npy/.txt, one per line (000001, not 000001.npy)"
+    )
+
+
 def test_compute_stats_the_reference_way_skips_nan_files(tmp_path):
     arrays = write_dataset(
         tmp_path, {"000000": (50, [WHOLE]), "000001": (70, [WHOLE])}, {"train": ["000000", "000001"]}

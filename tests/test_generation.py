@@ -359,6 +359,7 @@ def test_cli_generate_writes_complete_sample_folders(trained, tmp_path, capsys):
             "text_encoder"
         ].startswith("minilm-")
         assert meta["iterations"] == 5 and set(meta["seconds"]) >= {"text", "sample", "decode", "total"}
+        assert meta["length_source"] == "given" and "length_estimator" not in meta
         bvh = read_bvh(folder / "motion.bvh")
         assert bvh.num_frames == 83
         # The BVH encodes the joints with rigid bones: within the deviation it reports.
@@ -407,6 +408,11 @@ def test_cli_generate_draws_several_prompts_in_one_call(trained, tmp_path, capsy
         (prompts[1], 1),
     ]
     assert all(np.load(dest / str(k) / "features.npy").shape == (64, 263) for k in range(4))
+    # A prompt's samples do not depend on the prompts given with it: alone, the same motions.
+    alone = tmp_path / "alone"
+    assert main(["generate", "--text", prompts[1], *common, "--out", str(alone)]) == 0
+    for k in (0, 1):
+        assert np.array_equal(np.load(alone / f"{k}/features.npy"), np.load(dest / f"{k + 2}/features.npy"))
     # An empty prompt among several is refused before anything is drawn.
     bad = tmp_path / "bad"
     assert main(["generate", "--text", prompts[0], "--text", " ", *common, "--out", str(bad)]) != 0
@@ -422,6 +428,10 @@ def test_cli_generate_draws_several_prompts_in_one_call(trained, tmp_path, capsy
     cut = metas[0]["text_cut"]
     assert cut["tokens"] > cut["read"] > 0 and metas[1]["text_cut"] == cut
     assert "text_cut" not in metas[2] and "text_cut" not in metas[3]
+    for k in (0, 1):  # prompts[0] second this time: still its own motions
+        assert np.array_equal(
+            np.load(tmp_path / "cut" / f"{k + 2}/features.npy"), np.load(dest / f"{k}/features.npy")
+        )
 
 
 @pytest.mark.slow
@@ -570,3 +580,9 @@ def test_cli_estimates_the_length_when_none_is_given(trained, tmp_path, capsys):
     )
     meta = json.loads((tmp_path / "b/0/meta.json").read_text())
     assert meta["length_frames"] % 4 == 0 and 40 <= meta["length_frames"] <= 196
+    # The sample says its length was a guess, and whose.
+    assert meta["length_source"] == "estimated"
+    assert meta["length_estimator"] == {
+        "reference": result.best_checkpoint,
+        "checkpoint": result.best_checkpoint,
+    }

@@ -185,6 +185,10 @@ def test_raw_input_forms_and_params(served_model):
             {"text": ["a person walks", "a person runs"], "seed": [1.5, None]},
             "row 0: seed must be an integer, got 1.5",
         ),
+        (  # the None makes the column float64: 2^60 + 1 arrives as 2^60
+            {"text": ["a person walks", "a person runs"], "seed": [2**60 + 1, None]},
+            r"row 0: seed 1152921504606846976 arrived as a float .* give every row a seed",
+        ),
     ],
 )
 def test_bad_rows_are_refused_by_name(served_model, rows, message):

@@ -122,6 +122,32 @@ def test_missing_minilm_package_names_the_install(monkeypatch):
 # --------------------------------------------------------------------------------------- CLIP tokenizer
 
 
+def test_loading_minilm_and_the_int8_quantizer_logs_nothing_from_torchao(tmp_path):
+    """transformers imports torchao when it loads a model; on a CPU build torchao logged a failed
+    load per CUDA extension, "no triton" and two torch deprecation lines. A fresh interpreter,
+    logging at DEBUG, loads MiniLM and the int8 quantizer: only what it prints itself is left."""
+    script = (
+        "import logging, sys\n"
+        "logging.basicConfig(level=logging.DEBUG, stream=sys.stderr)\n"
+        "from mmm.text.minilm import MiniLMTextEncoder\n"
+        "MiniLMTextEncoder()\n"
+        "from mmm.generation.precision import _torchao_int8\n"
+        "_torchao_int8()\n"
+        "print('torchao' in sys.modules, logging.getLogger('torchao').level)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["True", "0"]  # imported, and its logger's level given back
+    noise = [
+        line
+        for line in result.stderr.splitlines()
+        if "torchao" in line or "triton" in line or "_pytree" in line
+    ]
+    assert noise == [], "\n".join(noise)
+
+
 def test_clip_tokenizer_by_hand(vocab):
     tok = CLIPTokenizer(vocab)
     assert tok.vocab_size == 512 + len(MERGES) + 2 and (tok.sot_token, tok.eot_token) == (SOT, EOT)

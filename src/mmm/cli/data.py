@@ -248,7 +248,7 @@ def usable_std(std: np.ndarray, names, layout) -> np.ndarray:
 
 
 def cmd_data_check(args: argparse.Namespace) -> None:
-    from mmm.data.humanml3d import check_mirror_splits, load_items, load_stats
+    from mmm.data.humanml3d import DataError, check_mirror_splits, load_items, load_stats
     from mmm.motion.skeleton import SKELETONS
 
     sk = SKELETONS[args.skeleton]
@@ -260,22 +260,40 @@ def cmd_data_check(args: argparse.Namespace) -> None:
     min_length = args.min_length if args.min_length is not None else (24 if sk.name == "kit" else 40)
     root = Path(args.root)
     load_stats(root, sk.feature_dim)
+    # Every split is checked and reported, so one run names every problem, not only the first.
+    unusable: list[tuple[str, DataError]] = []
     for split in ("train", "val", "test"):
-        _, report = load_items(
-            root,
-            split,
-            feature_dim=sk.feature_dim,
-            fps=sk.fps,
-            min_length=min_length,
-            length_limit=LENGTH_LIMIT,
-            on_invalid=args.on_invalid,
-        )
+        try:
+            _, report = load_items(
+                root,
+                split,
+                feature_dim=sk.feature_dim,
+                fps=sk.fps,
+                min_length=min_length,
+                length_limit=LENGTH_LIMIT,
+                on_invalid=args.on_invalid,
+            )
+        except DataError as e:
+            unusable.append((split, e))
+            print(f"{split}: cannot be used (below)")
+            continue
         print(f"{split}: {report.summary()}")
-    leaks = check_mirror_splits(root)
-    print(
-        f"mirrored ids in a different split from their original: {len(leaks)}"
-        + (f" (e.g. {', '.join(leaks[:5])})" if leaks else "")
-    )
+    if unusable:  # the mirror check reads every split file again
+        print("mirrored ids in a different split from their original: not checked (a split cannot be used)")
+    else:
+        leaks = check_mirror_splits(root)
+        print(
+            f"mirrored ids in a different split from their original: {len(leaks)}"
+            + (f" (e.g. {', '.join(leaks[:5])})" if leaks else "")
+        )
+    if len(unusable) == 1:
+        raise unusable[0][1]
+    if unusable:
+        one_line = {split: "; ".join(line.strip() for line in str(e).splitlines()) for split, e in unusable}
+        raise CLIError(
+            f"{len(unusable)} of 3 splits cannot be used: "
+            + " | ".join(f"{split}: {message}" for split, message in one_line.items())
+        )
 
 
 def cmd_data_preview(args: argparse.Namespace) -> None:

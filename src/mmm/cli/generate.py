@@ -14,6 +14,7 @@ from mmm.cli.options import (
     check_generation_args,
     check_texts,
     cut_texts,
+    length_meta,
     load_model,
     meta,
     sampling_config,
@@ -164,18 +165,22 @@ def cmd_generate(args: argparse.Namespace) -> None:
     model = load_model(args)
     if args.length is not None:
         model.check_frames(args.length, "--length")
-    # Prompt-major: sample folder i * num_samples + k is sample k of prompt i.
+    judge = load_best_of_judge(args, model) if args.candidates > 1 else None
+    judged = {"candidates": args.candidates, "judge": judge.identity} if judge else {}
+    # One call per prompt, each with --seed: a prompt's samples do not depend on the other prompts
+    # given with it (one batch would share the random stream). Prompt-major: sample folder
+    # i * num_samples + k is sample k of prompt i.
     texts = [text for text in args.text for _ in range(args.num_samples)]
-    lengths = [args.length] * len(texts) if args.length else None
-    judged = {}
-    if args.candidates > 1:
-        judge = load_best_of_judge(args, model)
-        out = generate_best_of(
-            model, judge, texts, lengths, args.candidates, sampling_config(args), args.seed
-        )
-        judged = {"candidates": args.candidates, "judge": judge.identity}
-    else:
-        out = model.generate(texts, lengths, sampling_config(args), args.seed, trace=bool(args.trace))
+    lengths = [args.length] * args.num_samples if args.length else None
+    calls, sampling = [], sampling_config(args)
+    for i, prompt in enumerate(args.text):
+        batch = [prompt] * args.num_samples
+        if judge:
+            calls.append(generate_best_of(model, judge, batch, lengths, args.candidates, sampling, args.seed))
+        else:
+            trace = bool(args.trace) and i == 0  # the plot shows the first sample only
+            calls.append(model.generate(batch, lengths, sampling, args.seed, trace=trace))
+    out = concatenate_calls(calls)
     cut = cut_texts(model, args.text)
     samples = [
         {
@@ -190,6 +195,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
                 {
                     "prompt": texts[k],
                     "length_frames": int(f.shape[0]),
+                    **length_meta(model, given=lengths is not None),
                     "sample": k % args.num_samples,
                     "iterations": out.iterations[k],
                     **({"text_cut": cut[texts[k]]} if texts[k] in cut else {}),
@@ -212,6 +218,29 @@ def cmd_generate(args: argparse.Namespace) -> None:
     print(
         f"{len(folders)} samples{prompts} in {out.seconds['total']:.2f} s "
         f"({out.forward_passes} transformer passes)"
+    )
+
+
+def concatenate_calls(calls: list):
+    """Several `Generated` results as one: samples in call order, seconds and passes summed, the
+    first call's trace."""
+    from dataclasses import replace
+
+    seconds: dict[str, float] = {}
+    for call in calls:
+        for key, value in call.seconds.items():
+            seconds[key] = seconds.get(key, 0.0) + value
+    scores = [call.scores for call in calls]
+    return replace(
+        calls[0],
+        texts=[t for call in calls for t in call.texts],
+        features=[f for call in calls for f in call.features],
+        joints=[j for call in calls for j in call.joints],
+        codes=[c for call in calls for c in call.codes],
+        iterations=[n for call in calls for n in call.iterations],
+        forward_passes=sum(call.forward_passes for call in calls),
+        seconds=seconds,
+        scores=None if scores[0] is None else np.concatenate(scores),
     )
 
 
@@ -381,6 +410,7 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
             "prompts": texts,
             "segments_frames": out.segments,
             "length_frames": frames,
+            **length_meta(model, given=lengths is not None),
             **({"texts_cut": cut} if cut else {}),
             **judged,
         },

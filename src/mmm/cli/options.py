@@ -206,6 +206,13 @@ def cut_texts(model, texts) -> dict[str, dict]:
     return cut
 
 
+def length_meta(model, given: bool) -> dict:
+    """Where a sample's length came from, for meta.json: the flag, or the estimator that guessed it."""
+    if given:
+        return {"length_source": "given"}
+    return {"length_source": "estimated", "length_estimator": model.length_estimator_identity}
+
+
 def meta(args, model, out, kind: str, extra: dict) -> dict:
     from dataclasses import asdict
 

@@ -202,6 +202,15 @@ def read_split(root: str | Path, split: str) -> list[str]:
     ids = [line.strip() for line in lines if line.strip()]
     if not ids:
         raise DataError(path, "split file lists no ids", "write one id per line")
+    # "000001.npy" would be looked up as new_joint_vecs/000001.npy.npy and reported missing.
+    with_extension = [i for i in ids if i.lower().endswith((".npy", ".txt"))]
+    if with_extension:
+        raise DataError(
+            path,
+            f"{len(with_extension)} of {len(ids)} ids end in a file extension (e.g. "
+            f"{', '.join(with_extension[:3])})",
+            "write the ids without .npy/.txt, one per line (000001, not 000001.npy)",
+        )
     return ids
 
 

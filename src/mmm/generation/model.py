@@ -88,6 +88,8 @@ class TextToMotion:
         self.transformer = transformer.to(self.device).eval()
         self.text_encoder = text_encoder
         self.length_estimator = length_estimator
+        # What estimated the lengths (reference, checkpoint), for the samples' meta.json.
+        self.length_estimator_identity = {"reference": "passed to TextToMotion"} if length_estimator else None
         self.identity = identity
         self.unit = tokenizer.tokenizer.cfg.downsample
         self.feature_dim = tokenizer.tokenizer.feature_dim
@@ -391,7 +393,7 @@ class TextToMotion:
         reference, tracking_uri = self._length_source
         self._length_source = None
         try:
-            _, checkpoint, _ = resolve_model(reference, tracking_uri, LENGTH, "--length-model")
+            resolved, checkpoint, _ = resolve_model(reference, tracking_uri, LENGTH, "--length-model")
         except ModelNotFound as e:
             raise ValueError(
                 "no length given and no length estimator: pass --length FRAMES, or train one with `make "
@@ -405,6 +407,7 @@ class TextToMotion:
                 f"uses {self.text_encoder.identity}; pass --length FRAMES or --length-model"
             )
         self.length_estimator = estimator.to(self.device).eval()
+        self.length_estimator_identity = {"reference": resolved, "checkpoint": str(checkpoint)}
 
     def estimate_frames(self, texts: list[str]) -> list[int]:
         """Lengths (frames) from the text: the median of the estimator's distribution."""

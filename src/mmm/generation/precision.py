@@ -22,11 +22,11 @@ weights (`TextToMotion.transformer` stays the float32 module).
 from __future__ import annotations
 
 import copy
-import os
-import sys
 
 import torch
 from torch import nn
+
+from mmm.torchao_quiet import quiet_torchao_import
 
 PRECISIONS = ("fp32", "bf16", "int8")
 # The precision when none is asked for (benchmarks/inference_precision.py, README "Speed"): on CPU
@@ -97,13 +97,11 @@ def default_precision(device: str | torch.device) -> str:
 
 
 def _torchao_int8():
-    """torchao's Int8Tensor and PerRow. Its compiled extensions (CUDA kernels: mxfp8, cutlass) are
-    not needed for the quantizer and fail to load on CPU-only builds with a warning each: skipped
-    unless torchao was imported before."""
-    if "torchao" not in sys.modules:
-        os.environ.setdefault("TORCHAO_FORCE_SKIP_LOADING_SO_FILES", "1")
-    from torchao.quantization import PerRow  # imported here: int8 only, after the flag above
-    from torchao.quantization.quantize_.workflows.int8.int8_tensor import Int8Tensor  # idem
+    """torchao's Int8Tensor and PerRow (imported here: int8 only), without its import-time noise
+    (its CUDA extensions are not needed for the quantizer: mmm.torchao_quiet)."""
+    with quiet_torchao_import():
+        from torchao.quantization import PerRow
+        from torchao.quantization.quantize_.workflows.int8.int8_tensor import Int8Tensor
 
     return Int8Tensor, PerRow
 

