@@ -446,3 +446,37 @@ def test_load_clips_keeps_long_clips_for_the_tokenizer(tmp_path):
     clips, report = load_clips(tmp_path, "train", feature_dim=D, min_length=64)
     assert list(clips) == ["000000"] and clips["000000"].shape == (250, D)
     assert report.skipped["clip shorter than 64 frames"] == 1
+
+
+def test_preview_recovers_joints_from_features_when_a_dataset_has_no_new_joints(
+    reference_dir, tmp_path, caplog
+):
+    """A dataset shipped with new_joint_vecs/ only is previewed from its features: the recovered
+    joints are HumanML3D's own new_joints/ (to float rounding), and the log says which clips."""
+    import shutil
+
+    from PIL import Image
+
+    from mmm.data.preview import clip_joints, preview_dataset
+
+    source = reference_dir / "humanml3d"
+    root = tmp_path / "features-only"
+    (root / "new_joint_vecs").mkdir(parents=True)
+    (root / "texts").mkdir()
+    shutil.copy(source / "new_joint_vecs/012314.npy", root / "new_joint_vecs/012314.npy")
+    (root / "texts/012314.txt").write_text(WHOLE + "\n")
+    (root / "test.txt").write_text("012314\n")
+    joints, recovered = clip_joints(root, "012314")
+    expected = np.load(source / "new_joints/012314.npy")
+    assert recovered and joints.shape == expected.shape == (170, 22, 3)
+    np.testing.assert_allclose(joints, expected, atol=1e-5)
+    assert clip_joints(source, "012314")[1] is False  # new_joints/ is read when it is there
+    with caplog.at_level("INFO", logger="mmm.data.preview"):
+        written = preview_dataset(root, tmp_path / "preview", count=3)
+    assert [p.name for p in written] == ["012314.gif", "contact_sheet.png"]
+    assert Image.open(written[0]).n_frames == 170
+    assert "1 of 1 clips have no new_joints/ file (012314)" in caplog.text
+    (root / "new_joint_vecs/012314.npy").unlink()
+    with pytest.raises(DataError, match=r"new_joints/012314\.npy: the clip has neither joints nor features"):
+        preview_dataset(root, tmp_path / "again")
+    assert not (tmp_path / "again").exists()
