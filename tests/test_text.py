@@ -122,7 +122,7 @@ def test_missing_minilm_package_names_the_install(monkeypatch):
 # --------------------------------------------------------------------------------------- CLIP tokenizer
 
 
-def test_loading_minilm_and_the_int8_quantizer_logs_nothing_from_torchao(tmp_path):
+def test_loading_minilm_and_the_int8_quantizer_logs_nothing_from_torchao_or_a_progress_bar(tmp_path):
     """transformers imports torchao when it loads a model; on a CPU build torchao logged a failed
     load per CUDA extension, "no triton" and two torch deprecation lines. A fresh interpreter,
     logging at DEBUG, loads MiniLM and the int8 quantizer: only what it prints itself is left."""
@@ -133,13 +133,17 @@ def test_loading_minilm_and_the_int8_quantizer_logs_nothing_from_torchao(tmp_pat
         "MiniLMTextEncoder()\n"
         "from mmm.generation.precision import _torchao_int8\n"
         "_torchao_int8()\n"
-        "print('torchao' in sys.modules, logging.getLogger('torchao').level)\n"
+        "from transformers.utils import logging as transformers_logging\n"
+        "print('torchao' in sys.modules, logging.getLogger('torchao').level, "
+        "transformers_logging.is_progress_bar_enabled())\n"
     )
     result = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=tmp_path
     )
     assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == ["True", "0"]  # imported, and its logger's level given back
+    # imported, its logger's level and transformers' progress bars given back
+    assert result.stdout.split() == ["True", "0", "True"]
+    assert "Loading weights" not in result.stderr  # no progress bar for a local folder
     noise = [
         line
         for line in result.stderr.splitlines()

@@ -216,7 +216,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
         print(f"wrote {folder}")
     prompts = f" of {len(args.text)} prompts" if len(args.text) > 1 else ""
     print(
-        f"{len(folders)} samples{prompts} in {out.seconds['total']:.2f} s "
+        f"{len(folders)} sample{'s' if len(folders) != 1 else ''}{prompts} in {out.seconds['total']:.2f} s "
         f"({out.forward_passes} transformer passes)"
     )
 

@@ -59,8 +59,18 @@ class MiniLMTextEncoder(TextEncoder):
 
         self.model_dir = model_dir
         self.tokenizer = AutoTokenizer.from_pretrained(str(model_dir), local_files_only=True)
-        with quiet_torchao_import():  # transformers imports torchao (installed for int8) here
-            self.model = AutoModel.from_pretrained(str(model_dir), local_files_only=True)
+        from transformers.utils import logging as transformers_logging
+
+        # No "Loading weights" bar on every command for a 90 MB local folder; the caller's setting is
+        # given back.
+        bar = transformers_logging.is_progress_bar_enabled()
+        transformers_logging.disable_progress_bar()
+        try:
+            with quiet_torchao_import():  # transformers imports torchao (installed for int8) here
+                self.model = AutoModel.from_pretrained(str(model_dir), local_files_only=True)
+        finally:
+            if bar:
+                transformers_logging.enable_progress_bar()
         self.model.float()
 
         st_config = model_dir / "sentence_bert_config.json"
