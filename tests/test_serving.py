@@ -239,6 +239,18 @@ def test_rows_may_mix_given_and_absent_seed_and_length(served_model):
 
 
 @pytest.mark.slow
+def test_a_text_longer_than_the_encoder_reads_is_answered_with_what_was_read(served_model):
+    """The text encoder reads a text's first max_words tokens (MiniLM: 256): the row says so, and
+    is drawn from those tokens; a short text's row has no such key."""
+    long_text = "a person walks forward and then turns around " * 60
+    rows = served_model.predict(pd.DataFrame({"text": [long_text, "a person jumps"], "length": [48, 48]}))
+    encoder = served_model.unwrap_python_model().model.text_encoder
+    tokens = encoder.count_tokens([long_text])[0]
+    assert tokens > 256 and rows[0]["text_cut"] == {"tokens": tokens, "read": 256}
+    assert "text_cut" not in rows[1]
+
+
+@pytest.mark.slow
 def test_requests_are_bounded_in_rows(registered, served_model):
     """More rows than the bundle's max_rows (64 unless the loader's model_config says otherwise)
     are refused with HTTP 400 before anything is generated."""

@@ -100,8 +100,8 @@ def _torchao_int8():
     """torchao's Int8Tensor and PerRow (imported here: int8 only), without its import-time noise
     (its CUDA extensions are not needed for the quantizer: mmm.torchao_quiet)."""
     with quiet_torchao_import():
-        from torchao.quantization import PerRow
-        from torchao.quantization.quantize_.workflows.int8.int8_tensor import Int8Tensor
+        from torchao.quantization import PerRow  # int8 only: torchao is loaded when first needed
+        from torchao.quantization.quantize_.workflows.int8.int8_tensor import Int8Tensor  # idem
 
     return Int8Tensor, PerRow
 

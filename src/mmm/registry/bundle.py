@@ -216,7 +216,8 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                 "split it into several requests"
             )
         if self.model.part_aware:
-            return [self._edit_upper_body(i, row, sampling, candidates) for i, row in enumerate(rows)]
+            out = [self._edit_upper_body(i, row, sampling, candidates) for i, row in enumerate(rows)]
+            return self._note_cut_texts(out)
         requests = [self._request(i, row) for i, row in enumerate(rows)]
         out = []
         for text, frames, seed in requests:
@@ -234,7 +235,16 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                     **_judged(g, candidates),
                 }
             )
-        return out
+        return self._note_cut_texts(out)
+
+    def _note_cut_texts(self, rows: list[dict]) -> list[dict]:
+        """Rows whose text is longer than the text encoder reads (its first `max_words` tokens)
+        get "text_cut": {"tokens": N, "read": max_words}, as a sample's meta.json does."""
+        encoder = self.model.text_encoder
+        for row, tokens in zip(rows, encoder.count_tokens([row["text"] for row in rows])):
+            if tokens > encoder.max_words:
+                row["text_cut"] = {"tokens": tokens, "read": encoder.max_words}
+        return rows
 
     def _candidates(self, value) -> int:
         """The candidates param as an int (1 when absent), refused where the bundle has no judge."""

@@ -59,7 +59,7 @@ class MiniLMTextEncoder(TextEncoder):
 
         self.model_dir = model_dir
         self.tokenizer = AutoTokenizer.from_pretrained(str(model_dir), local_files_only=True)
-        from transformers.utils import logging as transformers_logging
+        from transformers.utils import logging as transformers_logging  # with AutoModel, above
 
         # No "Loading weights" bar on every command for a 90 MB local folder; the caller's setting is
         # given back.
