@@ -187,19 +187,15 @@ def load_model(args: argparse.Namespace):
 
 
 def cut_texts(model, texts) -> dict[str, dict]:
-    """The texts longer than the text encoder reads (it keeps the first `max_words` tokens), each
-    with {"tokens": its count, "read": max_words} for meta.json, and named once on stderr."""
+    """The texts longer than the text encoder reads (`TextEncoder.texts_cut`), for meta.json,
+    each named once on stderr."""
     encoder = model.text_encoder
-    texts = [t for t in dict.fromkeys(texts) if t]
-    cut = {}
-    for text, n in zip(texts, encoder.count_tokens(texts)):
-        if n <= encoder.max_words:
-            continue
-        cut[text] = {"tokens": n, "read": encoder.max_words}
+    cut = encoder.texts_cut(texts)
+    for text, info in cut.items():
         shown = text if len(text) <= 60 else text[:57] + "..."
         print(
-            f"warning: {shown!r} is {n} tokens; the text encoder ({encoder.name}) reads its first "
-            f"{encoder.max_words}, the rest is left out: shorten it, or split it into prompts "
+            f"warning: {shown!r} is {info['tokens']} tokens; the text encoder ({encoder.name}) reads its "
+            f"first {encoder.max_words}, the rest is left out: shorten it, or split it into prompts "
             "(generate-long --paragraph)",
             file=sys.stderr,
         )

@@ -240,10 +240,10 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
     def _note_cut_texts(self, rows: list[dict]) -> list[dict]:
         """Rows whose text is longer than the text encoder reads (its first `max_words` tokens)
         get "text_cut": {"tokens": N, "read": max_words}, as a sample's meta.json does."""
-        encoder = self.model.text_encoder
-        for row, tokens in zip(rows, encoder.count_tokens([row["text"] for row in rows])):
-            if tokens > encoder.max_words:
-                row["text_cut"] = {"tokens": tokens, "read": encoder.max_words}
+        cut = self.model.text_encoder.texts_cut([row["text"] for row in rows])
+        for row in rows:
+            if row["text"] in cut:
+                row["text_cut"] = cut[row["text"]]
         return rows
 
     def _candidates(self, value) -> int:

@@ -88,6 +88,17 @@ class TextEncoder(torch.nn.Module):
         """Tokens each text needs including special tokens, before truncation to `max_words`."""
         raise NotImplementedError
 
+    def texts_cut(self, texts: Sequence[str]) -> dict[str, dict]:
+        """The texts longer than this encoder reads (it keeps the first `max_words` tokens), each
+        with {"tokens": its count, "read": max_words}: what a sample's meta.json and a served row
+        record as `text_cut`."""
+        texts = [t for t in dict.fromkeys(texts) if t]
+        return {
+            text: {"tokens": n, "read": self.max_words}
+            for text, n in zip(texts, self.count_tokens(texts))
+            if n > self.max_words
+        }
+
     def extra_repr(self) -> str:
         return (
             f"name={self.name!r}, sentence_dim={self.sentence_dim}, word_dim={self.word_dim}, "
