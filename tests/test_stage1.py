@@ -13,6 +13,7 @@ from mlflow.tracking import MlflowClient
 
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
 from mmm.config import ConfigError
+from mmm.data import datamodule
 from mmm.motion.features import recover_from_ric, recover_root_rot_pos
 from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
@@ -300,6 +301,19 @@ def test_stage1_runs_its_steps_then_the_refinement_steps(walker_dataset, tmp_pat
     params = client.get_run(result.run_id).data.params
     assert (params["trainer.max_steps"], params["refine.steps"]) == ("6", "4")  # as the user set them
     assert not result.stopped_early
+
+
+def test_a_stage1_fit_reads_and_reports_each_split_once(walker_dataset, tmp_path, monkeypatch):
+    """train_stage1 sets the data up before the fit (for the statistics) and the fit sets it up
+    again: that second call read every clip again and printed each split's report twice."""
+    reported = []
+    log_report = datamodule._log_report
+    monkeypatch.setattr(
+        datamodule, "_log_report", lambda what, report: (reported.append(what), log_report(what, report))
+    )
+    result = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, 5)))
+    assert Path(result.best_checkpoint).is_file()
+    assert [what.split()[-2:] for what in reported] == [["train", "clips"], ["val", "clips"]]
 
 
 def _fit(module, data, callbacks, steps):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import lightning as L
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Dataset
 
 from mmm.config import ConfigError, check_whole
 from mmm.data.datasets import (
@@ -185,6 +185,7 @@ class _DatasetFolder(L.LightningDataModule):
         self.root = Path(cfg.root)
         self.mean = self.std = None
         self.reports: dict[str, LoadReport] = {}
+        self.datasets: dict[str, Dataset] = {}
 
     def prepare_data(self) -> None:
         # Runs on one process per node only; the datasets are built in setup() on every rank.
@@ -257,8 +258,12 @@ class TokenizerDataModule(_DatasetFolder):
         super()._stats()
 
     def setup(self, stage: str | None = None) -> None:
+        # train_stage1 sets up before the fit (the module is built with the statistics, and a
+        # dataset it cannot use fails before a run is opened); the fit's own call finds it done,
+        # so each split is read and reported once.
+        if self.datasets:
+            return
         self._stats()
-        self.datasets = {}
         for split in ("train", "val"):
             clips, report = load_clips(
                 self.root,
