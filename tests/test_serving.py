@@ -5,6 +5,7 @@ import json
 import os
 import re
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -615,3 +616,16 @@ def test_a_judge_must_read_the_models_features_and_captions(tmp_path):
         JudgeMismatch, match="reads captions with text encoder minilm-abc, the model with clip-x"
     ):
         describe_judge(path, {**ok, "text_encoder": "clip-x"})
+
+
+def test_importing_the_bundle_asks_nothing_of_the_user():
+    """MLflow warned at every import of the pyfunc class (every promote and serve) that `predict`
+    had no type hints; it has one now, which MLflow accepts without validating through it."""
+    result = subprocess.run(
+        [sys.executable, "-W", "default", "-c", "import mmm.registry.bundle"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "Add type hints" not in result.stderr and "Warning" not in result.stderr, result.stderr

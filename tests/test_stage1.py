@@ -1,8 +1,10 @@
 """Stage 1: quantizer semantics, the module, callbacks, DDP agreement, resume, MLflow tracking."""
 
+import logging
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -18,6 +20,7 @@ from mmm.motion.features import recover_from_ric, recover_root_rot_pos
 from mmm.tokenizer.module import DecoderRefineConfig, TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.quantizer import EMAQuantizer
+from mmm.training.common import LIGHTNING_ADVERT, LIGHTNING_NOISE_WARNINGS, quiet_lightning
 from mmm.training.optim import OptimConfig, cosine_tail, warmup_step_schedule
 from mmm.training.stage1 import load_stage1_config, train_stage1
 
@@ -314,6 +317,54 @@ def test_a_stage1_fit_reads_and_reports_each_split_once(walker_dataset, tmp_path
     result = train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, 5)))
     assert Path(result.best_checkpoint).is_file()
     assert [what.split()[-2:] for what in reported] == [["train", "clips"], ["val", "clips"]]
+
+
+def test_a_fit_prints_no_lightning_advert_or_known_noise_and_every_other_line(walker_dataset, tmp_path):
+    """Lightning's cloud-logger advert, the model summary's bfloat16 note and torch's pytree
+    deprecation are dropped during a fit (`quiet_lightning`); its other lines and warnings are not."""
+    lines = []
+    handler = logging.Handler()
+    handler.emit = lambda record: lines.append(record.getMessage())
+    rank_zero_log = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    rank_zero_log.addHandler(handler)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            bf16 = {"trainer.precision": "bf16-mixed"}  # the model summary would warn about it
+            train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, 5, **bf16)))
+    finally:
+        rank_zero_log.removeHandler(handler)
+    assert any(line.startswith("GPU available") for line in lines), lines
+    assert not any(line.startswith(LIGHTNING_ADVERT) for line in lines), lines
+    messages = [str(w.message) for w in caught]
+    assert not [m for m in messages if any(noise in m for noise in LIGHTNING_NOISE_WARNINGS)], messages
+    # Outside a fit nothing is filtered.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warnings.warn(LIGHTNING_NOISE_WARNINGS[0], UserWarning)
+    assert len(caught) == 1 and not rank_zero_log.filters
+
+
+def test_quiet_lightning_drops_only_its_own_lines():
+    lines = []
+    handler = logging.Handler()
+    handler.emit = lambda record: lines.append(record.getMessage())
+    rank_zero_log = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    rank_zero_log.addHandler(handler)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with quiet_lightning():
+                for message in LIGHTNING_NOISE_WARNINGS:
+                    warnings.warn(f"{message} (and more)", UserWarning)
+                warnings.warn("a warning of the run's own", UserWarning)
+                rank_zero_log.info(f"{LIGHTNING_ADVERT} install something")
+                rank_zero_log.info("GPU available: False, used: False")
+            rank_zero_log.info(f"{LIGHTNING_ADVERT} after the fit")
+    finally:
+        rank_zero_log.removeHandler(handler)
+    assert [str(w.message) for w in caught] == ["a warning of the run's own"]
+    assert lines == ["GPU available: False, used: False", f"{LIGHTNING_ADVERT} after the fit"]
 
 
 def _fit(module, data, callbacks, steps):

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import lightning as L
-from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only, rank_zero_warn
 from torch.utils.data import DataLoader, Dataset
 
 from mmm.config import ConfigError, check_whole
@@ -168,9 +168,12 @@ def oversample_items(items: list, cfg: OversampleConfig, where: str = "data") ->
 
 
 def _log_report(what: str, report: LoadReport) -> None:
+    """What a load kept and left out, once (rank 0): a warning when it left something out, as a
+    log line (a Python warning would print this file's path and source line with it)."""
     text = f"{what}: {report.summary()}"
     if report.skipped:
-        rank_zero_warn(text)
+        if rank_zero_only.rank == 0:
+            log.warning(text)
     else:
         rank_zero_info(text)
 

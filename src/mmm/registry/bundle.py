@@ -195,7 +195,9 @@ class TextToMotionPyfunc(mlflow.pyfunc.PythonModel):
                 context.artifacts[JUDGE], text_encoder=self.model.text_encoder, device=device
             )
 
-    def predict(self, context, model_input, params=None):
+    # MLflow hands predict a DataFrame (the signature converts a list of rows or a dict of columns);
+    # the hint says so, which MLflow otherwise asks for with a warning at every import.
+    def predict(self, context, model_input: pd.DataFrame, params=None):
         params = dict(params or {})
         precision = params.pop("precision", None) or getattr(self, "precision", None)
         if precision:

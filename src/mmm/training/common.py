@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import logging
 import os
+import re
+import warnings
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Callable
@@ -98,6 +101,37 @@ def training_precision(precision: str, accelerator: str) -> str:
     chosen = "bf16-mixed" if fast else "32-true"
     log.info("trainer.precision=auto: %s (bfloat16 kernels on this %s: %s)", chosen, accelerator, fast)
     return chosen
+
+
+# What Lightning prints on every fit that concerns none of this package's runs: an advert for its
+# cloud logger (when the Trainer is built), the model summary's note that it sizes bfloat16 weights
+# as float32, and torch's deprecation of a class Lightning's own pytree helper still builds.
+LIGHTNING_NOISE_WARNINGS = (
+    "Precision bf16-mixed is not supported by the model summary",
+    "`isinstance(treespec, LeafSpec)` is deprecated",
+)
+LIGHTNING_ADVERT = "💡 Tip:"
+
+
+class _NoAdvert(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(LIGHTNING_ADVERT)
+
+
+@contextmanager
+def quiet_lightning():
+    """Build and fit a Trainer without `LIGHTNING_NOISE_WARNINGS` and the advert; every other
+    warning and log line is shown as before, and the filters are gone afterwards."""
+    rank_zero_log = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    no_advert = _NoAdvert()
+    rank_zero_log.addFilter(no_advert)
+    try:
+        with warnings.catch_warnings():
+            for message in LIGHTNING_NOISE_WARNINGS:
+                warnings.filterwarnings("ignore", message=re.escape(message))
+            yield
+    finally:
+        rank_zero_log.removeFilter(no_advert)
 
 
 def build_trainer(cfg: TrainerConfig, callbacks: list, logger, default_root_dir: str) -> L.Trainer:
@@ -334,7 +368,8 @@ def tracked_fit(
     created = not target.run_dir.exists()
     lock = claim_run_directory(target.run_dir, resuming=target.ckpt_path is not None)
     try:
-        return _fit(run, cfg, module, target, callbacks, datamodule, loaders, result_type, fields)
+        with quiet_lightning():
+            return _fit(run, cfg, module, target, callbacks, datamodule, loaders, result_type, fields)
     except BaseException:
         if lock is not None and created:  # e.g. a refused resume: no empty run folder left behind
             lock.release()
