@@ -1,5 +1,7 @@
 """The on-disk reader, its length rules and errors, the datasets and the datamodules."""
 
+import logging
+import re
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 
@@ -429,8 +431,10 @@ def test_stage2_draws_the_training_items_whose_caption_matches_several_times(tmp
         oversample_items(items, OversampleConfig(pattern="("))
     with pytest.raises(ValueError, match="data.oversample.factor=0 must be a whole number"):
         oversample_items(items, OversampleConfig(pattern="x", factor=0))
-    with pytest.warns(UserWarning, match="none of the 4 training items has a caption matching .*'thrice'"):
+    with caplog.at_level(logging.WARNING, logger="mmm.data.datamodule"):
         assert oversample_items(items, OversampleConfig(pattern="thrice")) == items
+    none_matched = "none of the 4 training items has a caption matching .*'thrice'"
+    assert re.search(none_matched, caplog.text), caplog.text
 
 
 def test_datamodule_refuses_a_missing_folder_without_synthesis(tmp_path):

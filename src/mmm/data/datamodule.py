@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import lightning as L
-from lightning.pytorch.utilities import rank_zero_info, rank_zero_only, rank_zero_warn
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch.utils.data import DataLoader, Dataset
 
 from mmm.config import ConfigError, check_whole
@@ -154,7 +154,7 @@ def oversample_items(items: list, cfg: OversampleConfig, where: str = "data") ->
         matched += hit
         out.extend([item] * (cfg.factor if hit else 1))
     if not matched:
-        rank_zero_warn(
+        _warn(
             f"{where}: none of the {len(items)} training items has a caption matching "
             f"data.oversample.pattern={cfg.pattern!r}, so none is oversampled: check the pattern"
         )
@@ -167,13 +167,18 @@ def oversample_items(items: list, cfg: OversampleConfig, where: str = "data") ->
     return out
 
 
+def _warn(text: str) -> None:
+    """A warning about the data, on rank 0, as a log line (a Python warning would print this
+    file's path and source line with it)."""
+    if rank_zero_only.rank == 0:
+        log.warning(text)
+
+
 def _log_report(what: str, report: LoadReport) -> None:
-    """What a load kept and left out, once (rank 0): a warning when it left something out, as a
-    log line (a Python warning would print this file's path and source line with it)."""
+    """What a load kept and, as a warning, what it left out."""
     text = f"{what}: {report.summary()}"
     if report.skipped:
-        if rank_zero_only.rank == 0:
-            log.warning(text)
+        _warn(text)
     else:
         rank_zero_info(text)
 
@@ -413,7 +418,7 @@ class TokenTextDataModule(_DatasetFolder):
         )
         if counts.get("truncated"):
             message += f"; {counts['truncated']} captions longer than the encoder's limit were truncated"
-            rank_zero_warn(message)
+            _warn(message)
         else:
             rank_zero_info(message)
         self._prepared = True
