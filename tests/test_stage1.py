@@ -1,5 +1,6 @@
 """Stage 1: quantizer semantics, the module, callbacks, DDP agreement, resume, MLflow tracking."""
 
+import contextlib
 import logging
 import os
 import subprocess
@@ -319,9 +320,9 @@ def test_a_stage1_fit_reads_and_reports_each_split_once(walker_dataset, tmp_path
     assert [what.split()[-2:] for what in reported] == [["train", "clips"], ["val", "clips"]]
 
 
-def test_a_fit_prints_no_lightning_advert_or_known_noise_and_every_other_line(walker_dataset, tmp_path):
-    """Lightning's cloud-logger advert, the model summary's bfloat16 note and torch's pytree
-    deprecation are dropped during a fit (`quiet_lightning`); its other lines and warnings are not."""
+@contextlib.contextmanager
+def _lightning_output():
+    """(lines, warnings): what Lightning's rank-zero logger logs and every warning raised in the block."""
     lines = []
     handler = logging.Handler()
     handler.emit = lambda record: lines.append(record.getMessage())
@@ -330,10 +331,17 @@ def test_a_fit_prints_no_lightning_advert_or_known_noise_and_every_other_line(wa
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            bf16 = {"trainer.precision": "bf16-mixed"}  # the model summary would warn about it
-            train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, 5, **bf16)))
+            yield lines, caught
     finally:
         rank_zero_log.removeHandler(handler)
+
+
+def test_a_fit_prints_no_lightning_advert_or_known_noise_and_every_other_line(walker_dataset, tmp_path):
+    """Lightning's cloud-logger advert, the model summary's bfloat16 note and torch's pytree
+    deprecation are dropped during a fit (`quiet_lightning`); its other lines and warnings are not."""
+    with _lightning_output() as (lines, caught):
+        bf16 = {"trainer.precision": "bf16-mixed"}  # the model summary would warn about it
+        train_stage1(load_stage1_config(_stage1_overrides(walker_dataset, tmp_path, 5, **bf16)))
     assert any(line.startswith("GPU available") for line in lines), lines
     assert not any(line.startswith(LIGHTNING_ADVERT) for line in lines), lines
     messages = [str(w.message) for w in caught]
@@ -342,27 +350,19 @@ def test_a_fit_prints_no_lightning_advert_or_known_noise_and_every_other_line(wa
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         warnings.warn(LIGHTNING_NOISE_WARNINGS[0], UserWarning)
-    assert len(caught) == 1 and not rank_zero_log.filters
+    assert len(caught) == 1 and not logging.getLogger("lightning.pytorch.utilities.rank_zero").filters
 
 
 def test_quiet_lightning_drops_only_its_own_lines():
-    lines = []
-    handler = logging.Handler()
-    handler.emit = lambda record: lines.append(record.getMessage())
     rank_zero_log = logging.getLogger("lightning.pytorch.utilities.rank_zero")
-    rank_zero_log.addHandler(handler)
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            with quiet_lightning():
-                for message in LIGHTNING_NOISE_WARNINGS:
-                    warnings.warn(f"{message} (and more)", UserWarning)
-                warnings.warn("a warning of the run's own", UserWarning)
-                rank_zero_log.info(f"{LIGHTNING_ADVERT} install something")
-                rank_zero_log.info("GPU available: False, used: False")
-            rank_zero_log.info(f"{LIGHTNING_ADVERT} after the fit")
-    finally:
-        rank_zero_log.removeHandler(handler)
+    with _lightning_output() as (lines, caught):
+        with quiet_lightning():
+            for message in LIGHTNING_NOISE_WARNINGS:
+                warnings.warn(f"{message} (and more)", UserWarning)
+            warnings.warn("a warning of the run's own", UserWarning)
+            rank_zero_log.info(f"{LIGHTNING_ADVERT} install something")
+            rank_zero_log.info("GPU available: False, used: False")
+        rank_zero_log.info(f"{LIGHTNING_ADVERT} after the fit")
     assert [str(w.message) for w in caught] == ["a warning of the run's own"]
     assert lines == ["GPU available: False, used: False", f"{LIGHTNING_ADVERT} after the fit"]
 
