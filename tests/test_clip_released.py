@@ -435,7 +435,7 @@ def test_words_all_and_eot(encoders):
 def test_cache_round_trip_with_all_words(encoders, tmp_path):
     enc = encoders["float16", "all"]
     cache = CaptionEmbeddingCache(tmp_path, enc.identity)
-    assert cache.build(enc, TEXTS, progress=False)["added"] == 3
+    assert cache.build(enc, TEXTS, batch_size=4, progress=False)["added"] == 3
     got, fresh = cache.lookup(TEXTS[::-1]), enc.encode(TEXTS[::-1])
     assert got.words.shape == (3, 77, 512) and got.word_mask.all()
     # float16 features survive the cache's float16 storage exactly

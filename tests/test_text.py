@@ -405,7 +405,7 @@ def test_cache_lookup_equals_fresh_encoding(minilm, tmp_path, monkeypatch):
 def test_cache_clip_pads_to_longest_not_77(clip_random, tmp_path):
     cache = CaptionEmbeddingCache(tmp_path, clip_random.identity)
     texts = ["hello world", "hello world, hi", " ".join(["a"] * 80)]
-    assert cache.build(clip_random, texts, progress=False) == {
+    assert cache.build(clip_random, texts, batch_size=4, progress=False) == {
         "cached": 0,
         "added": 3,
         "truncated": 1,
