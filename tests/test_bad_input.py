@@ -543,7 +543,7 @@ def test_console_script_refuses_like_the_module(tmp_path):
     ],
 )
 def test_sampling_config_names_field_value_and_range(field, value, allowed):
-    from mmm.generation.sampler import SamplingConfig, SamplingValueError
+    from mmm.generation.settings import SamplingConfig, SamplingValueError
 
     with pytest.raises(SamplingValueError) as err:
         SamplingConfig(**{field: value})
@@ -552,7 +552,7 @@ def test_sampling_config_names_field_value_and_range(field, value, allowed):
 
 
 def test_sampling_config_accepts_the_edges():
-    from mmm.generation.sampler import MAX_ITERATIONS, SamplingConfig, check_count, check_seed
+    from mmm.generation.settings import MAX_ITERATIONS, SamplingConfig, check_count, check_seed
 
     SamplingConfig(
         max_iterations=MAX_ITERATIONS, temperature=100.0, guidance_scale=100.0, top_k=1.0, top_p=1.0

@@ -18,7 +18,7 @@ from mmm.generation.best_of import (
     judge_scores,
 )
 from mmm.generation.model import Generated
-from mmm.generation.sampler import check_candidates
+from mmm.generation.settings import check_candidates
 
 
 class Draws:

@@ -5,15 +5,9 @@ import torch
 
 from mmm.cli.app import build_parser
 from mmm.generation.model import TextToMotion
-from mmm.generation.precision import (
-    PRECISIONS,
-    Int8Linear,
-    check_device,
-    check_precision,
-    default_precision,
-    inference_copy,
-)
-from mmm.generation.sampler import SamplingConfig, frames_to_codes, sample_tokens
+from mmm.generation.precision import Int8Linear, check_device, default_precision, inference_copy
+from mmm.generation.sampler import frames_to_codes, sample_tokens
+from mmm.generation.settings import PRECISIONS, SamplingConfig, check_precision
 from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
 from mmm.training.optim import OptimConfig

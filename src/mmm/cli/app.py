@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_arguments(argv)
     _configure_logging(args.verbose)
     from mmm.config import ConfigError
-    from mmm.data.humanml3d import DataError
+    from mmm.data.arrays import DataError
 
     try:
         args.func(args)

@@ -136,9 +136,7 @@ def cmd_convert(args: argparse.Namespace) -> None:
 
 
 def cmd_data_synth(args: argparse.Namespace) -> None:
-    # imported here: keeps `mmm --help` fast
-    from mmm.data.synthetic.generate import COMPOSITE_FRACTION, generate_dataset
-    from mmm.generation.sampler import SamplingValueError, check_seed
+    from mmm.generation.settings import SamplingValueError, check_seed
 
     try:
         check_seed(args.seed)
@@ -148,11 +146,14 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         raise CLIError(f"--train-paraphrases {args.train_paraphrases}: every clip has three; give 3 or more")
     if args.extra_train_clips < 0:
         raise CLIError(f"--extra-train-clips {args.extra_train_clips}: give 0 or more")
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers {args.workers}: give 1 or more processes")
+    # imported here: keeps `mmm --help` and the refusals above fast (the generator needs torch)
+    from mmm.data.synthetic.generate import COMPOSITE_FRACTION, generate_dataset
+
     fraction = COMPOSITE_FRACTION if args.extra_composite_fraction is None else args.extra_composite_fraction
     if not 0.0 <= fraction <= 1.0:
         raise CLIError(f"--extra-composite-fraction {fraction}: give a share between 0 and 1")
-    if args.workers is not None and args.workers < 1:
-        raise CLIError(f"--workers {args.workers}: give 1 or more processes")
     summary = generate_dataset(
         args.out,
         num_clips=args.num_clips,

@@ -11,6 +11,7 @@ import numpy as np
 from mmm.cli.common import CLIError, load_npy
 from mmm.cli.options import (
     add_generation_options,
+    check_device_option,
     check_generation_args,
     check_texts,
     cut_texts,
@@ -20,6 +21,7 @@ from mmm.cli.options import (
     sampling_config,
 )
 from mmm.generation.edits import EDIT_KINDS, UPPER_BODY
+from mmm.generation.settings import MAX_SAMPLES, check_candidates
 
 # How `mmm edit` spells the fields of an edit request in its messages.
 EDIT_OPTIONS = {
@@ -59,8 +61,6 @@ def load_best_of_judge(args: argparse.Namespace, model):
 
 
 def check_best_of_args(args: argparse.Namespace) -> None:
-    from mmm.generation.sampler import check_candidates
-
     try:
         check_candidates(args.candidates, "--candidates")
     except ValueError as e:
@@ -143,8 +143,6 @@ def add_generate_long(sub) -> None:
 
 
 def cmd_generate(args: argparse.Namespace) -> None:
-    from mmm.generation.sampler import MAX_SAMPLES
-
     check_generation_args(args)
     check_texts(args.text)
     check_best_of_args(args)
@@ -158,6 +156,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
         raise CLIError(
             "--trace plots one draw's decoding: leave it out with --candidates, or use --candidates 1"
         )
+    check_device_option(args)
     # imported after the checks: keeps `mmm --help` and refusing bad input fast (no model libraries)
     from mmm.generation.best_of import generate_best_of
     from mmm.generation.outputs import write_samples
@@ -246,7 +245,6 @@ def concatenate_calls(calls: list):
 
 def cmd_edit(args: argparse.Namespace) -> None:
     from mmm.generation.edits import EditRequest
-    from mmm.motion.features import joints_to_features
 
     check_generation_args(args)
     check_best_of_args(args)
@@ -268,6 +266,8 @@ def cmd_edit(args: argparse.Namespace) -> None:
     source = load_npy(args.source)
     given = f"{source.shape}"
     if source.ndim == 3 and source.shape[1:] in ((22, 3), (21, 3)):
+        from mmm.motion.features import joints_to_features  # imported here: it needs torch
+
         source = joints_to_features(source.astype(np.float32))
         given = f"joints {given}, read as features {source.shape}"
         # the features hold the motion between joint frames: one frame fewer, which --keep counts
@@ -282,6 +282,7 @@ def cmd_edit(args: argparse.Namespace) -> None:
         )
     if not np.isfinite(source).all():
         raise CLIError(f"{args.source}: contains NaN/Inf values")
+    check_device_option(args)
     # imported after the checks: keeps `mmm --help` and refusing bad input fast (no model libraries)
     from mmm.generation.best_of import edit_best_of
     from mmm.generation.outputs import write_samples
@@ -378,6 +379,7 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
         raise CLIError(f"--lengths has {len(lengths)} values for {len(texts)} prompts")
     if lengths is not None and len(lengths) == 1:
         lengths = lengths * len(texts)
+    check_device_option(args)
     # imported after the checks: keeps `mmm --help` and refusing bad input fast (no model libraries)
     from mmm.generation.best_of import generate_long_best_of
     from mmm.generation.outputs import write_samples

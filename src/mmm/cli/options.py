@@ -1,9 +1,8 @@
 """The options generate, edit and generate-long share, and what they do with them: load the model,
 check the sampling settings, build the SamplingConfig, describe a sample in its meta.json.
 
-The sampling flags are SamplingConfig's fields (generation/sampler.py: a field's metadata gives
-its flag, help text and choices), added to a parser only when it parses or prints its help
-(sampler.py imports torch). Each flag's default is None, "not given": SamplingConfig's own
+The sampling flags are SamplingConfig's fields (generation/settings.py: a field's metadata
+gives its flag, help text and choices). Each flag's default is None, "not given": SamplingConfig's own
 default applies then, or the edit kind's (upper-body edits sample with guidance 4).
 """
 
@@ -11,9 +10,18 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import fields
 
 from mmm.cli.common import DEFAULT_TRACKING_URI, CLIError
-from mmm.generation.edits import UPPER_BODY
+from mmm.generation.edits import UPPER_BODY, sampling_defaults
+from mmm.generation.settings import (
+    DEFAULT_PRECISION,
+    PRECISIONS,
+    SamplingConfig,
+    SamplingValueError,
+    check_count,
+    check_seed,
+)
 from mmm.kinds import KINDS
 
 # The command-line option of the range-checked values that are not sampling settings
@@ -24,11 +32,6 @@ _TYPES = {"int": int, "float": float, "str": str}
 
 def sampling_options() -> list[tuple]:
     """(field, flag) of each SamplingConfig field that is a command-line option."""
-    from dataclasses import fields
-
-    # imported here: keeps `mmm --help` fast (sampler.py imports torch)
-    from mmm.generation.sampler import SamplingConfig
-
     out = []
     for f in fields(SamplingConfig):
         flag = f.metadata["flag"] if "flag" in f.metadata else "--" + f.name.replace("_", "-")
@@ -106,9 +109,6 @@ def add_generation_options(p) -> None:
 
 
 def add_precision_option(p: argparse.ArgumentParser) -> None:
-    # imported here: keeps `mmm --help` fast (precision.py imports torch)
-    from mmm.generation.precision import DEFAULT_PRECISION, PRECISIONS
-
     p.add_argument(
         "--precision",
         default=None,
@@ -128,9 +128,6 @@ def add_precision_option(p: argparse.ArgumentParser) -> None:
 
 def sampling_config(args: argparse.Namespace):
     """The SamplingConfig of the sampling flags given (it checks its own fields)."""
-    from mmm.generation.edits import sampling_defaults
-    from mmm.generation.sampler import SamplingConfig
-
     given = {f.name: getattr(args, _dest(flag)) for f, flag in sampling_options()}
     given = {k: v for k, v in given.items() if v is not None}
     return SamplingConfig(**{**sampling_defaults(getattr(args, "kind", None)), **given})
@@ -138,11 +135,8 @@ def sampling_config(args: argparse.Namespace):
 
 def check_generation_args(args: argparse.Namespace) -> None:
     """Refuse out-of-range sampling settings, seeds, sample counts and transition lengths before
-    any model is loaded or anything written. The ranges are those of mmm.generation.sampler, which
-    the served bundle checks its requests against too."""
-    from mmm.generation.precision import check_device
-    from mmm.generation.sampler import SamplingValueError, check_count, check_seed
-
+    any model is loaded or anything written. The ranges are those of mmm.generation.settings,
+    which the served bundle checks its requests against too."""
     try:
         sampling_config(args)
         check_seed(args.seed)
@@ -150,10 +144,6 @@ def check_generation_args(args: argparse.Namespace) -> None:
             check_count(args.num_samples, "num_samples")
     except SamplingValueError as e:
         raise option_error(e) from None
-    try:
-        check_device(args.device, "--device")
-    except ValueError as e:
-        raise CLIError(str(e)) from None
     if getattr(args, "transition_codes", 0) < 0:
         raise CLIError(
             f"--transition-codes {args.transition_codes} is not allowed: "
@@ -165,6 +155,18 @@ def check_texts(texts: list[str]) -> None:
     for t in texts:
         if not t or not t.strip():
             raise CLIError("--text is empty: describe the motion, e.g. --text 'a person walks forward'")
+
+
+def check_device_option(args: argparse.Namespace) -> None:
+    """Refuse a --device this machine lacks, by name. The last check before a model loads: it is
+    the only one that needs torch."""
+    # imported here: keeps `mmm --help` and every other refusal fast (this check needs torch)
+    from mmm.generation.precision import check_device
+
+    try:
+        check_device(args.device, "--device")
+    except ValueError as e:
+        raise CLIError(str(e)) from None
 
 
 def load_model(args: argparse.Namespace):

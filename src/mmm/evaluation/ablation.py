@@ -35,7 +35,7 @@ from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
-from mmm.generation.sampler import SamplingConfig
+from mmm.generation.settings import SamplingConfig
 from mmm.tracking import TrackingConfig, artifact_location, prepare_experiment, resolve_tracking_uri
 from mmm.training.stage1 import load_stage1_config, train_stage1
 from mmm.training.stage2 import load_stage2_config, train_stage2

@@ -63,7 +63,7 @@ from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import item_parts, parts_in_span
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
 from mmm.evaluation.upper_body import lower_body_sources, upper_body_adherence
-from mmm.generation.sampler import SamplingConfig
+from mmm.generation.settings import SamplingConfig
 from mmm.generation.upper_body import UPPER_BODY_GUIDANCE
 from mmm.motion.parts import LOWER_JOINTS
 

@@ -31,7 +31,7 @@ from mmm.config import check_whole
 from mmm.data.datasets import TextMotionDataset
 from mmm.data.humanml3d import MotionItem
 from mmm.evaluation.metrics import diversity, fid, matching_score, multimodality, r_precision_hits
-from mmm.generation.sampler import SamplingConfig
+from mmm.generation.settings import SamplingConfig
 from mmm.motion.features import pad_motions
 
 log = logging.getLogger(__name__)

@@ -50,7 +50,7 @@ from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, res
 from mmm.fingerprint import dataset_fingerprint
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
-from mmm.generation.sampler import check_candidates
+from mmm.generation.settings import check_candidates
 from mmm.motion.features import recover_from_ric
 from mmm.tokenizer.load import load_tokenizer
 from mmm.tracking import (

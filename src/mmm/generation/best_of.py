@@ -37,7 +37,7 @@ import torch.nn.functional as F
 
 from mmm.evaluation.counterfactuals import counterfactual_captions
 from mmm.generation.model import Generated, TextToMotion
-from mmm.generation.sampler import SamplingConfig, check_candidates
+from mmm.generation.settings import SamplingConfig, check_candidates
 from mmm.motion.features import pad_motions
 
 

@@ -36,8 +36,9 @@ from mmm.checkpoints import (
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.compiled import CompiledDecoding, default_compile_mode
 from mmm.generation.length import load_length_estimator
-from mmm.generation.precision import check_device, check_precision, default_precision, inference_copy
-from mmm.generation.sampler import SampleResult, SamplingConfig, frames_to_codes, sample_tokens
+from mmm.generation.precision import check_device, default_precision, inference_copy
+from mmm.generation.sampler import SampleResult, frames_to_codes, sample_tokens
+from mmm.generation.settings import SamplingConfig, check_precision
 from mmm.generation.upper_body import UPPER_BODY_GUIDANCE, edit_upper_body
 from mmm.kinds import LENGTH, STAGE2, STAGE2_PARTS
 from mmm.motion.features import recover_from_ric

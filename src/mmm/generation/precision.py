@@ -26,16 +26,8 @@ import copy
 import torch
 from torch import nn
 
+from mmm.generation.settings import DEFAULT_PRECISION, check_precision
 from mmm.torchao_quiet import quiet_torchao_import
-
-PRECISIONS = ("fp32", "bf16", "int8")
-# The precision when none is asked for (benchmarks/inference_precision.py, README "Speed"): on CPU
-# int8, the fastest at every case measured (4x float32 at the paper size), with prompt adherence
-# and FID within float32's intervals on the demo model; float32 on a GPU: int8 is CPU-only, and bf16
-# on an H200 was slower than float32 at batch 1 (AITS 82 against 62 ms: a batch-1 pass is bound by
-# kernel launches, and autocast adds cast kernels), faster only for large batches (README "Speed on
-# a GPU"). The release's codes are reproduced in fp32 only.
-DEFAULT_PRECISION = {"cpu": "int8", "cuda": "fp32"}
 
 
 def cpu_has_bf16_matmul() -> bool | None:
@@ -53,13 +45,6 @@ def has_fast_bf16() -> bool:
     if torch.cuda.is_available():
         return torch.cuda.is_bf16_supported()
     return bool(cpu_has_bf16_matmul())
-
-
-def check_precision(precision: str) -> str:
-    """`precision` when it is one of PRECISIONS, else a ValueError naming the choices."""
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
-    return precision
 
 
 def check_device(device: str | torch.device, key: str = "device") -> torch.device:

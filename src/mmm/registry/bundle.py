@@ -53,13 +53,13 @@ from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.best_of import edit_best_of, generate_best_of
 from mmm.generation.edits import UPPER_BODY, EditRequest, sampling_defaults
 from mmm.generation.model import TextToMotion
-from mmm.generation.precision import check_precision
-from mmm.generation.sampler import (
+from mmm.generation.settings import (
     MAX_SAMPLES,
     SamplingConfig,
     SamplingValueError,
     check_candidates,
     check_count,
+    check_precision,
     check_seed,
 )
 from mmm.generation.upper_body import DEFAULT_LOWER_MASK

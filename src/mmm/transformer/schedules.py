@@ -11,13 +11,14 @@ choices and the ablation grid take their names from these dictionaries.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-import torch
+if TYPE_CHECKING:  # the schedules only call tensor methods: importing them costs no torch (the CLI's checks)
+    import torch
 
 TRAINING_SCHEDULES: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "uniform": lambda u: 0.5 + 0.5 * u,  # ratio ~ U(0.5, 1), as the released code trains
-    "cosine": lambda u: torch.cos(math.pi / 2 * u),  # MaskGIT's: cos(pi/2 u)
+    "cosine": lambda u: (math.pi / 2 * u).cos(),  # MaskGIT's: cos(pi/2 u)
 }
 
 DECODING_SCHEDULES: dict[str, Callable[[float], float]] = {
