@@ -11,6 +11,7 @@ import numpy as np
 
 from mmm.cli.common import CLIError, load_npy, refuse_existing, save_npy
 from mmm.cli.options import option_error
+from mmm.generation.settings import SamplingValueError, check_seed
 
 SKELETON_NAMES = ["t2m", "kit"]
 LENGTH_LIMIT = 200  # data.length_limit of every conf/data/*.yaml
@@ -136,8 +137,6 @@ def cmd_convert(args: argparse.Namespace) -> None:
 
 
 def cmd_data_synth(args: argparse.Namespace) -> None:
-    from mmm.generation.settings import SamplingValueError, check_seed
-
     try:
         check_seed(args.seed)
     except SamplingValueError as e:

@@ -2,8 +2,8 @@
 check the sampling settings, build the SamplingConfig, describe a sample in its meta.json.
 
 The sampling flags are SamplingConfig's fields (generation/settings.py: a field's metadata
-gives its flag, help text and choices). Each flag's default is None, "not given": SamplingConfig's own
-default applies then, or the edit kind's (upper-body edits sample with guidance 4).
+gives its flag, help text and choices). Each flag's default is None, "not given": SamplingConfig's
+own default applies then, or the edit kind's (upper-body edits sample with guidance 4).
 """
 
 from __future__ import annotations

@@ -119,7 +119,7 @@ class SamplingConfig:
     )
     # False: every sample runs max_iterations
     dynamic_iterations: bool = field(default=True, metadata={"flag": None})
-    # package (this file's rule) | released (the authors' loop, see the module docstring)
+    # package (mmm.generation.sampler's rule) | released (the authors' loop: the sampler's docstring)
     decoding: str = field(
         default="package",
         metadata={
