@@ -28,10 +28,10 @@ $(STAMP): pyproject.toml
 setup: $(STAMP) ## create .venv and install the package (idempotent)
 
 lint: $(STAMP) ## ruff: pyflakes, import order, line length 110 (pyproject.toml [tool.ruff])
-	$(BIN)/ruff check src tests benchmarks pipelines
+	$(BIN)/ruff check src tests benchmarks pipelines setup.py
 
 test: $(STAMP) ## lint, then the whole test suite (sets up first when needed)
-	$(BIN)/ruff check src tests benchmarks pipelines
+	$(BIN)/ruff check src tests benchmarks pipelines setup.py
 	$(BIN)/python -m pytest -q
 
 test-fast: $(STAMP) ## the fast loop: every test not marked slow (a few minutes)

@@ -37,13 +37,19 @@ def check_whole(key: str, value, least: int, note: str = "") -> None:
         raise ConfigError(f"{key}={value!r}: must be a whole number of at least {least}{note}")
 
 
+CONF_DIR_VARIABLE = "MMM_CONF_DIR"
+
+
 def conf_dir() -> Path:
-    """The conf/ folder: $MMM_CONF_DIR, else the repository's, else ./conf."""
-    if os.environ.get("MMM_CONF_DIR"):
-        return Path(os.environ["MMM_CONF_DIR"])
-    repo_conf = Path(__file__).resolve().parents[2] / "conf"
-    if repo_conf.is_dir():
-        return repo_conf
+    """The conf/ folder: $MMM_CONF_DIR, else the copy an installed package carries (mmm/conf, which
+    setup.py puts in the wheel), else the checkout's (beside src/), else ./conf."""
+    if os.environ.get(CONF_DIR_VARIABLE):
+        return Path(os.environ[CONF_DIR_VARIABLE])
+    here = Path(__file__).resolve().parent
+    # Installed first: an installed package's parents are site-packages, where `conf` can be anything.
+    for candidate in (here / "conf", here.parents[1] / "conf"):
+        if candidate.is_dir():
+            return candidate
     return Path.cwd() / "conf"
 
 
@@ -101,6 +107,11 @@ def compose(
 ) -> DictConfig:
     """Compose conf/<name>.yaml with its defaults and `overrides`; validate against `schema`."""
     directory = directory or conf_dir()
+    if not directory.is_dir():
+        raise ConfigError(
+            f"{directory}: no config folder there; set {CONF_DIR_VARIABLE} to a folder of configs "
+            "(the repository's conf/ or a copy of it), or reinstall the package, whose wheel carries them"
+        )
     primary = _load_yaml(directory / f"{name}.yaml")
     # `extends: other` starts from conf/other.yaml (its defaults included) and changes a few keys.
     base_name = primary.pop("extends", None)
