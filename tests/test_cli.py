@@ -1,11 +1,13 @@
 """The `mmm` command line: conversions and errors (exit code 2, message naming file and shape)."""
 
+import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
+import mmm
 from mmm.cli import main
 
 
@@ -74,6 +76,14 @@ def test_missing_input_and_console_entry_point(tmp_path):
     )
     assert result.returncode == 2
     assert "nope.npy: no such file" in result.stderr
+
+
+def test_version_names_the_package_and_the_config_folder(tmp_path):
+    env = {**os.environ, "MMM_CONF_DIR": str(tmp_path / "my-conf")}
+    command = [sys.executable, "-m", "mmm.cli", "--version"]
+    shown = subprocess.run(command, capture_output=True, text=True, env=env)
+    assert shown.returncode == 0
+    assert shown.stdout.strip() == f"mmm-motion {mmm.__version__}, configs from {tmp_path / 'my-conf'}"
 
 
 def test_overrides_may_follow_an_option():

@@ -98,6 +98,8 @@ def test_installed_package_composes_its_configs_from_any_folder(installed):
     assert refused.returncode == 2, refused.stderr
     assert "Key 'bogus' not in 'ModelConfig'" in refused.stderr and "not found" not in refused.stderr
     assert not any(elsewhere.iterdir())  # a refused command writes nothing
+    version = _run(sys.executable, "-m", "mmm.cli", "--version", cwd=elsewhere, env=env)
+    assert version.stdout.strip().endswith(f"configs from {site / 'mmm' / 'conf'}")
 
 
 def test_a_missing_config_folder_is_named_with_the_fix(tmp_path, monkeypatch):

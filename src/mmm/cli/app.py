@@ -6,8 +6,10 @@ import argparse
 import logging
 import sys
 
+from mmm import __version__
 from mmm.cli import data, generate, registry, train
 from mmm.cli.common import CLIError, Parser
+from mmm.config import conf_dir
 
 # The subcommands in the order `mmm --help` lists them.
 COMMANDS = (
@@ -30,9 +32,25 @@ COMMANDS = (
 )
 
 
+class _PrintVersion(argparse.Action):
+    """`--version`: one line, never wrapped (argparse's own version action wraps a long path)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"mmm-motion {__version__}, configs from {conf_dir()}")
+        parser.exit()
+
+
 def build_parser() -> Parser:
     parser = Parser(prog="mmm", description="MMM: text-to-motion training, generation and tracking")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument(
+        "--version",
+        action=_PrintVersion,
+        help="the package's version and the folder its configs are read from, then exit",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for add in COMMANDS:
         add(sub)
