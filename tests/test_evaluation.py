@@ -272,8 +272,21 @@ def test_mmm_evaluate_logs_the_table_to_mlflow(trained, own_evaluator, tmp_path)
         run.data.tags["evaluator"].startswith("contrastive-") and len(run.data.tags["data.fingerprint"]) == 16
     )
     assert {f.path for f in client.list_artifacts(results["run_id"])} >= {"evaluation.md", "evaluation.json"}
-    assert "| Generated |" in (tmp_path / "eval/evaluation.md").read_text()
-    assert "adherence" not in results  # the walker dataset has no labels
+    table = (tmp_path / "eval/evaluation.md").read_text()
+    assert "| Generated |" in table
+    # The walker dataset has no labels: adherence, asked for by default, is said not to be measured.
+    assert "adherence" not in results and not any(k.startswith("adherence") for k in metrics)
+    assert results["adherence_not_measured"] == (
+        f"prompt adherence not measured: {trained['walker']} has no labels/ folder (the action labels the "
+        "synthetic dataset writes, which the adherence check reads)"
+    )
+    assert f"**Prompt adherence**: not measured: {trained['walker']} has no labels/ folder" in table
+    # Asked for alone, it is refused before a run is made.
+    runs = len(client.search_runs([run.info.experiment_id]))
+    only = [f"data.root={trained['walker']}", f"logger.tracking_uri={trained['uri']}", "what=[adherence]"]
+    with pytest.raises(ValueError, match=r"what=\[adherence\]: prompt adherence not measured: .* no labels/"):
+        evaluate(load_evaluate_config(only))
+    assert len(client.search_runs([run.info.experiment_id])) == runs
 
 
 @pytest.mark.slow

@@ -355,6 +355,7 @@ def test_cli_generate_writes_complete_sample_folders(trained, tmp_path, capsys):
         assert (
             meta["prompt"] == "a person walks forward" and meta["length_frames"] == 83 and meta["seed"] == 4
         )
+        assert meta["caption"] == "a person walks forward"  # the GIF's, and `mmm render`'s default
         assert meta["model"]["checkpoint"] == trained["checkpoint"] and meta["model"][
             "text_encoder"
         ].startswith("minilm-")

@@ -290,3 +290,16 @@ def test_mp4_without_encoder(tmp_path, monkeypatch, caplog):
     with pytest.raises(EncoderNotFound, match="b.mp4.*imageio-ffmpeg"):
         render_files([path], tmp_path / "b.mp4")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npy"]
+
+
+def test_default_captions_come_from_a_samples_meta_json_else_the_file_names(tmp_path):
+    from mmm.render.stick import default_captions
+
+    generated, other, broken = (tmp_path / name for name in ("0", "1", "2"))
+    for folder in (generated, other, broken):
+        folder.mkdir()
+    (generated / "meta.json").write_text('{"caption": "a person waves", "prompt": "a person waves"}')
+    (broken / "meta.json").write_text("{not json")
+    paths = [generated / "joints.npy", other / "joints.npy", broken / "joints.npy", tmp_path / "clip.npy"]
+    assert default_captions(paths) == ["a person waves", "1/joints", "2/joints", "clip"]
+    assert default_captions([other / "joints.npy"]) == ["joints"]  # a name alone when it is the only one

@@ -101,7 +101,12 @@ def add_render(sub) -> None:
     render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
     render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")
     render.add_argument("--out", required=True, help="FILE.gif, FILE.mp4 or FILE.png (contact sheet)")
-    render.add_argument("--caption", action="append", help="one per input, in order")
+    render.add_argument(
+        "--caption",
+        action="append",
+        help="one per input, in order (default: a generated sample's caption from its meta.json, else "
+        "the file name)",
+    )
     render.add_argument("--fps", type=float, default=None)
     render.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     render.set_defaults(func=cmd_render)

@@ -193,6 +193,11 @@ def evaluate(cfg_node: DictConfig) -> dict:
         raise ValueError(
             f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence"
         )
+    unmeasurable = adherence_unmeasurable(cfg)
+    if unmeasurable and cfg.task == "text2motion" and set(cfg.what) == {"adherence"}:
+        raise ValueError(
+            f"what=[adherence]: {unmeasurable}; on this dataset ask for what=[text2motion,reconstruction]"
+        )
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     run = _EvaluationRun(cfg, tracking_uri) if cfg.logger.enabled else None
     try:
@@ -204,6 +209,18 @@ def evaluate(cfg_node: DictConfig) -> dict:
             run.fail(error)
         raise
     return results
+
+
+def adherence_unmeasurable(cfg: EvaluateConfig) -> str | None:
+    """Why the prompt adherence `what` asks for cannot be measured on the data (None: it can, or is
+    not asked for, or the folder does not exist yet: the synthetic default is written with labels)."""
+    root = Path(cfg.data.root)
+    if "adherence" not in cfg.what or not root.is_dir() or (root / "labels").is_dir():
+        return None
+    return (
+        f"prompt adherence not measured: {root} has no labels/ folder (the action labels the synthetic "
+        "dataset writes, which the adherence check reads)"
+    )
 
 
 def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | None") -> dict:
@@ -238,6 +255,10 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
     }
     if run is not None:
         run.started(results, root)
+    unmeasurable = adherence_unmeasurable(cfg)
+    if unmeasurable:
+        log.warning("%s", unmeasurable)
+        results["adherence_not_measured"] = unmeasurable
     if editing:
         return _evaluate_editing(cfg, model, evaluator, items, root, results)
     metrics: dict[str, float] = {}
@@ -345,6 +366,8 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
             for k, (a, b) in adherence["per_action"].items()
         ]
         tables.append("\n".join(lines))
+    elif unmeasurable:
+        tables.append(f"**Prompt adherence**: {unmeasurable.removeprefix('prompt adherence ')}.")
     table = "\n\n".join(tables)
     out_dir = Path(cfg.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -43,6 +43,7 @@ def _write_sample(
     info = write_bvh(joints, folder / "motion.bvh", skeleton=skeleton, fps=skeleton.fps)
     meta = {
         **meta,
+        "caption": caption,  # the GIF's; `mmm render` of the sample's .npy files shows it too
         "files": sorted(p.name for p in folder.iterdir()) + ["meta.json"],
         "mp4": mp4 is not None,
         "bvh_max_deviation_m": round(float(info.max_deviation_m), 6),

@@ -27,6 +27,7 @@ coordinates are millimetres and are scaled to metres (`Skeleton.unit_scale`).
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import math
 import os
@@ -923,6 +924,26 @@ class EncoderNotFound(ValueError):
     """An MP4 was asked for but no ffmpeg executable is installed."""
 
 
+def default_captions(paths: Sequence[Path]) -> list[str]:
+    """A caption per motion file when none are given: the `caption` of a `meta.json` beside it
+    (what `mmm generate`, `edit` and `generate-long` captioned the sample with), else the file
+    name without `.npy`, with its folder when names repeat (`0/joints`, `1/joints`)."""
+    stems = [p.stem for p in paths]
+    captions = []
+    for path, stem in zip(paths, stems):
+        meta = path.parent / "meta.json"
+        caption = None
+        if meta.is_file():
+            try:
+                caption = json.loads(meta.read_text()).get("caption")
+            except (ValueError, OSError, AttributeError) as e:  # someone else's meta.json: only a caption
+                log.debug("%s: no caption read (%s)", meta, e)
+        if not isinstance(caption, str) or not caption.strip():
+            caption = f"{path.parent.name}/{stem}" if stems.count(stem) > 1 and path.parent.name else stem
+        captions.append(caption)
+    return captions
+
+
 def render_files(
     paths: Sequence[str | Path], out_path, captions=None, fps: float | None = None
 ) -> list[Path]:
@@ -930,7 +951,7 @@ def render_files(
 
     The output type follows the suffix: `.gif`, `.mp4` (raises `EncoderNotFound`, a ValueError,
     when no encoder is installed) or `.png` (a `render_frames` contact sheet). Captions default to
-    the file names; fps to the first motion's skeleton fps. Bad input raises ValueError naming the
+    `default_captions`; fps to the first motion's skeleton fps. Bad input raises ValueError naming the
     file, the offending value and the expected shapes.
     """
     if isinstance(paths, (str, Path)):
@@ -951,7 +972,7 @@ def render_files(
     if blocking is not None:
         raise ValueError(f"cannot write {out_path}: {blocking} is a file, not a folder; choose another path")
     if captions is None:
-        captions = [p.stem for p in paths]
+        captions = default_captions(paths)
     arrays = [load_motion_file(p) for p in paths]
     names = [str(p) for p in paths]
     loaded = [as_joints(a, n) for a, n in zip(arrays, names)]  # validate all before rendering
