@@ -80,7 +80,8 @@ def add_generate(sub) -> None:
         "--length",
         type=int,
         default=None,
-        help="frames (40-196 at 20 fps); estimated from the text when left out",
+        help="frames (HumanML3D models: 40-196 at 20 fps; KIT-ML: 24-196 at 12.5 fps); estimated from the "
+        "text when left out",
     )
     gen.add_argument("--num-samples", type=int, default=1)
     gen.add_argument(
