@@ -20,7 +20,9 @@ LENGTH_LIMIT = 200  # data.length_limit of every conf/data/*.yaml
 def add_convert(sub) -> None:
     convert = sub.add_parser("convert", help="joint positions <-> 263-d features")
     convert.add_argument("direction", choices=["joints-to-features", "features-to-joints"])
-    convert.add_argument("input", help="(T, 22, 3) joints or (T, 263) features .npy")
+    convert.add_argument(
+        "input", help="(T, 22, 3) joints or (T, 263) features .npy (KIT-ML: (T, 21, 3) or (T, 251))"
+    )
     convert.add_argument("output", help=".npy to write")
     convert.add_argument("--no-retarget", action="store_true", help="keep the motion's own bone lengths")
     convert.add_argument("--overwrite", action="store_true", help="replace an existing output file")
@@ -99,7 +101,9 @@ def add_data(sub) -> None:
 
 def add_render(sub) -> None:
     render = sub.add_parser("render", help="stick-figure GIF/MP4/PNG of motions side by side")
-    render.add_argument("inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263)")
+    render.add_argument(
+        "inputs", nargs="+", help=".npy files of joints (T, 22, 3) or features (T, 263); KIT-ML: 21 and 251"
+    )
     render.add_argument("--out", required=True, help="FILE.gif, FILE.mp4 or FILE.png (contact sheet)")
     render.add_argument(
         "--caption",
