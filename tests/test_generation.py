@@ -297,6 +297,23 @@ PARAGRAPHS = [
         "someone slowly walks forward, then back. Lastly, she waves.",
         ["someone slowly walks forward", "someone walks back", "someone waves"],
     ),
+    # "and" before a sequencer, a verb with a comma after it, "before" with a gerund
+    (
+        "He walks to the left and afterwards he jumps, before sitting down.",
+        ["a person walks to the left", "a person jumps", "a person sits down"],
+    ),
+    # an action noun is its verb, another noun phrase is done; gerunds of every spelling
+    (
+        "a person squats, followed by a kick with the left leg and then a cartwheel",
+        ["a person squats", "a person kicks with the left leg", "a person does a cartwheel"],
+    ),
+    (
+        "The woman waves, followed by jumping. Then raising the arms, before lunging",
+        ["the woman waves", "the woman jumps", "the woman raises the arms", "the woman lunges"],
+    ),
+    # "before" splits only where an action follows
+    ("a person walks as before", ["a person walks as before"]),
+    ("a man stands before a wall, then he kicks", ["a man stands before a wall", "a man kicks"]),
 ]
 
 
