@@ -317,6 +317,21 @@ PARAGRAPHS = [
 ]
 
 
+def test_paragraph_gerunds_become_third_person_verbs():
+    from mmm.generation.prompts import _third_person
+
+    gerunds = (
+        "sitting running jogging walking rolling kissing waving dancing circling shuffling raising "
+        "pausing making rotating opening entering bowing swinging kneeling lunging tiptoeing crossing"
+    )
+    verbs = (
+        "sits runs jogs walks rolls kisses waves dances circles shuffles raises pauses makes rotates "
+        "opens enters bows swings kneels lunges tiptoes crosses"
+    )
+    assert [_third_person(g) for g in gerunds.split()] == verbs.split()
+    assert _third_person("jump,") == "jumps," and _third_person("are") == "is"
+
+
 def test_paragraph_splitter():
     for paragraph, prompts in PARAGRAPHS:
         assert split_paragraph(paragraph) == prompts

@@ -92,13 +92,18 @@ def _base_of_gerund(word: str) -> str:
     base = word[:-3]
     if len(base) >= 3 and base[-1] == base[-2] and base[-1] not in _VOWELS + "lsz":
         return base[:-1]  # sitting, running, stepping, jogging (not rolling, kissing, buzzing)
-    if base.endswith(("v", "c")) or (len(base) >= 3 and base[-1] in "ls" and base[-2] not in _VOWELS + "ls"):
-        return base + "e"  # waving, dancing, circling, shuffling
-    if (len(base) >= 3 and base[-1] == "s" and base[-2] in _VOWELS) or base.endswith("ung"):
-        return base + "e"  # raising, closing, pausing, lunging
-    cvc = base[-1:] not in _VOWELS + "wxy" and base[-2:-1] in tuple(_VOWELS) and base[-3:-2] not in _VOWELS
-    if len(base) >= 3 and cvc and len(base) <= 5 and not base.endswith(("er", "en", "on", "it", "el")):
-        return base + "e"  # making, rotating (not opening, visiting, entering)
+    if base.endswith(("v", "c", "ung")) or (base[-1:] == "s" and base[-2:-1] != "s"):
+        return base + "e"  # waving, dancing, lunging, raising, pausing (not crossing)
+    if len(base) >= 3 and base[-1] == "l" and base[-2] not in _VOWELS + "l":
+        return base + "e"  # circling, shuffling (not rolling, kneeling)
+    if (
+        3 <= len(base) <= 5
+        and base[-1] not in _VOWELS + "wxy"
+        and base[-2] in _VOWELS
+        and base[-3] not in _VOWELS
+        and not base.endswith(("er", "en", "on", "it", "el"))
+    ):
+        return base + "e"  # making, rotating, gliding (not opening, visiting, entering)
     return base
 
 
