@@ -143,3 +143,15 @@ def test_data_check_reports_every_split_and_names_each_unusable_one(tmp_path, ca
     assert error.startswith("error: 2 of 3 splits cannot be used: val: ")
     assert "no usable items in split 'val'" in error and "split file lists no ids" in error
     assert f"{tmp_path / 'val.txt'}" in error and f"{tmp_path / 'test.txt'}" in error
+
+
+def test_models_alone_lists_and_takes_the_store_before_or_after_list(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    for args in (["models"], ["models", "list"]):
+        assert main(args) == 2
+        assert f"no MLflow store at {tmp_path / 'mlflow.db'}" in capsys.readouterr().err
+    store = tmp_path / "elsewhere.db"
+    uri = ["--tracking-uri", str(store)]
+    for args in (["models", *uri, "list"], ["models", "list", *uri]):
+        assert main(args) == 2
+        assert f"no MLflow store at {store}" in capsys.readouterr().err

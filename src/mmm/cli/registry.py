@@ -105,11 +105,13 @@ def add_dashboard(sub) -> None:
 
 
 def add_models(sub) -> None:
-    models = sub.add_parser("models", help="registered models")
-    models = models.add_subparsers(dest="models_command", required=True)
-    listing = models.add_parser("list", help="versions, aliases and metrics of the registered models")
-    listing.add_argument("--tracking-uri", default=DEFAULT_TRACKING_URI)
-    listing.set_defaults(func=cmd_models)
+    models = sub.add_parser("models", help="registered models (`mmm models` is `mmm models list`)")
+    models.add_argument("--tracking-uri", default=DEFAULT_TRACKING_URI)
+    models.set_defaults(func=cmd_models)
+    commands = models.add_subparsers(dest="models_command")
+    listing = commands.add_parser("list", help="versions, aliases and metrics of the registered models")
+    # SUPPRESS: a --tracking-uri given before `list` is not reset to the default by the subcommand
+    listing.add_argument("--tracking-uri", default=argparse.SUPPRESS)
 
 
 def cmd_promote(args: argparse.Namespace) -> None:
