@@ -15,14 +15,13 @@ import lightning as L
 import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
+from two_ranks import two_process_trainer  # beside this script (its folder is on sys.path)
 
 from mmm.data.resumable import ResumableDataLoader
 from mmm.evaluation.contrastive import ContrastiveModelConfig
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule
 from mmm.generation.length import LengthModelConfig
 from mmm.generation.length_module import LengthEstimatorModule
-from mmm.training.common import build_strategy
-from mmm.training.configs import TrainerConfig
 from mmm.training.optim import OptimConfig
 
 D, T, DS, DW, WORDS = 12, 24, 16, 8, 5
@@ -107,19 +106,12 @@ def main(out_dir, kind):
     else:
         model = LengthModelConfig(hidden_dim=16, dropout=0.0, max_codes=12, pooling="words")
         module = LengthEstimatorModule(DS, model, optim, word_dim=DW)
-    trainer = L.Trainer(
-        accelerator="cpu",
-        devices=2,
-        strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
-        max_steps=12,
+    trainer = two_process_trainer(
+        12,
+        [SaveRankState(out_dir, kind)],
         val_check_interval=12,
         check_val_every_n_epoch=None,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        use_distributed_sampler=False,
         num_sanity_val_steps=0,
-        callbacks=[SaveRankState(out_dir, kind)],
     )
     trainer.fit(
         module,

@@ -13,13 +13,12 @@ import sys
 
 import lightning as L
 import torch
+from two_ranks import two_process_trainer  # beside this script (its folder is on sys.path)
 
 from mmm.callbacks.codebook import CodebookReset, CollapseMonitor
 from mmm.data.datamodule import DataConfig, TokenizerDataModule
 from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.common import build_strategy
-from mmm.training.configs import TrainerConfig
 from mmm.training.optim import OptimConfig
 
 
@@ -87,18 +86,8 @@ def main(data_root, out_dir, parts=False, refine=False):
         perplexity_drop=0.0,
         patience=1,
     )
-    trainer = L.Trainer(
-        accelerator="cpu",
-        devices=2,
-        strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
-        max_steps=40,
-        limit_val_batches=0,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        use_distributed_sampler=False,
-        callbacks=[CodebookReset(3), monitor, SaveRankState(out_dir)],
-    )
+    callbacks = [CodebookReset(3), monitor, SaveRankState(out_dir)]
+    trainer = two_process_trainer(40, callbacks, limit_val_batches=0)
     trainer.fit(module, datamodule=dm)
 
 

@@ -14,11 +14,10 @@ import sys
 import lightning as L
 import torch
 from torch.utils.data import Dataset
+from two_ranks import two_process_trainer  # beside this script (its folder is on sys.path)
 
 from mmm.callbacks.adherence import AdherenceCurve
 from mmm.data.resumable import ResumableDataLoader
-from mmm.training.common import build_strategy
-from mmm.training.configs import TrainerConfig
 from mmm.training.optim import OptimConfig
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
 from mmm.transformer.network import TransformerConfig
@@ -115,19 +114,12 @@ def main(out_dir, parts=False):
         word_dim=16,
         condition_codebook=torch.randn(K, 4) if parts else None,
     )
-    trainer = L.Trainer(
-        accelerator="cpu",
-        devices=2,
-        strategy=build_strategy(TrainerConfig(strategy="ddp", process_group_backend="gloo")),
-        max_steps=15,
+    trainer = two_process_trainer(
+        15,
+        [curve := RankAdherence(), SaveRankState(out_dir, curve)],
         val_check_interval=15,
         check_val_every_n_epoch=None,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        use_distributed_sampler=False,
         num_sanity_val_steps=0,
-        callbacks=[curve := RankAdherence(), SaveRankState(out_dir, curve)],
     )
     trainer.fit(
         module,
