@@ -2,30 +2,17 @@
 ranks train on different batches, end with the same weights, and hold the whole validation set's
 metrics, so both choose the same best checkpoint."""
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
-WORKER = Path(__file__).parent / "ddp_workers" / "evaluator_length_ddp.py"
+from tests.helpers import run_ddp_worker
 
 
 @pytest.mark.slow
 @pytest.mark.ddp
 @pytest.mark.parametrize("kind", ["evaluator", "length"])
 def test_ddp_ranks_agree_and_validate_on_the_whole_set(tmp_path, kind):
-    result = subprocess.run(
-        [sys.executable, str(WORKER), str(tmp_path), kind],
-        capture_output=True,
-        text=True,
-        timeout=180,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    r0, r1 = run_ddp_worker("evaluator_length_ddp.py", tmp_path, kind, out_dir=tmp_path)
     assert not torch.equal(r0["first_batch"], r1["first_batch"])  # each rank its own shard
     assert torch.equal(r0["weights"], r1["weights"])
     assert r0["step"] == r1["step"] == 12

@@ -1,7 +1,4 @@
 import math
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -22,7 +19,7 @@ from mmm.evaluation.metrics import (
     multimodality,
     r_precision_hits,
 )
-from tests.conftest import TESTS
+from tests.helpers import run_ddp_worker
 
 # Four texts and four motions in 2-D. Squared distances (rows: texts, columns: motions):
 #   t0 (0,0): m0 1,  m1 25, m2 13, m3 20 -> own motion m0 is the 1st nearest
@@ -379,15 +376,7 @@ def test_metric_states_reduce_by_sum_or_cat():
 @pytest.mark.slow
 @pytest.mark.ddp
 def test_metrics_synchronize_across_two_processes(tmp_path):
-    result = subprocess.run(
-        [sys.executable, str(TESTS / "ddp_workers/metrics_ddp.py"), str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    r0, r1 = run_ddp_worker("metrics_ddp.py", tmp_path, out_dir=tmp_path, timeout=120)
     data = torch.load(tmp_path / "data.pt", weights_only=True)
     assert (r0["local_count"].item(), r1["local_count"].item()) == (192, 128)  # each rank saw only its part
     for key in ("top1", "top2", "top3", "matching_score", "fid", "diversity", "multimodality"):

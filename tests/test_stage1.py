@@ -2,9 +2,6 @@
 
 import contextlib
 import logging
-import os
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -24,8 +21,7 @@ from mmm.tokenizer.quantizer import EMAQuantizer
 from mmm.training.common import LIGHTNING_ADVERT, LIGHTNING_NOISE_WARNINGS, quiet_lightning
 from mmm.training.optim import OptimConfig, cosine_tail, warmup_step_schedule
 from mmm.training.stage1 import load_stage1_config, train_stage1
-
-TESTS = Path(__file__).resolve().parent
+from tests.helpers import run_ddp_worker
 
 
 def test_quantizer_initializes_from_latents_and_quantizes_to_nearest():
@@ -447,21 +443,8 @@ def test_resetting_every_iteration_churns_the_codebook():
 @pytest.mark.ddp
 @pytest.mark.parametrize("variant", ["whole", "parts"])
 def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_path, variant):
-    result = subprocess.run(
-        [
-            sys.executable,
-            str(TESTS / "ddp_workers/stage1_ddp.py"),
-            str(walker_dataset),
-            str(tmp_path),
-            *(["parts"] if variant == "parts" else []),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=180,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    extra = ["parts"] if variant == "parts" else []
+    r0, r1 = run_ddp_worker("stage1_ddp.py", walker_dataset, tmp_path, *extra, out_dir=tmp_path)
     assert r0["first_batch_sum"] != r1["first_batch_sum"]  # the ranks trained on different data
     assert r0["codebooks"] == (2 if variant == "parts" else 1)
     for key in ("codebook", "ema_sum", "ema_count", "window_usage", "weights"):
@@ -474,16 +457,7 @@ def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_pa
 @pytest.mark.slow
 @pytest.mark.ddp
 def test_ddp_decoder_refinement_freezes_the_same_codebook_on_both_ranks(walker_dataset, tmp_path):
-    result = subprocess.run(
-        [sys.executable, str(TESTS / "ddp_workers/stage1_ddp.py"), str(walker_dataset), str(tmp_path)]
-        + ["refine"],
-        capture_output=True,
-        text=True,
-        timeout=180,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    r0, r1 = run_ddp_worker("stage1_ddp.py", walker_dataset, tmp_path, "refine", out_dir=tmp_path)
     start = torch.load(tmp_path / "rank0-refine-start.pt", weights_only=True)
     assert r0["global_step"] == r1["global_step"] == 40
     assert r0["at_start"] and r1["at_start"]  # both ranks switched to clip-start windows

@@ -1,9 +1,6 @@
 """Stage 2: the masked transformer, its corruption and loss, token caching, DDP, end-to-end training."""
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +17,8 @@ from mmm.tokenizer.network import TokenizerConfig
 from mmm.training.optim import OptimConfig
 from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt, sequence_mean
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
-from tests.helpers import stage2_overrides, train_tiny_stage1
+from tests.helpers import run_ddp_worker, stage2_overrides, train_tiny_stage1
 
-TESTS = Path(__file__).resolve().parent
 K = 16
 
 
@@ -300,20 +296,8 @@ def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):
 @pytest.mark.ddp
 @pytest.mark.parametrize("variant", ["whole", "parts"])
 def test_ddp_ranks_agree(tmp_path, variant):
-    result = subprocess.run(
-        [
-            sys.executable,
-            str(TESTS / "ddp_workers/stage2_ddp.py"),
-            str(tmp_path),
-            *(["parts"] if variant == "parts" else []),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=180,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    extra = ["parts"] if variant == "parts" else []
+    r0, r1 = run_ddp_worker("stage2_ddp.py", tmp_path, *extra, out_dir=tmp_path)
     assert not torch.equal(r0["first_batch"], r1["first_batch"])  # different data per rank
     assert torch.equal(r0["weights"], r1["weights"])
     assert r0["step"] == r1["step"] == 15

@@ -245,3 +245,23 @@ def newest_parent(client):
         "tags.`mmm.pipeline` = 'full' and attributes.run_name LIKE 'pipeline-%'",
         order_by=["attributes.start_time DESC"],
     )[0]
+
+
+def run_ddp_worker(script: str, *args, out_dir, timeout: int = 180) -> tuple[dict, dict]:
+    """Run tests/ddp_workers/<script> with `args` (2 processes over gloo), check that it succeeded,
+    and return the states its ranks saved as <out_dir>/rank0.pt and rank1.pt."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    worker = Path(__file__).resolve().parents[1] / "ddp_workers" / script
+    result = subprocess.run(
+        [sys.executable, str(worker), *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return tuple(torch.load(Path(out_dir) / f"rank{r}.pt", weights_only=True) for r in (0, 1))

@@ -201,7 +201,7 @@ def evaluate(cfg_node: DictConfig) -> dict:
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     run = _EvaluationRun(cfg, tracking_uri) if cfg.logger.enabled else None
     try:
-        results = _evaluate(cfg, tracking_uri, run)
+        results = _evaluate(cfg, tracking_uri, run, unmeasurable)
         if run is not None:
             run.finish(results, Path(cfg.output_dir))
     except BaseException as error:
@@ -223,7 +223,10 @@ def adherence_unmeasurable(cfg: EvaluateConfig) -> str | None:
     )
 
 
-def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | None") -> dict:
+def _evaluate(
+    cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | None", unmeasurable: str | None
+) -> dict:
+    """The evaluation; `unmeasurable`: why prompt adherence cannot be measured (adherence_unmeasurable)."""
     editing = cfg.task != "text2motion"
     check_candidates(cfg.adherence_candidates, "adherence_candidates")
     # parts=True: with no model named, upper-body edits default to the part-aware champion.
@@ -255,7 +258,6 @@ def _evaluate(cfg: EvaluateConfig, tracking_uri: str, run: "_EvaluationRun | Non
     }
     if run is not None:
         run.started(results, root)
-    unmeasurable = adherence_unmeasurable(cfg)
     if unmeasurable:
         log.warning("%s", unmeasurable)
         results["adherence_not_measured"] = unmeasurable
