@@ -314,6 +314,45 @@ PARAGRAPHS = [
     # "before" splits only where an action follows
     ("a person walks as before", ["a person walks as before"]),
     ("a man stands before a wall, then he kicks", ["a man stands before a wall", "a man kicks"]),
+    # clauses of time put in the order the actions happen; one without an action is dropped
+    (
+        "The man jumps after walking forward. Before sitting down, he waves.",
+        ["the man walks forward", "the man jumps", "the man waves", "the man sits down"],
+    ),
+    (
+        "After he turns left he runs; once done, they sit. When ready, she kicks",
+        ["a person turns left", "a person runs", "a person sits", "a person kicks"],
+    ),
+    ("He jumps. Before that, he walks in a circle.", ["a person walks in a circle", "a person jumps"]),
+    ("a woman squats, before that she waves", ["a woman waves", "a woman squats"]),
+    ("someone runs after the ball", ["someone runs after the ball"]),
+    # lists of verb phrases, one prompt each; a lone "and" and a participle stay with their action
+    (
+        "Walk forward three steps, turn around and walk back.",
+        ["a person walks forward three steps", "a person turns around", "a person walks back"],
+    ),
+    (
+        "A human stumbles, falls, and gets up, then walks forward, swinging the arms",
+        ["a human stumbles", "a human falls", "a human gets up", "a human walks forward, swinging the arms"],
+    ),
+    (
+        "they turn and slowly walk away and he sits down",
+        ["a person turns and slowly walks away", "a person sits down"],
+    ),
+    # order words, "starts by", possessives, other subjects, counts
+    (
+        "First he walks, second he starts by raising his left arm, then his right arm; he ends by a bow",
+        [
+            "a person walks",
+            "a person raises his left arm",
+            "a person raises his right arm",
+            "a person bows",
+        ],
+    ),
+    (
+        "person kicks with left leg then two steps forward",
+        ["person kicks with left leg", "person does two steps forward"],
+    ),
 ]
 
 
@@ -330,6 +369,15 @@ def test_paragraph_gerunds_become_third_person_verbs():
     )
     assert [_third_person(g) for g in gerunds.split()] == verbs.split()
     assert _third_person("jump,") == "jumps," and _third_person("are") == "is"
+
+
+def test_paragraph_tells_motion_verbs_in_any_form_from_other_words():
+    from mmm.generation.prompts import _motion_verb
+
+    forms = {"walks": "walk", "punches": "punch", "carries": "carry", "goes": "go", "waving": "wave"}
+    assert {w: _motion_verb(w) for w in forms} == forms
+    assert _motion_verb("Sitting,") == "sit"
+    assert [_motion_verb(w) for w in ("arms", "done", "while", "ball", "slowly")] == [None] * 5
 
 
 def test_paragraph_splitter():
@@ -504,7 +552,7 @@ def test_cli_edit_and_long(trained, tmp_path, capsys):
             [
                 "generate-long",
                 "--paragraph",
-                "A person walks forward, then jumps and finally waves.",
+                "A person jumps after walking forward, and finally waves.",
                 "--lengths",
                 "60",
                 "--model",
@@ -520,6 +568,13 @@ def test_cli_edit_and_long(trained, tmp_path, capsys):
     meta = json.loads((long / "0/meta.json").read_text())
     assert meta["prompts"] == ["a person walks forward", "a person jumps", "a person waves"]
     assert np.load(long / "0/features.npy").shape == (60 * 3 + 2 * 8, 263)
+    # the split is printed, each prompt with the frames it got
+    listed = [line.strip() for line in capsys.readouterr().out.splitlines() if line.startswith("  ")]
+    assert listed == [
+        f"{i}. {text} (frames {start}-{end})"
+        for i, (text, (start, end)) in enumerate(zip(meta["prompts"], meta["segments_frames"]), 1)
+    ]
+    assert meta["segments_frames"][0][0] == 0 and meta["segments_frames"][-1][1] == 60 * 3 + 2 * 8
 
 
 @pytest.mark.slow

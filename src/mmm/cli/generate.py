@@ -424,4 +424,6 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
         print(f"wrote {folder}")
     seconds = out.seconds["total"]
     prompts = f"{len(texts)} prompt" + ("s" if len(texts) != 1 else "")
-    print(f"{prompts}, {frames} frames ({frames / model.fps:.1f} s) in {seconds:.2f} s")
+    print(f"{prompts}, {frames} frames ({frames / model.fps:.1f} s) in {seconds:.2f} s:")
+    for i, (text, (start, end)) in enumerate(zip(texts, out.segments), 1):
+        print(f"  {i}. {text} (frames {start}-{end})")
