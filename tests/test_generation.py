@@ -350,6 +350,10 @@ PARAGRAPHS = [
         ],
     ),
     (
+        "The person lifts the left knee, then the right knee, followed by a hop",
+        ["the person lifts the left knee", "the person lifts the right knee", "the person hops"],
+    ),
+    (
         "person kicks with left leg then two steps forward",
         ["person kicks with left leg", "person does two steps forward"],
     ),

@@ -23,8 +23,9 @@ Rules, sentence by sentence (. ! ? ;):
   missing one or of "they"/"he"/"she", with its verbs in the third person ("sitting down" and "sit
   down" both give "sits down", "turn and walk back" gives "turns and walks back"); an action noun
   becomes its verb ("followed by a jump" -> "jumps"), another noun phrase is done ("does a
-  cartwheel"); a fragment that starts with a direction ("... walks up the stairs then down the
-  stairs") repeats the verb before it.
+  cartwheel"); a fragment that starts with a direction, a possessive or a side ("... walks up the
+  stairs then down the stairs", "lifts the left knee, then the right knee") repeats the verb before
+  it.
 """
 
 from __future__ import annotations
@@ -79,14 +80,15 @@ _LEADING_CLAUSE = (
 )
 # "Before that" puts what follows before what came ahead of it (in the sentence, or the one before).
 _BEFORE_THAT = re.compile(r"(?:^|,?\s+)before (?:that|this|then)\b[\s,]*", re.IGNORECASE)
-# A fragment starting with one of these (or a possessive) has no verb of its own: "... then down
-# the stairs".
+# A fragment starting with one of these (or a possessive, or a side) has no verb of its own: "...
+# then down the stairs".
 _DIRECTIONS = {
     "up", "down", "back", "backward", "backwards", "forward", "forwards", "left", "right", "around",
     "away", "across", "along", "over", "into", "onto", "to", "toward", "towards", "sideways", "in",
     "out",
 }  # fmt: skip
-_POSSESSIVES = {"his", "her", "their"}
+_POSSESSIVES = {"his", "her", "their"}  # "... raises his left arm, then his right arm"
+_SIDES = ("the left ", "the right ", "the other ", "the opposite ", "both ")  # "..., then the right knee"
 _PLURAL_VERB = {"are": "is", "do": "does", "have": "has", "go": "goes"}
 _ARTICLES = {"a", "an", "the", "one"}
 _COUNTS = {"two", "three", "four", "five", "six", "seven", "eight", "nine", "ten", "few", "several", "some"}
@@ -297,7 +299,7 @@ def split_paragraph(paragraph: str, default_subject: str = "a person") -> list[s
                 text = f"{subject} {_predicate(words)}"
             elif words != rest.split():  # "the man starts by walking" -> "the man walks"
                 text = f"{found} {_predicate(words)}"
-        elif text.split(" ")[0] in _DIRECTIONS | _POSSESSIVES:  # "..., then his right arm"
+        elif text.split(" ")[0] in _DIRECTIONS | _POSSESSIVES or text.startswith(_SIDES):
             text = f"{subject} {last_verb} {text}"
         else:
             text = f"{subject} {_predicate(text.split(' '))}"
