@@ -31,6 +31,40 @@ def test_convert_features_to_joints_and_back(reference_dir, tmp_path):
     assert np.load(joints_out).shape == (169, 263)
 
 
+def test_convert_reads_other_byte_orders_and_takes_out_like_the_other_commands(
+    reference_dir, tmp_path, capsys
+):
+    """Files written on other machines (big-endian float32, float64, Fortran order) convert to the
+    same result; the output may be given as --out, once."""
+    joints = np.load(reference_dir / "humanml3d/new_joints/012314.npy")
+    expected = tmp_path / "expected.npy"
+    assert (
+        main(
+            [
+                "convert",
+                "joints-to-features",
+                str(reference_dir / "humanml3d/new_joints/012314.npy"),
+                str(expected),
+            ]
+        )
+        == 0
+    )
+    for name, array in {
+        "big_endian": joints.astype(">f4"),
+        "float64": joints.astype(np.float64),
+        "fortran": np.asfortranarray(joints),
+    }.items():
+        source, out = tmp_path / f"{name}.npy", tmp_path / f"{name}_features.npy"
+        np.save(source, array)
+        assert main(["convert", "joints-to-features", str(source), "--out", str(out)]) == 0
+        assert np.array_equal(np.load(out), np.load(expected)), name
+    capsys.readouterr()
+    for outputs in ([], [str(tmp_path / "a.npy"), "--out", str(tmp_path / "b.npy")]):
+        assert main(["convert", "joints-to-features", str(source), *outputs]) == 2
+        assert "give the .npy to write once" in capsys.readouterr().err
+    assert not (tmp_path / "a.npy").exists() and not (tmp_path / "b.npy").exists()
+
+
 @pytest.mark.parametrize(
     "direction, array, message",
     [

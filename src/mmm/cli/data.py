@@ -23,7 +23,8 @@ def add_convert(sub) -> None:
     convert.add_argument(
         "input", help="(T, 22, 3) joints or (T, 263) features .npy (KIT-ML: (T, 21, 3) or (T, 251))"
     )
-    convert.add_argument("output", help=".npy to write")
+    convert.add_argument("output", nargs="?", help=".npy to write (or give it as --out)")
+    convert.add_argument("--out", default=None, help="the .npy to write, as the other commands take it")
     convert.add_argument("--no-retarget", action="store_true", help="keep the motion's own bone lengths")
     convert.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     convert.set_defaults(func=cmd_convert)
@@ -120,6 +121,12 @@ def cmd_convert(args: argparse.Namespace) -> None:
     from mmm.motion.features import joints_to_features, recover_from_ric
     from mmm.motion.skeleton import skeleton_for
 
+    if (args.output is None) == (args.out is None):
+        raise CLIError(
+            "give the .npy to write once: `mmm convert DIRECTION IN.npy OUT.npy` or "
+            "`mmm convert DIRECTION IN.npy --out OUT.npy`"
+        )
+    args.output = args.output or args.out
     refuse_existing(args.output, args.overwrite, "output path")
     arr = load_npy(args.input)
     if not np.isfinite(arr).all():
