@@ -326,6 +326,7 @@ PARAGRAPHS = [
     ("He jumps. Before that, he walks in a circle.", ["a person walks in a circle", "a person jumps"]),
     ("a woman squats, before that she waves", ["a woman waves", "a woman squats"]),
     ("someone runs after the ball", ["someone runs after the ball"]),
+    ("a person walks to the left and , , then jumps", ["a person walks to the left", "a person jumps"]),
     # lists of verb phrases, one prompt each; a lone "and" and a participle stay with their action
     (
         "Walk forward three steps, turn around and walk back.",

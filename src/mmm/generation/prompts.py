@@ -262,7 +262,7 @@ def _fragments(paragraph: str) -> list[str]:
 
 def _clean(fragment: str) -> str:
     text = re.sub(r"\s+", " ", fragment).strip().lower()
-    return _TRAILING.sub("", _FILLER.sub("", text)).strip(" ,")
+    return _TRAILING.sub("", _FILLER.sub("", text).rstrip(" ,")).strip(" ,")
 
 
 def _subject_of(text: str) -> str | None:
