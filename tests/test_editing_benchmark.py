@@ -274,6 +274,39 @@ def parts_model(parts_trained):
 
 
 @pytest.mark.slow
+def test_samples_render_each_task_beside_the_real_motions(
+    model, parts_model, walker_items, trained, tmp_path
+):
+    """`mmm evaluate`'s samples: two walker clips, each real motion above what the task made of it."""
+    from PIL import Image
+
+    from mmm.evaluation.samples import render_samples, spread
+
+    frames = max(min(i.length, 196) // 4 * 4 for i in spread(walker_items, 2))
+    for task, which in (("text2motion", model), ("inbetween", model), ("upper-body", parts_model)):
+        files = render_samples(
+            which, task, walker_items, trained["walker"], tmp_path / task, 2, EditingConfig()
+        )
+        assert [f.name for f in files] == ["samples.gif", "samples.png"], task
+        with Image.open(files[0]) as gif:
+            assert (gif.width, gif.n_frames) == (2 * 240, frames), task
+        with Image.open(files[1]) as sheet:
+            assert sheet.size == (6 * 200, 4 * 200), task
+    # none asked for, or a task whose motions `mmm generate-long` renders: nothing written
+    assert (
+        render_samples(
+            model, "inbetween", walker_items, trained["walker"], tmp_path / "none", 0, EditingConfig()
+        )
+        == []
+    )
+    assert (
+        render_samples(model, "long", walker_items, trained["walker"], tmp_path / "long", 2, EditingConfig())
+        == []
+    )
+    assert not (tmp_path / "none").exists() and not (tmp_path / "long").exists()
+
+
+@pytest.mark.slow
 def test_upper_body_task_sweeps_the_lower_mask(parts_model, walker_items, trained, tmp_path):
     mean, std = load_stats(trained["walker"], 263)
     cfg = EditingConfig(lower_mask=0.5, lower_masks=[1.0])

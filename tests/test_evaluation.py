@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 import torch
 from mlflow.tracking import MlflowClient
+from PIL import Image
 
 from mmm.data.humanml3d import load_items, load_stats
 from mmm.evaluation.adherence import item_parts, prompt_adherence
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, interval, results_table
+from mmm.evaluation.samples import spread
 from mmm.generation.model import Generated
 
 
@@ -161,6 +163,31 @@ def test_prompt_adherence_separates_an_oracle_from_a_model_that_stands_still(syn
     )  # standing still does satisfy "stand"
 
 
+def test_samples_say_whether_a_motion_follows_its_caption_and_which_condition_fails(synthetic_small):
+    from mmm.evaluation.samples import _verdict
+    from mmm.motion.features import recover_from_ric
+
+    items, _ = load_items(synthetic_small, "train", feature_dim=263, fps=20, min_length=40)
+    labels = {
+        i.motion_id: json.loads((synthetic_small / "labels" / f"{i.motion_id}.json").read_text())
+        for i in items
+    }
+    jump = next(i for i in items if [p["action"] for p in item_parts(i, labels[i.motion_id])] == ["jump"])
+    stand = next(i for i in items if [p["action"] for p in item_parts(i, labels[i.motion_id])] == ["stand"])
+    parts = item_parts(jump, labels[jump.motion_id])
+    assert _verdict(recover_from_ric(jump.features), parts) == "follows it"
+    still = recover_from_ric(np.resize(stand.features, (jump.length, 263)))
+    verdict = _verdict(still, parts)
+    assert verdict.startswith("does not follow it: jump ") and ", needs " in verdict
+    # evenly over the split, the first included; mirrored copies only when there is nothing else
+    originals = [i for i in items if not i.motion_id.startswith("M")]
+    mirrors = [i for i in items if i.motion_id.startswith("M")]
+    n = len(originals)
+    assert mirrors and spread(items, 3) == [originals[0], originals[n // 3], originals[2 * n // 3]]
+    assert spread(mirrors, 2) == [mirrors[0], mirrors[len(mirrors) // 2]]
+    assert spread(items, 10_000) == originals
+
+
 @pytest.mark.slow
 def test_adherence_reports_strict_and_order_aware_figures_per_group(synthetic_small):
     items, _ = load_items(synthetic_small, "train", feature_dim=263, fps=20, min_length=40)
@@ -272,6 +299,19 @@ def test_mmm_evaluate_logs_the_table_to_mlflow(trained, own_evaluator, tmp_path)
         run.data.tags["evaluator"].startswith("contrastive-") and len(run.data.tags["data.fingerprint"]) == 16
     )
     assert {f.path for f in client.list_artifacts(results["run_id"])} >= {"evaluation.md", "evaluation.json"}
+    # Four captions of the split rendered, each real motion above the model's, in the run's samples/.
+    assert {f.path for f in client.list_artifacts(results["run_id"], "samples")} == {
+        "samples/samples.gif",
+        "samples/samples.png",
+    }
+    items, _ = load_items(trained["walker"], "train", feature_dim=263, fps=20, min_length=40)
+    shown = spread(items, 4)
+    assert len(shown) == 4 and len({i.motion_id for i in shown}) == 4
+    with Image.open(tmp_path / "eval/samples.gif") as gif:
+        assert gif.n_frames == max(min(i.length, 196) // 4 * 4 for i in shown)
+        assert gif.width == 4 * 240
+    with Image.open(tmp_path / "eval/samples.png") as sheet:
+        assert sheet.size == (6 * 200, 8 * 200)  # six frames a row, a real and a generated row each
     table = (tmp_path / "eval/evaluation.md").read_text()
     assert "| Generated |" in table
     # The walker dataset has no labels: adherence, asked for by default, is said not to be measured.
@@ -286,6 +326,8 @@ def test_mmm_evaluate_logs_the_table_to_mlflow(trained, own_evaluator, tmp_path)
     only = [f"data.root={trained['walker']}", f"logger.tracking_uri={trained['uri']}", "what=[adherence]"]
     with pytest.raises(ValueError, match=r"what=\[adherence\]: prompt adherence not measured: .* no labels/"):
         evaluate(load_evaluate_config(only))
+    with pytest.raises(ValueError, match=r"samples=-1: give the number of captions to render, 0 for none"):
+        evaluate(load_evaluate_config([*only[:2], "samples=-1"]))
     assert len(client.search_runs([run.info.experiment_id])) == runs
 
 

@@ -19,6 +19,9 @@ paper's editing benchmarks, inbetween|outpaint|prefix|suffix|upper-body|long (ed
 (`edit/<task>-without-text/<metric>` for a temporal task with editing.with_text=false; the
 upper-body lower-mask sweep also as `edit/upper-body/sweep/<metric>` by step = mask in percent),
 its tables in evaluation.md/json and the sweep's plot as an artifact.
+
+Every task but `long` also renders `samples` captions of the split, each real motion above what the
+model made of it (samples.py): `samples.gif` and `samples.png` in output_dir and the run's `samples/`.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ from mmm.evaluation.editing import TASKS, EditingConfig, check_task_model, evalu
 from mmm.evaluation.evaluators import load_evaluator, load_judge
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.evaluation.samples import render_samples
 from mmm.fingerprint import dataset_fingerprint
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
@@ -98,6 +102,8 @@ class EvaluateConfig:
     adherence_by_clause: bool = True
     adherence_counterfactuals: bool = True
     output_dir: str = "outputs/evaluation"
+    # Captions of the split rendered with their real motions (samples.gif/png; samples.py); 0: none.
+    samples: int = 4
     device: str = "cpu"
     precision: str | None = None  # fp32 | bf16 | int8 decoding passes; null: the device's default
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
@@ -193,6 +199,8 @@ def evaluate(cfg_node: DictConfig) -> dict:
         raise ValueError(
             f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence"
         )
+    if cfg.samples < 0:
+        raise ValueError(f"samples={cfg.samples}: give the number of captions to render, 0 for none")
     unmeasurable = adherence_unmeasurable(cfg)
     if unmeasurable and cfg.task == "text2motion" and set(cfg.what) == {"adherence"}:
         raise ValueError(
@@ -261,6 +269,18 @@ def _evaluate(
     if unmeasurable:
         log.warning("%s", unmeasurable)
         results["adherence_not_measured"] = unmeasurable
+    samples = render_samples(
+        model,
+        cfg.task,
+        items,
+        root,
+        Path(cfg.output_dir),
+        cfg.samples,
+        cfg.editing,
+        cfg.protocol.sampling,
+        cfg.protocol.seed,
+    )
+    results["samples"] = [str(path) for path in samples]
     if editing:
         return _evaluate_editing(cfg, model, evaluator, items, root, results)
     metrics: dict[str, float] = {}
@@ -478,6 +498,8 @@ class _EvaluationRun:
         self.client.log_artifact(self.run_id, str(out_dir / "evaluation.json"))
         for path in results.get("artifacts", []):
             self.client.log_artifact(self.run_id, str(path))
+        for path in results.get("samples", []):
+            self.client.log_artifact(self.run_id, path, "samples")
         self.client.set_tag(self.run_id, DESCRIPTION_TAG, self.description(results))
         self.client.set_terminated(self.run_id, "FINISHED")
         results["run_id"] = self.run_id

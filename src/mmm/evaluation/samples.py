@@ -1,0 +1,126 @@
+"""Motions to look at beside the numbers: `mmm evaluate` renders a few captions of the split, each
+real motion above what the model made of it, as `samples.gif` (animated, real motions in the top
+row) and `samples.png` (a contact sheet, each real motion above the model's) in its output folder
+and the run's `samples/`.
+
+The captions are spread evenly over the split. text2motion generates each at its real motion's
+length; the temporal edits (inbetween, outpaint, prefix, suffix) keep the task's frames of the real
+motion and generate the rest from the caption; upper-body gives the real motion a new upper body
+from its caption. On labelled data each generated motion says whether it follows its caption (the
+order-aware check of prompt adherence) and, when not, the first condition it fails.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from mmm.data.humanml3d import MotionItem
+from mmm.data.synthetic.adherence import check_motion
+from mmm.evaluation.adherence import item_parts, ordered_pass
+from mmm.evaluation.editing import TEMPORAL_TASKS, EditingConfig, keep_ranges
+from mmm.generation.settings import SamplingConfig
+from mmm.render import render_frames, render_gif
+
+log = logging.getLogger(__name__)
+
+RENDERED_TASKS = ("text2motion", *TEMPORAL_TASKS, "upper-body")
+
+
+def spread(items: list[MotionItem], count: int) -> list[MotionItem]:
+    """`count` items evenly spaced over `items`, the first included (all of them when fewer); the
+    mirrored copies (ids `M<id>`) only when there are no others, so as not to show a clip twice."""
+    originals = [item for item in items if not item.motion_id.startswith("M")] or items
+    if count >= len(originals):
+        return list(originals)
+    return [originals[i * len(originals) // count] for i in range(count)]
+
+
+def _verdict(joints: np.ndarray, parts: list[dict]) -> str:
+    """ "follows it", or "does not follow it: <the first failed condition>" (order-aware check)."""
+    frames = len(joints)
+    if ordered_pass(joints, frames, parts):
+        return "follows it"
+    clipped = [{**p, "end": min(p["end"], frames)} for p in parts]
+    failed = check_motion(joints, clipped).failures
+    first = failed[0] if failed else None
+    why = (
+        f": {first.action} {first.name} {first.value:.2f}, needs {first.op} {first.threshold}"
+        if first
+        else ""
+    )
+    return f"does not follow it{why}"
+
+
+def _made(model, task: str, item: MotionItem, frames: int, editing: EditingConfig, sampling, seed: int):
+    """(joints (T, J, 3), what was done) for one item's first caption at `frames` frames."""
+    text = item.captions[0].text
+    if task == "text2motion":
+        out = model.generate([text], [frames], sampling, seed=seed, check_lengths=False)
+        return out.joints[0], "generated"
+    source = item.features[:frames]
+    if task == "upper-body":
+        if editing.upper_body_guidance is not None:  # as the benchmark edits
+            sampling = replace(sampling or SamplingConfig(), guidance_scale=editing.upper_body_guidance)
+        out = model.edit_upper_body(
+            source, text, editing.lower_mask, sampling=sampling, seed=seed, check_lengths=False
+        )
+        return out.joints[0], f"new upper body, {editing.lower_mask:.0%} of the legs' codes hidden"
+    kept = keep_ranges(task, frames, editing, model.unit)
+    out = model.edit(source, kept, text if editing.with_text else None, sampling=sampling, seed=seed)
+    spans = ", ".join(f"{a}-{b}" for a, b in kept)
+    return out.joints[0], f"{task}, frames {spans} kept"
+
+
+def render_samples(
+    model,
+    task: str,
+    items: list[MotionItem],
+    root: Path,
+    out_dir: Path,
+    count: int,
+    editing: EditingConfig,
+    sampling=None,
+    seed: int = 0,
+) -> list[Path]:
+    """Write out_dir/samples.gif and samples.png for `count` items (see the module); returns the
+    files written ([] when count is 0 or the task is not rendered)."""
+    if count <= 0 or not items:
+        return []
+    if task not in RENDERED_TASKS:
+        log.info("task=%s: no samples rendered (mmm generate-long renders long motions)", task)
+        return []
+    labels = root / "labels"
+    real, made, real_captions, made_captions = [], [], [], []
+    for k, item in enumerate(spread(items, count)):
+        frames = min(item.length, model.max_frames) // model.unit * model.unit
+        if frames < 3 * model.unit:
+            continue  # too short to edit or to show; the protocol keeps it
+        joints, what = _made(model, task, item, frames, editing, sampling, seed + k)
+        text = item.captions[0].text
+        label = labels / f"{item.motion_id}.json"
+        parts = item_parts(item, json.loads(label.read_text())) if label.exists() else []
+        verdict = f" - {_verdict(np.asarray(joints), parts)}" if parts else ""
+        real.append(model.to_joints(item.features[:frames]))
+        made.append(joints)
+        real_captions.append(f"real {item.name}: {text}")
+        made_captions.append(f"{what}{verdict}")
+    if not real:
+        return []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    gif = render_gif(
+        real + made,
+        out_dir / "samples.gif",
+        captions=real_captions + made_captions,
+        fps=model.fps,
+        size=(240, 240),
+        columns=len(real),
+    )
+    rows = [m for pair in zip(real, made) for m in pair]
+    captions = [c for pair in zip(real_captions, made_captions) for c in pair]
+    sheet = render_frames(rows, out_dir / "samples.png", captions, num_frames=6, size=(200, 200))
+    return [gif, sheet]
