@@ -356,6 +356,15 @@ def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
         float(r["top1"]) >= 0 for r in rows
     )
     assert (tmp_path / "abl/temperature/plot.png").stat().st_size > 5000
+    # two captions drawn at each setting, under their real motions: three rows of two panels
+    items, _ = load_items(trained["walker"], "train", feature_dim=263, fps=20, min_length=40)
+    with Image.open(tmp_path / "abl/temperature/samples.gif") as gif:
+        assert gif.width == 2 * 240 and gif.n_frames == max(
+            min(i.length, 196) // 4 * 4 for i in spread(items, 2)
+        )
+    with Image.open(tmp_path / "abl/temperature/samples.png") as sheet:
+        assert sheet.size == (6 * 200, 6 * 200)
+    assert {str(tmp_path / f"abl/temperature/samples.{e}") for e in ("gif", "png")} <= set(result["files"])
     client = MlflowClient(trained["uri"])
     experiment = client.get_experiment_by_name("mmm-ablations")
     runs = client.search_runs([experiment.experiment_id])
@@ -363,6 +372,10 @@ def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
     children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
     assert sorted(r.data.params["setting"] for r in children) == ["temperature 0.5", "temperature 1.5"]
     assert parent.data.tags["paper.table"] == "11"
+    assert {f.path for f in client.list_artifacts(parent.info.run_id, "samples")} == {
+        "samples/samples.gif",
+        "samples/samples.png",
+    }
     # A training sweep: one stage-2 model per setting, trained and tracked in its stage's experiment.
     stage2 = [
         "trainer.max_steps=2",

@@ -10,8 +10,9 @@
 Each sweep is a parent MLflow run (experiment `mmm-ablations`) with one nested run per setting
 holding the protocol's figures; training runs of a setting go to their stage's experiment, tagged
 with the parent. The table (markdown and CSV, the paper's columns) and a plot are written to
-`<output_dir>/<kind>/` and logged to the parent run. The grids in conf/ablate.yaml are reduced
-for a CPU; the paper's grids are in the comments there.
+`<output_dir>/<kind>/` and logged to the parent run, with `samples` captions of the split drawn at
+every setting under their real motions (samples.gif/png, the parent's `samples/`). The grids in
+conf/ablate.yaml are reduced for a CPU; the paper's grids are in the comments there.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from mmm.data.datamodule import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.evaluation.samples import chosen_items, generated, render_sweep
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
 from mmm.generation.settings import SamplingConfig
@@ -74,6 +76,9 @@ class AblationConfig:
     stage2_overrides: list[str] = field(default_factory=list)
     device: str = "cpu"
     split: str = "test"
+    samples: int = (
+        2  # captions rendered at every setting beside their real motions (samples.gif/png); 0: none
+    )
     grids: Grids = field(default_factory=Grids)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -167,6 +172,8 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     table_no, title = KINDS[kind] if kind in KINDS else (None, None)
     rows_spec = settings(kind, cfg.grids)
     _check_settings(kind, rows_spec, cfg)
+    if cfg.samples < 0:
+        raise ValueError(f"samples={cfg.samples}: give the number of captions to render, 0 for none")
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     mlflow.set_tracking_uri(tracking_uri)
 
@@ -190,6 +197,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
             }
         )
         shared_model = None
+        chosen, sample_rows = None, {}  # the rendered captions, and each setting's motions of them
         for label, change in rows_spec:
             with mlflow.start_run(experiment_id=experiment_id, run_name=label, nested=True):
                 if "sampling" in change:
@@ -205,6 +213,8 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
                 protocol = ProtocolConfig(**{**asdict(cfg.protocol), "sampling": sampling})
                 result = evaluate_text_to_motion(model, evaluator, items, mean, std, protocol)
                 rows[label] = result["generated"]
+                chosen = chosen if chosen is not None else chosen_items(model, items, cfg.samples)
+                sample_rows[label] = generated(model, chosen, sampling, cfg.protocol.seed)
                 mlflow.log_params(
                     {
                         "setting": label,
@@ -220,6 +230,10 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
         files = write_outputs(rows, table, out_dir, title)
         for path in files:
             mlflow.log_artifact(str(path))
+        samples = render_sweep(model, chosen or [], sample_rows, Path(cfg.data.root), out_dir)
+        for path in samples:
+            mlflow.log_artifact(str(path), "samples")
+        files += samples
     return {"rows": rows, "table": table, "files": [str(p) for p in files]}
 
 

@@ -60,8 +60,7 @@ def _made(model, task: str, item: MotionItem, frames: int, editing: EditingConfi
     """(joints (T, J, 3), what was done) for one item's first caption at `frames` frames."""
     text = item.captions[0].text
     if task == "text2motion":
-        out = model.generate([text], [frames], sampling, seed=seed, check_lengths=False)
-        return out.joints[0], "generated"
+        return generated(model, [(item, frames)], sampling, seed)[0], "generated"
     source = item.features[:frames]
     if task == "upper-body":
         if editing.upper_body_guidance is not None:  # as the benchmark edits
@@ -74,6 +73,52 @@ def _made(model, task: str, item: MotionItem, frames: int, editing: EditingConfi
     out = model.edit(source, kept, text if editing.with_text else None, sampling=sampling, seed=seed)
     spans = ", ".join(f"{a}-{b}" for a, b in kept)
     return out.joints[0], f"{task}, frames {spans} kept"
+
+
+def chosen_items(model, items: list[MotionItem], count: int) -> list[tuple[MotionItem, int]]:
+    """(item, frames) for `count` items spread over `items` (see spread), each at its length cut to
+    the model's maximum and unit; items shorter than three units are passed over."""
+    chosen = []
+    for item in spread(items, count):
+        frames = min(item.length, model.max_frames) // model.unit * model.unit
+        if frames >= 3 * model.unit:
+            chosen.append((item, frames))
+    return chosen
+
+
+def generated(model, chosen: list[tuple[MotionItem, int]], sampling=None, seed: int = 0) -> list[np.ndarray]:
+    """The model's motion (T, J, 3) for each chosen item's first caption at its length."""
+    return [
+        model.generate(
+            [item.captions[0].text], [frames], sampling, seed=seed + k, check_lengths=False
+        ).joints[0]
+        for k, (item, frames) in enumerate(chosen)
+    ]
+
+
+def _label(root: Path, item: MotionItem, joints) -> str:
+    """ " - follows it" or " - does not follow it: ..." on labelled data, else ""."""
+    path = root / "labels" / f"{item.motion_id}.json"
+    parts = item_parts(item, json.loads(path.read_text())) if path.exists() else []
+    return f" - {_verdict(np.asarray(joints), parts)}" if parts else ""
+
+
+def _write(motions: list, captions: list[str], columns: int, out_dir: Path, fps: float) -> list[Path]:
+    """samples.gif (rows of `columns` panels) and samples.png (six frames a motion) in out_dir."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    gif = render_gif(
+        motions, out_dir / "samples.gif", captions=captions, fps=fps, size=(240, 240), columns=columns
+    )
+    # the sheet runs down each column of the GIF: a real motion, then what was made of it
+    order = [r * columns + c for c in range(columns) for r in range(len(motions) // columns)]
+    sheet = render_frames(
+        [motions[i] for i in order],
+        out_dir / "samples.png",
+        [captions[i] for i in order],
+        num_frames=6,
+        size=(200, 200),
+    )
+    return [gif, sheet]
 
 
 def render_samples(
@@ -94,33 +139,29 @@ def render_samples(
     if task not in RENDERED_TASKS:
         log.info("task=%s: no samples rendered (mmm generate-long renders long motions)", task)
         return []
-    labels = root / "labels"
+    chosen = chosen_items(model, items, count)
+    if not chosen:
+        return []
     real, made, real_captions, made_captions = [], [], [], []
-    for k, item in enumerate(spread(items, count)):
-        frames = min(item.length, model.max_frames) // model.unit * model.unit
-        if frames < 3 * model.unit:
-            continue  # too short to edit or to show; the protocol keeps it
+    for k, (item, frames) in enumerate(chosen):
         joints, what = _made(model, task, item, frames, editing, sampling, seed + k)
-        text = item.captions[0].text
-        label = labels / f"{item.motion_id}.json"
-        parts = item_parts(item, json.loads(label.read_text())) if label.exists() else []
-        verdict = f" - {_verdict(np.asarray(joints), parts)}" if parts else ""
         real.append(model.to_joints(item.features[:frames]))
         made.append(joints)
-        real_captions.append(f"real {item.name}: {text}")
-        made_captions.append(f"{what}{verdict}")
-    if not real:
+        real_captions.append(f"real {item.name}: {item.captions[0].text}")
+        made_captions.append(what + _label(root, item, joints))
+    return _write(real + made, real_captions + made_captions, len(real), out_dir, model.fps)
+
+
+def render_sweep(
+    model, chosen: list[tuple[MotionItem, int]], rows: dict[str, list], root: Path, out_dir: Path
+) -> list[Path]:
+    """An ablation's samples: the chosen items' real motions in the top row, under them each
+    setting's motions for the same captions (`rows`: setting -> motions, as `generated` gives them)."""
+    if not chosen or not rows:
         return []
-    out_dir.mkdir(parents=True, exist_ok=True)
-    gif = render_gif(
-        real + made,
-        out_dir / "samples.gif",
-        captions=real_captions + made_captions,
-        fps=model.fps,
-        size=(240, 240),
-        columns=len(real),
-    )
-    rows = [m for pair in zip(real, made) for m in pair]
-    captions = [c for pair in zip(real_captions, made_captions) for c in pair]
-    sheet = render_frames(rows, out_dir / "samples.png", captions, num_frames=6, size=(200, 200))
-    return [gif, sheet]
+    motions = [model.to_joints(item.features[:frames]) for item, frames in chosen]
+    captions = [f"real {item.name}: {item.captions[0].text}" for item, _ in chosen]
+    for label, made in rows.items():
+        motions += made
+        captions += [label + _label(root, item, joints) for (item, _), joints in zip(chosen, made)]
+    return _write(motions, captions, len(chosen), out_dir, model.fps)
