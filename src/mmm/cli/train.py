@@ -131,6 +131,8 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
 
     results = evaluate(load_evaluate_config(args.overrides))
     print(results["table"])
+    for path in results.get("samples", []):
+        print(f"wrote {path}")
     if results.get("run_id"):
         print(f"MLflow run: {results['run_id']} (experiment mmm-evaluation)")
 
