@@ -6,8 +6,9 @@ and the run's `samples/`.
 The captions are spread evenly over the split. text2motion generates each at its real motion's
 length; the temporal edits (inbetween, outpaint, prefix, suffix) keep the task's frames of the real
 motion and generate the rest from the caption; upper-body gives the real motion a new upper body
-from its caption. On labelled data each generated motion says whether it follows its caption (the
-order-aware check of prompt adherence) and, when not, the first condition it fails.
+from its caption. `mmm ablate` draws the same captions at every setting of a sweep (render_sweep).
+On labelled data each generated motion says whether it follows its caption (the order-aware check
+of prompt adherence) and, when not, the first condition it fails.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def spread(items: list[MotionItem], count: int) -> list[MotionItem]:
 
 
 def _verdict(joints: np.ndarray, parts: list[dict]) -> str:
-    """ "follows it", or "does not follow it: <the first failed condition>" (order-aware check)."""
+    """The order-aware check's verdict: "follows it", or "does not follow it: <the first failed
+    condition>"."""
     frames = len(joints)
     if ordered_pass(joints, frames, parts):
         return "follows it"
@@ -97,7 +99,7 @@ def generated(model, chosen: list[tuple[MotionItem, int]], sampling=None, seed: 
 
 
 def _label(root: Path, item: MotionItem, joints) -> str:
-    """ " - follows it" or " - does not follow it: ..." on labelled data, else ""."""
+    """The verdict to add to a caption on labelled data (" - follows it", ...), else ""."""
     path = root / "labels" / f"{item.motion_id}.json"
     parts = item_parts(item, json.loads(path.read_text())) if path.exists() else []
     return f" - {_verdict(np.asarray(joints), parts)}" if parts else ""
