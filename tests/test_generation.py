@@ -323,7 +323,10 @@ PARAGRAPHS = [
         "After he turns left he runs; once done, they sit. When ready, she kicks",
         ["a person turns left", "a person runs", "a person sits", "a person kicks"],
     ),
-    ("He jumps. Before that, he walks in a circle.", ["a person walks in a circle", "a person jumps"]),
+    (
+        "He jumps. Before that, he waves, before that he walks in a circle.",
+        ["a person walks in a circle", "a person waves", "a person jumps"],
+    ),
     ("a woman squats, before that she waves", ["a woman waves", "a woman squats"]),
     ("someone runs after the ball", ["someone runs after the ball"]),
     ("a person walks to the left and , , then jumps", ["a person walks to the left", "a person jumps"]),

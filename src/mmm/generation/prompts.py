@@ -249,14 +249,15 @@ def _fragments(paragraph: str) -> list[str]:
     blocks: list[list[str]] = []
     for sentence in re.split(r"[.!?;]+", paragraph):
         first, *later = _BEFORE_THAT.split(sentence.strip())
-        for part in later:  # each goes before what is already there
-            if first.strip():
-                first = f"{part}, then {first}"
-            elif blocks:
-                blocks.insert(len(blocks) - 1, clauses(part))
-            else:
-                first = part
-        blocks.append(clauses(first))
+        back = not first.strip() and bool(later)  # "Before that, ...": before the sentence ahead
+        if back:
+            first, *later = later
+        for part in later:  # "A, before that B" -> B, then A
+            first = f"{part}, then {first}"
+        if back and blocks:
+            blocks.insert(len(blocks) - 1, clauses(first))
+        else:
+            blocks.append(clauses(first))
     return [c for block in blocks for c in block]
 
 
