@@ -365,6 +365,8 @@ def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
     with Image.open(tmp_path / "abl/temperature/samples.png") as sheet:
         assert sheet.size == (6 * 200, 6 * 200)
     assert {str(tmp_path / f"abl/temperature/samples.{e}") for e in ("gif", "png")} <= set(result["files"])
+    with pytest.raises(ValueError, match=r"samples=-1: give the number of captions to render, 0 for none"):
+        run_ablation("temperature", load_ablation_config([*common, "samples=-1"]))
     client = MlflowClient(trained["uri"])
     experiment = client.get_experiment_by_name("mmm-ablations")
     runs = client.search_runs([experiment.experiment_id])

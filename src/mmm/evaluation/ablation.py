@@ -34,7 +34,7 @@ from mmm.data.datamodule import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
-from mmm.evaluation.samples import chosen_items, generated, render_sweep
+from mmm.evaluation.samples import check_samples, chosen_items, generated, render_sweep
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
 from mmm.generation.settings import SamplingConfig
@@ -76,9 +76,8 @@ class AblationConfig:
     stage2_overrides: list[str] = field(default_factory=list)
     device: str = "cpu"
     split: str = "test"
-    samples: int = (
-        2  # captions rendered at every setting beside their real motions (samples.gif/png); 0: none
-    )
+    # Captions drawn at every setting under their real motions (samples.gif/png); 0: none.
+    samples: int = 2
     grids: Grids = field(default_factory=Grids)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -172,8 +171,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     table_no, title = KINDS[kind] if kind in KINDS else (None, None)
     rows_spec = settings(kind, cfg.grids)
     _check_settings(kind, rows_spec, cfg)
-    if cfg.samples < 0:
-        raise ValueError(f"samples={cfg.samples}: give the number of captions to render, 0 for none")
+    check_samples(cfg.samples)
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     mlflow.set_tracking_uri(tracking_uri)
 

@@ -50,7 +50,7 @@ from mmm.evaluation.editing import TASKS, EditingConfig, check_task_model, evalu
 from mmm.evaluation.evaluators import load_evaluator, load_judge
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
-from mmm.evaluation.samples import render_samples
+from mmm.evaluation.samples import check_samples, render_samples
 from mmm.fingerprint import dataset_fingerprint
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
@@ -199,8 +199,7 @@ def evaluate(cfg_node: DictConfig) -> dict:
         raise ValueError(
             f"what={cfg.what}: unknown {sorted(unknown)}; choose from text2motion, reconstruction, adherence"
         )
-    if cfg.samples < 0:
-        raise ValueError(f"samples={cfg.samples}: give the number of captions to render, 0 for none")
+    check_samples(cfg.samples)
     unmeasurable = adherence_unmeasurable(cfg)
     if unmeasurable and cfg.task == "text2motion" and set(cfg.what) == {"adherence"}:
         raise ValueError(
