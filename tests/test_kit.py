@@ -93,3 +93,23 @@ def test_kit_model_generates_edits_and_exports_at_its_own_rate(kit, tmp_path, ca
     assert main([*edit, "--text", "a person turns", "--out", str(tmp_path / "e"), *common]) == 0
     edited = np.load(tmp_path / "e/0/joints.npy")
     assert edited.shape == (frames, 21, 3)
+
+
+@pytest.mark.slow
+def test_kit_evaluation_samples_are_drawn_at_its_rate(kit, tmp_path):
+    """`mmm evaluate`'s samples of a KIT-ML model: 21-joint motions in millimetres, at 12.5 fps."""
+    from PIL import Image
+
+    from mmm.data.humanml3d import load_items
+    from mmm.evaluation.editing import EditingConfig
+    from mmm.evaluation.samples import render_samples, spread
+    from mmm.generation.model import TextToMotion
+
+    model = TextToMotion.from_files(kit["stage2"], kit["stage1"])
+    items, _ = load_items(kit["root"], "test", feature_dim=251, fps=12.5, min_length=24)
+    gif, sheet = render_samples(model, "text2motion", items, kit["root"], tmp_path, 2, EditingConfig())
+    with Image.open(gif) as image:
+        assert image.width == 2 * 240 and image.info["duration"] == 80  # ms a frame: 12.5 fps
+        assert image.n_frames == max(min(i.length, 196) // 4 * 4 for i in spread(items, 2))
+    with Image.open(sheet) as image:
+        assert image.size == (6 * 200, 4 * 200)
