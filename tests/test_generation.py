@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from mmm.cli import main
 from mmm.export.bvh import read_bvh
@@ -554,6 +555,12 @@ def test_cli_edit_and_long(trained, tmp_path, capsys):
     meta = json.loads((dest / "0/meta.json").read_text())
     assert meta["kind"] == "inbetween" and meta["keep_frames"] == [[0, 40], [80, 100]]
     assert sum(meta["kept_codes"]) == 10 + 5  # codes 0-9 and 20-24
+    # the source beside the edit, both as long as the source's features (one frame fewer than its joints)
+    assert "with_source.gif" in meta["files"] and meta["caption"] == (
+        "inbetween: a person jumps (source frames 0-40, 80-100 kept)"
+    )
+    with Image.open(dest / "0/with_source.gif") as gif:
+        assert (gif.width, gif.n_frames) == (2 * 320, len(np.load(source)) - 1)
     long = tmp_path / "long"
     assert (
         main(

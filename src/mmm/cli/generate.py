@@ -325,7 +325,10 @@ def cmd_edit(args: argparse.Namespace) -> None:
     else:
         extra |= {"keep_frames": request.keep, "place": args.place, "prompt": args.text}
         kept = [out.kept_codes.astype(int).tolist()] * len(out.features)
-        captions = [caption] * len(out.features)
+        spans = ", ".join(f"{a}-{b}" for a, b in request.keep)
+        captions = [f"{caption} (source frames {spans} kept)"] * len(out.features)
+    placed = f", frame 0 at the edit's frame {args.place}" if args.kind != UPPER_BODY and args.place else ""
+    reference = (model.to_joints(source), f"source {Path(args.source).name}{placed}")
     samples = [
         {
             "features": f,
@@ -348,6 +351,7 @@ def cmd_edit(args: argparse.Namespace) -> None:
                     ),
                 },
             ),
+            "reference": reference,
         }
         for k, (f, j) in enumerate(zip(out.features, out.joints))
     ]

@@ -3,6 +3,7 @@
     DIR/<k>/features.npy   (T, 263) float32, un-normalized
     DIR/<k>/joints.npy     (T, 22, 3) float32
     DIR/<k>/motion.gif     stick figure with the prompt (motion.mp4 too when an encoder is installed)
+    DIR/<k>/with_source.gif  edits: the source motion beside the edited one
     DIR/<k>/motion.bvh     skeleton animation (imports in Blender)
     DIR/<k>/meta.json      prompt, length, seed, model identity, sampling settings, timings
 
@@ -33,12 +34,26 @@ log = logging.getLogger(__name__)
 
 
 def _write_sample(
-    folder: Path, features: np.ndarray, joints: np.ndarray, caption: str, meta: dict, skeleton
+    folder: Path,
+    features: np.ndarray,
+    joints: np.ndarray,
+    caption: str,
+    meta: dict,
+    skeleton,
+    reference: tuple[np.ndarray, str] | None = None,
 ) -> None:
+    """reference: (joints, caption) of the motion an edit started from, drawn beside it."""
     folder.mkdir(parents=True)
     np.save(folder / "features.npy", features.astype(np.float32))
     np.save(folder / "joints.npy", joints.astype(np.float32))
     render_gif([joints], folder / "motion.gif", captions=[caption], fps=skeleton.fps)
+    if reference is not None:
+        render_gif(
+            [reference[0], joints],
+            folder / "with_source.gif",
+            captions=[reference[1], caption],
+            fps=skeleton.fps,
+        )
     mp4 = render_mp4([joints], folder / "motion.mp4", captions=[caption], fps=skeleton.fps)
     info = write_bvh(joints, folder / "motion.bvh", skeleton=skeleton, fps=skeleton.fps)
     meta = {
@@ -88,7 +103,8 @@ def _swap_in(new: Path, target: Path) -> None:
 
 
 def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite: bool = False) -> list[Path]:
-    """samples: dicts with features, joints, caption, meta. Returns the sample folders DIR/0, DIR/1, ...
+    """samples: dicts with features, joints, caption, meta (and, for edits, reference: (joints,
+    caption) of the source). Returns the sample folders DIR/0, DIR/1, ...
 
     DIR may be absent (created whole), hold only this package's files (replaced whole, see the
     module docstring; earlier samples only with `overwrite`), or hold other files and no sample
@@ -120,6 +136,7 @@ def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite:
                 sample["caption"],
                 sample["meta"],
                 skeleton,
+                sample.get("reference"),
             )
         if not target.exists():
             os.rename(staging, target)
