@@ -75,6 +75,30 @@ def test_finished_motion_holds_its_last_frame_in_grey():
     assert np.isin(indices(out[8])[:, 120:], LEFT).sum() > 20
 
 
+def test_spans_name_the_part_playing_beside_the_counter():
+    """A long motion's prompts are written beside the frame counter while they play ("transition"
+    between them), in the text colour; nothing above the counter's line changes."""
+    motion = rest_pose(12)
+    shades = lambda role: [i for name, i in COLOR.items() if name.startswith(role)]  # noqa: E731
+    spans = [(0, 5, "1. a person walks"), (8, 12, "2. a person jumps " + "very " * 40 + "high")]
+    plain, named = frames(motion, size=(200, 160)), frames(motion, size=(200, 160), spans=[spans])
+    line = 160 - 30  # the counter's line and below
+    for t in range(12):
+        a, b = indices(plain[t]), indices(named[t])
+        assert np.array_equal(a[:line], b[:line]), t
+        # the label starts past the counter: only there do the pixels differ
+        counter_end = np.nonzero(np.isin(a[line:], shades("muted_text")).any(axis=0))[0].max()
+        differ = np.nonzero((a != b).any(axis=0))[0]
+        assert differ.size and differ.min() > counter_end, t
+        assert np.isin(b[line:], shades("text")).sum() > 20 and not np.isin(a[line:], shades("text")).any(), t
+    label = lambda t: indices(named[t])[line:, 50:]  # noqa: E731
+    assert np.array_equal(label(0), label(4)) and np.array_equal(label(5), label(7))  # the same words
+    assert not np.array_equal(label(4), label(5)) and not np.array_equal(label(7), label(8))
+    # a label wider than the panel is cut to fit (ending in an ellipsis), not run off its edge
+    text_columns = np.nonzero(np.isin(indices(named[9])[line:], shades("text")).any(axis=0))[0]
+    assert 150 < text_columns.max() < 200 - 4
+
+
 def test_joints_and_features_give_the_same_pixels():
     joints, features = reference("new_joints"), reference("new_joint_vecs")
     from_joints = frames([joints[:60]], ["012314"], size=(160, 160))

@@ -423,11 +423,18 @@ def cmd_generate_long(args: argparse.Namespace) -> None:
         },
     )
     caption = " / ".join(texts)
-    sample = {"features": out.features[0], "joints": out.joints[0], "caption": caption, "meta": info}
+    spans = [(a, b, f"{i}. {text}") for i, (text, (a, b)) in enumerate(zip(texts, out.segments), 1)]
+    sample = {
+        "features": out.features[0],
+        "joints": out.joints[0],
+        "caption": caption,
+        "meta": info,
+        "spans": spans,
+    }
     for folder in write_samples(args.out, [sample], model.skeleton, overwrite=args.overwrite):
         print(f"wrote {folder}")
     seconds = out.seconds["total"]
     prompts = f"{len(texts)} prompt" + ("s" if len(texts) != 1 else "")
     print(f"{prompts}, {frames} frames ({frames / model.fps:.1f} s) in {seconds:.2f} s:")
-    for i, (text, (start, end)) in enumerate(zip(texts, out.segments), 1):
-        print(f"  {i}. {text} (frames {start}-{end})")
+    for a, b, label in spans:
+        print(f"  {label} (frames {a}-{b})")

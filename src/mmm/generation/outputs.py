@@ -41,12 +41,20 @@ def _write_sample(
     meta: dict,
     skeleton,
     reference: tuple[np.ndarray, str] | None = None,
+    spans: list[tuple[int, int, str]] | None = None,
 ) -> None:
-    """reference: (joints, caption) of the motion an edit started from, drawn beside it."""
+    """reference: (joints, caption) of the motion an edit started from, drawn beside it; spans:
+    the (first frame, end frame, prompt) parts of a long motion, named under it as they play."""
     folder.mkdir(parents=True)
     np.save(folder / "features.npy", features.astype(np.float32))
     np.save(folder / "joints.npy", joints.astype(np.float32))
-    render_gif([joints], folder / "motion.gif", captions=[caption], fps=skeleton.fps)
+    render_gif(
+        [joints],
+        folder / "motion.gif",
+        captions=[caption],
+        fps=skeleton.fps,
+        spans=[spans] if spans else None,
+    )
     if reference is not None:
         render_gif(
             [reference[0], joints],
@@ -104,7 +112,8 @@ def _swap_in(new: Path, target: Path) -> None:
 
 def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite: bool = False) -> list[Path]:
     """samples: dicts with features, joints, caption, meta (and, for edits, reference: (joints,
-    caption) of the source). Returns the sample folders DIR/0, DIR/1, ...
+    caption) of the source; for long motions, spans: (first frame, end frame, prompt) per
+    segment). Returns the sample folders DIR/0, DIR/1, ...
 
     DIR may be absent (created whole), hold only this package's files (replaced whole, see the
     module docstring; earlier samples only with `overwrite`), or hold other files and no sample
@@ -137,6 +146,7 @@ def write_samples(out_dir: str | Path, samples: list[dict], skeleton, overwrite:
                 sample["meta"],
                 skeleton,
                 sample.get("reference"),
+                sample.get("spans"),
             )
         if not target.exists():
             os.rename(staging, target)

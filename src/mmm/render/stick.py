@@ -487,7 +487,16 @@ def _polyline(
 class _Panel:
     """Everything precomputed for drawing one motion: camera, projected joints, path, chains."""
 
-    def __init__(self, joints: np.ndarray, skeleton: Skeleton, fps: float, style: _Style, top: int):
+    def __init__(
+        self,
+        joints: np.ndarray,
+        skeleton: Skeleton,
+        fps: float,
+        style: _Style,
+        top: int,
+        spans: Sequence[tuple[int, int, str]] | None = None,
+    ):
+        self.spans = list(spans or [])  # (first frame, end frame, label) written beside the counter
         with np.errstate(all="ignore"):  # wild (e.g. untrained) motions overflow harmlessly
             self._setup(joints, skeleton, fps, style, top)
 
@@ -628,6 +637,12 @@ class _Panel:
         x = 4 + _draw_text(image, (4, y), text, style.small_font, "muted_text")
         if done:
             _draw_text(image, (x + 6, y), "done", style.small_font, "done_mark")
+        elif self.spans:  # which part of a long motion this frame belongs to
+            label = next((label for a, b, label in self.spans if a <= t < b), "transition")
+            font, room = style.small_font, style.width - x - 10
+            if _fitting_prefix(label, font, room) < len(label):
+                label = label[: _fitting_prefix(label, font, room - font.getlength("…"))] + "…"
+            _draw_text(image, (x + 6, y), label, font, "text")
 
     def render(self, t: int, header: Image.Image | None) -> Image.Image:
         """The panel at motion frame t (clamped to the last frame: 'done')."""
@@ -667,10 +682,18 @@ def _prepare(motions, captions, size, names: list[str] | None = None):
 
 
 def frames(
-    motions, captions=None, size=(320, 320), *, columns: int | None = None, _names: list[str] | None = None
+    motions,
+    captions=None,
+    size=(320, 320),
+    *,
+    columns: int | None = None,
+    spans: Sequence[Sequence[tuple[int, int, str]] | None] | None = None,
+    _names: list[str] | None = None,
 ) -> list[Image.Image]:
     """One image per frame of the longest motion, the motions side by side (each `size` wide), or
-    in rows of `columns` panels (e.g. references above their reconstructions).
+    in rows of `columns` panels (e.g. references above their reconstructions). spans: per motion,
+    (first frame, end frame, label) parts whose label is written beside the frame counter while
+    they play ("transition" between them), e.g. the prompts of a long motion.
 
     Returns palette ("P") images sharing `PALETTE`; `.convert("RGB")` for RGB. A motion shorter
     than the longest holds its last frame, greyed and marked "done".
@@ -681,8 +704,8 @@ def frames(
     top = _header_height(lines, style)
     panels = []
     headers = []
-    for (joints, skeleton), cap_lines in zip(loaded, lines):
-        panels.append(_Panel(joints, skeleton, skeleton.fps, style, top))
+    for i, ((joints, skeleton), cap_lines) in enumerate(zip(loaded, lines)):
+        panels.append(_Panel(joints, skeleton, skeleton.fps, style, top, spans[i] if spans else None))
         if top:
             header = _new_image(width, top)
             _draw_header(header, cap_lines, style)
@@ -749,11 +772,17 @@ def _save_gif(images: list[Image.Image], out_path, fps: float) -> Path:
 
 
 def render_gif(
-    motions, out_path, captions=None, fps: float = 20.0, size=(320, 320), columns: int | None = None
+    motions,
+    out_path,
+    captions=None,
+    fps: float = 20.0,
+    size=(320, 320),
+    columns: int | None = None,
+    spans=None,
 ) -> Path:
     """Write an animated GIF (looping forever, one frame per motion frame) of the motions side by
-    side, or in rows of `columns`."""
-    return _save_gif(frames(motions, captions, size, columns=columns), out_path, fps)
+    side, or in rows of `columns`; `spans` as in `frames`."""
+    return _save_gif(frames(motions, captions, size, columns=columns, spans=spans), out_path, fps)
 
 
 _ffmpeg_missing_logged = False
