@@ -253,7 +253,7 @@ def _samples(n: int, tag: str, frames: int = 12) -> list[dict]:
     ]
 
 
-def _quick_sample(folder, features, joints, caption, meta, skeleton):
+def _quick_sample(folder, features, joints, caption, meta, skeleton, reference=None, spans=None):
     """What _write_sample leaves, without rendering (the folder's content is all these tests read)."""
     folder.mkdir(parents=True)
     np.save(folder / "features.npy", features)
