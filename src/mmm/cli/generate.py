@@ -325,8 +325,8 @@ def cmd_edit(args: argparse.Namespace) -> None:
     else:
         extra |= {"keep_frames": request.keep, "place": args.place, "prompt": args.text}
         kept = [out.kept_codes.astype(int).tolist()] * len(out.features)
-        spans = ", ".join(f"{a}-{b}" for a, b in request.keep)
-        captions = [f"{caption} (source frames {spans} kept)"] * len(out.features)
+        kept_frames = ", ".join(f"{a}-{b}" for a, b in request.keep)
+        captions = [f"{caption} (source frames {kept_frames} kept)"] * len(out.features)
     placed = f", frame 0 at the edit's frame {args.place}" if args.kind != UPPER_BODY and args.place else ""
     reference = (model.to_joints(source), f"source {Path(args.source).name}{placed}")
     samples = [
