@@ -195,7 +195,8 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
             }
         )
         shared_model = None
-        chosen, sample_rows = None, {}  # the rendered captions, and each setting's motions of them
+        # the rendered captions, each setting's motions of them, and a model to draw them with
+        chosen, sample_rows, drawer = None, {}, None
         for label, change in rows_spec:
             with mlflow.start_run(experiment_id=experiment_id, run_name=label, nested=True):
                 if "sampling" in change:
@@ -213,6 +214,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
                 rows[label] = result["generated"]
                 chosen = chosen if chosen is not None else chosen_items(model, items, cfg.samples)
                 sample_rows[label] = generated(model, chosen, sampling, cfg.protocol.seed)
+                drawer = model
                 mlflow.log_params(
                     {
                         "setting": label,
@@ -228,7 +230,7 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
         files = write_outputs(rows, table, out_dir, title)
         for path in files:
             mlflow.log_artifact(str(path))
-        samples = render_sweep(model, chosen or [], sample_rows, Path(cfg.data.root), out_dir)
+        samples = render_sweep(drawer, chosen or [], sample_rows, Path(cfg.data.root), out_dir)
         for path in samples:
             mlflow.log_artifact(str(path), "samples")
         files += samples

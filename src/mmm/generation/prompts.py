@@ -194,7 +194,7 @@ def _starts_clause(text: str) -> bool:
     that is not a gerund ("walks forward, swinging the arms" is one motion)."""
     text = _FILLER.sub("", text.strip().lower())
     first = text.split(" ", 1)[0]
-    if any(text == s or text.startswith(s + " ") for s in _SUBJECTS):
+    if _known_subject(text):
         return True
     return bool(first) and not first.endswith("ing") and _motion_verb(first) is not None
 
@@ -266,10 +266,14 @@ def _clean(fragment: str) -> str:
     return _TRAILING.sub("", _FILLER.sub("", text).rstrip(" ,")).strip(" ,")
 
 
+def _known_subject(text: str) -> str | None:
+    return next((s for s in _SUBJECTS if text == s or text.startswith(s + " ")), None)
+
+
 def _subject_of(text: str) -> str | None:
     """The subject `text` starts with: a known one, or the words before a verb in the third person
     ("a figure walks", "person kicks"); None when it starts with its verb."""
-    known = next((s for s in _SUBJECTS if text == s or text.startswith(s + " ")), None)
+    known = _known_subject(text)
     if known:
         return known
     m = re.match(r"((?:(?:a|an|the)\s+)?([a-z]+))\s+([a-z]+)\b", text)
@@ -285,12 +289,11 @@ def split_paragraph(paragraph: str, default_subject: str = "a person") -> list[s
     """Short prompts, in the order the actions happen, from a paragraph (ValueError when nothing is
     left)."""
     fragments = [t for t in map(_clean, _fragments(paragraph)) if t]
-    named = [s for s in map(_subject_of, fragments) if s and s not in _PRONOUNS]
-    subject = named[0] if named else default_subject
+    subjects = [_subject_of(t) for t in fragments]
+    subject = next((s for s in subjects if s and s not in _PRONOUNS), default_subject)
     prompts = []
     last_verb = "moves"  # for a fragment that only gives a direction
-    for text in fragments:
-        found = _subject_of(text)
+    for text, found in zip(fragments, subjects):
         if found:
             rest = text[len(found) :].strip()
             words = _FILLER.sub("", rest).split()
