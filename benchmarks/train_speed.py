@@ -46,8 +46,9 @@ def _stage1(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
-    from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+    from mmm.tokenizer.module import TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
+    from mmm.training.configs import TokenizerLossConfig
     from mmm.training.optim import OptimConfig
 
     cfg = compose("train_stage1", [f"model={size}", *overrides]).model.tokenizer
@@ -68,8 +69,9 @@ def _stage2(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
+    from mmm.training.configs import CorruptionConfig
     from mmm.training.optim import OptimConfig
-    from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt
+    from mmm.transformer.module import MaskedTransformerModule, corrupt
     from mmm.transformer.network import TransformerConfig
 
     cfg = compose("train_stage2", [f"model={size}", *overrides]).model

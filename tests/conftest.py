@@ -29,7 +29,8 @@ def walker_dataset(tmp_path_factory):
 @pytest.fixture(scope="session")
 def trained(walker_dataset, tmp_path_factory):
     """Tiny stage-1 and stage-2 models trained for a few steps on the walker dataset (shared)."""
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import train_stage2
     from tests.helpers import stage2_overrides, train_tiny_stage1
 
     out = tmp_path_factory.mktemp("trained")
@@ -51,7 +52,8 @@ def trained(walker_dataset, tmp_path_factory):
 def parts_trained(walker_dataset, tmp_path_factory):
     """A tiny part-aware tokenizer and transformer trained for a few steps on the walker dataset
     (shared; tests may register and alias its runs in its store, never retrain them)."""
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import train_stage2
     from tests.helpers import stage2_overrides, train_tiny_stage1
 
     out = tmp_path_factory.mktemp("parts")

@@ -206,6 +206,13 @@ BEFORE_MODEL = {
         ["data.window=30", "data.unit_length=4", "data.window=28"],
     ),
     "empty promotion criteria": (["promote", "tokenizer", "criteria.tokenizer=[]"], ["is empty"]),
+    # a later step's overrides are checked before the first step trains (it used to train the
+    # evaluator and the tokenizer, minutes, before refusing a misspelt stage-2 key)
+    "pipeline step override misspelt": (
+        ["pipeline", "full", "overrides.stage2=[trainer.max_stepz=3]"],
+        ["overrides.stage2", "max_stepz"],
+    ),
+    "negative refinement": (["train", "stage1", "refine.steps=-1"], ["refine.steps=-1", "0 or more"]),
     # a store that is not there is never created by a command that only reads, and a file that is
     # not one is named
     "generate with no store here": (GEN + ["--length", "60"], ["no text-to-motion model to use"]),

@@ -7,8 +7,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from mmm.config import compose, conf_dir, to_object
-from mmm.training.stage1 import Stage1Config, load_stage1_config
-from mmm.training.stage2 import Stage2Config, load_stage2_config
+from mmm.training.configs import Stage1Config, Stage2Config, load_stage1_config, load_stage2_config
 
 STAGES = {
     "train_stage1": (Stage1Config, load_stage1_config),
@@ -126,7 +125,7 @@ def _flat(cfg, prefix=""):
 
 
 def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
-    from mmm.pipeline.steps import load_pipeline_config
+    from mmm.pipeline.configs import load_pipeline_config
 
     pipeline = load_pipeline_config(["recipe=quality"])
     assert pipeline.state_file == "outputs/quality/pipeline/state.json"
@@ -185,4 +184,5 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
     assert not any(pattern.search(c) for c in other)
     assert load_stage2_config(["data=humanml3d"]).data.oversample.pattern == ""
     # The command line still wins over the recipe.
-    assert load_stage2_config(["recipe=quality", "trainer.max_steps=7"]).trainer.max_steps == 7
+    given = ["recipe=quality", "trainer.max_steps=7", "trainer.val_check_interval=7"]
+    assert load_stage2_config(given).trainer.max_steps == 7

@@ -11,9 +11,9 @@ import pytest
 import torch
 from mlflow.tracking import MlflowClient
 
+from mmm.evaluation.configs import ContrastiveModelConfig
 from mmm.evaluation.contrastive import (
     ContrastiveEvaluator,
-    ContrastiveModelConfig,
     EvaluatorEmbedder,
     load_contrastive_evaluator,
     matching_ranks,
@@ -297,7 +297,8 @@ def test_train_evaluator_end_to_end_is_tracked_and_registered(tmp_path):
     from mmm.fingerprint import dataset_fingerprint
     from mmm.resolve import resolve_checkpoint
     from mmm.text import CaptionEmbeddingCache
-    from mmm.training.evaluator import load_evaluator_config, register_evaluator, train_evaluator
+    from mmm.training.configs import load_evaluator_config
+    from mmm.training.evaluator import register_evaluator, train_evaluator
 
     root = write_action_dataset(tmp_path / "ds")
     uri = f"sqlite:///{tmp_path}/mlflow.db"

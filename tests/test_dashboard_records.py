@@ -11,7 +11,7 @@ from mlflow.tracking import MlflowClient
 
 from mmm.cli import main
 from mmm.pipeline.steps import PIPELINES
-from mmm.registry.promote import load_promote_config
+from mmm.registry.configs import load_promote_config
 from mmm.tracking import DESCRIPTION_TAG, GIT_COMMIT_TAG, dashboard_links, git_commit
 from tests.helpers import PIPELINE_TINY as TINY
 from tests.helpers import newest_parent, pipeline_args, steps_of

@@ -19,7 +19,8 @@ def stage1_runs(walker_dataset, tmp_path_factory):
     import os
 
     from mmm.registry.versions import TOKENIZER, register_version
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import train_stage2
 
     out = tmp_path_factory.mktemp("dashboard")
     previous = os.environ.get("MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL")
@@ -86,7 +87,7 @@ def test_runs_are_named_for_what_they_are(stage1_runs):
 
 def test_run_names_say_the_sizes():
     from mmm.training.common import model_label, run_name
-    from mmm.training.stage1 import load_stage1_config
+    from mmm.training.configs import load_stage1_config
 
     assert model_label(load_stage1_config([]).model) == "tiny"
     assert model_label(load_stage1_config(["model=paper"]).model) == "paper"
@@ -99,7 +100,7 @@ def test_run_names_say_the_sizes():
 @pytest.mark.slow
 def test_the_config_is_logged_once_with_only_the_groups_a_stage_uses(stage1_runs):
     from mmm.training.common import flatten_config
-    from mmm.training.stage1 import load_stage1_config
+    from mmm.training.configs import load_stage1_config
 
     client = stage1_runs["client"]
     params = client.get_run(stage1_runs["first"].run_id).data.params
@@ -148,8 +149,7 @@ def test_curves_one_name_per_quantity(stage1_runs):
 
 
 def test_the_demo_validates_ten_times():
-    from mmm.training.stage1 import load_stage1_config
-    from mmm.training.stage2 import load_stage2_config
+    from mmm.training.configs import load_stage1_config, load_stage2_config
 
     for cfg in (load_stage1_config([]), load_stage2_config([])):
         assert cfg.trainer.max_steps // cfg.trainer.val_check_interval >= 10

@@ -10,14 +10,9 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from mmm.data.humanml3d import load_items, load_stats
-from mmm.evaluation.editing import (
-    EditingConfig,
-    evaluate_editing,
-    generated_spans,
-    keep_ranges,
-    temporal_adherence,
-)
-from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion
+from mmm.evaluation.configs import EditingConfig, ProtocolConfig
+from mmm.evaluation.editing import evaluate_editing, generated_spans, keep_ranges, temporal_adherence
+from mmm.evaluation.protocol import evaluate_text_to_motion
 from mmm.generation.sampler import SamplingConfig
 
 QUICK = ProtocolConfig(replications=2, batch_size=8, max_batches=1, diversity_times=5, mm_texts=0)
@@ -62,7 +57,8 @@ def test_kept_ranges_on_a_hand_checked_length():
 
 
 def test_a_bad_task_name_is_an_error_naming_the_choices():
-    from mmm.evaluation.run import evaluate, load_evaluate_config
+    from mmm.evaluation.configs import load_evaluate_config
+    from mmm.evaluation.run import evaluate
 
     with pytest.raises(
         ValueError, match=r"task='inpaint' .*text2motion\|inbetween\|outpaint\|prefix\|suffix"

@@ -13,7 +13,8 @@ from PIL import Image
 
 from mmm.data.humanml3d import load_items, load_stats
 from mmm.evaluation.adherence import item_parts, prompt_adherence
-from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, interval, results_table
+from mmm.evaluation.configs import ProtocolConfig
+from mmm.evaluation.protocol import evaluate_text_to_motion, interval, results_table
 from mmm.evaluation.samples import spread
 from mmm.generation.model import Generated
 
@@ -265,7 +266,8 @@ SMALL = [
 
 @pytest.mark.slow
 def test_mmm_evaluate_logs_the_table_to_mlflow(trained, own_evaluator, tmp_path):
-    from mmm.evaluation.run import evaluate, load_evaluate_config
+    from mmm.evaluation.configs import load_evaluate_config
+    from mmm.evaluation.run import evaluate
 
     results = evaluate(
         load_evaluate_config(
@@ -333,7 +335,8 @@ def test_mmm_evaluate_logs_the_table_to_mlflow(trained, own_evaluator, tmp_path)
 
 @pytest.mark.slow
 def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
-    from mmm.evaluation.ablation import load_ablation_config, run_ablation
+    from mmm.evaluation.ablation import run_ablation
+    from mmm.evaluation.configs import load_ablation_config
 
     out = trained["out"]
     common = [
@@ -488,7 +491,8 @@ def test_reconstruction_reports_whether_the_labelled_actions_survive_the_tokeniz
 
 def test_best_checkpoint_by_adherence_is_refused_where_the_curve_is_not_measured(tmp_path):
     from mmm.config import ConfigError, to_object
-    from mmm.training.stage2 import check_adherence_monitor, load_stage2_config
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import check_adherence_monitor
 
     def cfg(*extra):
         return to_object(load_stage2_config([f"data.root={tmp_path}", *extra]))
@@ -508,7 +512,8 @@ def test_best_checkpoint_by_adherence_is_refused_where_the_curve_is_not_measured
 def test_best_checkpoint_can_be_the_most_followed_validation(synthetic_small, tmp_path):
     from mlflow.tracking import MlflowClient
 
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import train_stage2
     from tests.helpers import stage2_overrides, train_tiny_stage1
 
     train_tiny_stage1(synthetic_small, tmp_path)
@@ -594,7 +599,8 @@ def test_best_of_adherence_keeps_the_draw_the_judge_prefers(synthetic_small):
 def test_mmm_evaluate_best_of_adherence_is_logged_under_its_own_keys(
     trained, own_evaluator, synthetic_small, tmp_path
 ):
-    from mmm.evaluation.run import evaluate, load_evaluate_config
+    from mmm.evaluation.configs import load_evaluate_config
+    from mmm.evaluation.run import evaluate
 
     common = [
         f"data.root={synthetic_small}",

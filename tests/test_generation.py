@@ -22,8 +22,9 @@ from mmm.generation.sampler import (
 )
 from mmm.motion.skeleton import T2M_SKELETON
 from mmm.text import TextEmbedding
-from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.configs import TokenizerLossConfig
 from mmm.training.optim import OptimConfig
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
@@ -628,7 +629,8 @@ def test_cli_bad_input_exits_2_and_writes_nothing(trained, tmp_path, capsys, arg
 
 @pytest.mark.slow
 def test_cli_estimates_the_length_when_none_is_given(trained, tmp_path, capsys):
-    from mmm.training.length import load_length_config, train_length
+    from mmm.training.configs import load_length_config
+    from mmm.training.length import train_length
 
     out = trained["out"]
     common = ["--model", trained["checkpoint"], "--tracking-uri", trained["uri"]]

@@ -30,8 +30,9 @@ def kit_joints(frames: int, turns: float) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def kit(tmp_path_factory):
-    from mmm.training.stage1 import load_stage1_config, train_stage1
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage1_config, load_stage2_config
+    from mmm.training.stage1 import train_stage1
+    from mmm.training.stage2 import train_stage2
 
     out = tmp_path_factory.mktemp("kit")
     root = out / "KIT-ML"
@@ -101,7 +102,7 @@ def test_kit_evaluation_samples_are_drawn_at_its_rate(kit, tmp_path):
     from PIL import Image
 
     from mmm.data.humanml3d import load_items
-    from mmm.evaluation.editing import EditingConfig
+    from mmm.evaluation.configs import EditingConfig
     from mmm.evaluation.samples import render_samples, spread
     from mmm.generation.model import TextToMotion
 

@@ -224,7 +224,8 @@ def _train_stage1(root, out):
 
 @pytest.mark.slow
 def test_train_length_end_to_end_is_tracked(walker_dataset, tmp_path):
-    from mmm.training.length import load_length_config, train_length
+    from mmm.training.configs import load_length_config
+    from mmm.training.length import train_length
 
     stage1 = _train_stage1(walker_dataset, tmp_path)
     overrides = {

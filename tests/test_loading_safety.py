@@ -22,10 +22,11 @@ from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.model import TextToMotion
 from mmm.resolve import ModelNotFound, resolve_checkpoint
 from mmm.tokenizer.load import load_tokenizer_checkpoint
-from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.configs import CorruptionConfig, TokenizerLossConfig
 from mmm.training.optim import OptimConfig
-from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, stage2_codebooks
+from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
 from mmm.transformer.network import TransformerConfig
 
 SRC = Path(__file__).resolve().parent.parent / "src"

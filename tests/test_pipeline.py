@@ -252,8 +252,9 @@ def test_parts_pipeline_trains_and_promotes_the_part_aware_model(workdir, monkey
 
 def test_stage2_trains_on_the_champion_tokenizer_only_when_it_was_measured_on_the_pipelines_data(tmp_path):
     from mmm.config import to_object
+    from mmm.pipeline.configs import load_pipeline_config
     from mmm.pipeline.runner import Context
-    from mmm.pipeline.steps import _stage2_options, load_pipeline_config
+    from mmm.pipeline.steps import _stage2_options
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     client = MlflowClient(uri)

@@ -8,8 +8,9 @@ from mmm.generation.model import TextToMotion
 from mmm.generation.precision import Int8Linear, check_device, default_precision, inference_copy
 from mmm.generation.sampler import frames_to_codes, sample_tokens
 from mmm.generation.settings import PRECISIONS, SamplingConfig, check_precision
-from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.configs import TokenizerLossConfig
 from mmm.training.optim import OptimConfig
 from tests.test_decoding_speedups import K, text, tiny_transformer
 
@@ -124,7 +125,7 @@ def test_cli_and_evaluate_take_a_precision():
         assert args.precision == "int8"
     with pytest.raises(SystemExit):
         parser.parse_args(["generate", "--text", "x", "--out", "o", "--precision", "fp16"])
-    from mmm.evaluation.run import load_evaluate_config
+    from mmm.evaluation.configs import load_evaluate_config
 
     assert load_evaluate_config(["precision=bf16"]).precision == "bf16"
     assert load_evaluate_config([]).precision is None

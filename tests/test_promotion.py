@@ -3,14 +3,8 @@
 import pytest
 from mlflow.tracking import MlflowClient
 
-from mmm.registry.versions import (
-    Criterion,
-    code_version,
-    list_models,
-    promote_version,
-    register_version,
-    version_tags,
-)
+from mmm.registry.configs import Criterion
+from mmm.registry.versions import code_version, list_models, promote_version, register_version, version_tags
 
 
 @pytest.fixture

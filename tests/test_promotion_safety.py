@@ -18,7 +18,8 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from mmm.config import ConfigError
-from mmm.registry.versions import Criterion, promote_version, register_version, version_tags
+from mmm.registry.configs import Criterion
+from mmm.registry.versions import promote_version, register_version, version_tags
 from tests.helpers import stage2_overrides, tiny_stage1_config, train_tiny_stage1
 
 
@@ -44,7 +45,8 @@ def stage1_run(walker_dataset, tmp_path_factory):
 def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_elsewhere(
     stage1_run, walker_dataset, tmp_path, monkeypatch
 ):
-    from mmm.registry.promote import load_promote_config, promote
+    from mmm.registry.configs import load_promote_config
+    from mmm.registry.promote import promote
     from mmm.resolve import resolve_checkpoint
     from mmm.training.stage1 import train_stage1
 
@@ -149,7 +151,8 @@ def test_registered_weights_survive_a_resume_that_started_from_a_checkpoint_else
 
 @pytest.mark.slow
 def test_an_unknown_candidate_is_named(stage1_run, walker_dataset):
-    from mmm.registry.promote import load_promote_config, promote
+    from mmm.registry.configs import load_promote_config
+    from mmm.registry.promote import promote
     from mmm.resolve import ModelNotFound
 
     config = load_promote_config(
@@ -245,7 +248,8 @@ def test_a_changed_global_batch_is_refused_unless_the_epoch_restarts_and_the_sam
 
 @pytest.mark.slow
 def test_stage2_resume_with_another_stage1_model_is_refused_naming_both(trained, tmp_path):
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import train_stage2
 
     walker = trained["walker"]
     other = train_tiny_stage1(walker, tmp_path / "other", "seed=1")  # same codebook shape, other weights
@@ -332,7 +336,7 @@ def test_a_candidate_measured_with_another_protocol_is_not_compared(client):
     ],
 )
 def test_criteria_are_validated_when_the_config_is_loaded(criterion, complaint):
-    from mmm.registry.promote import load_promote_config
+    from mmm.registry.configs import load_promote_config
 
     with pytest.raises(ConfigError) as refused:
         load_promote_config([f"criteria.text2motion=[{criterion}]"])

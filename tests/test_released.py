@@ -831,7 +831,8 @@ def test_data_stats_evaluator_style_writes_a_stats_folder(walker_dataset, tmp_pa
 
 @pytest.mark.parametrize("statistics", ["evaluator_style", "dataset", "files"])
 def test_stage1_normalizes_with_the_configured_statistics(walker_dataset, tmp_path, statistics):
-    from mmm.data.datamodule import DataConfig, TokenizerDataModule
+    from mmm.data.config import DataConfig
+    from mmm.data.datamodule import TokenizerDataModule
     from mmm.data.normalization import NormalizationConfig
 
     files = tmp_path / "meta"
@@ -882,10 +883,8 @@ def test_imported_models_evaluate(imported, tmp_path, capsys):
 # -- the paper's recipe, one switch ---------------------------------------------------------------------
 def test_recipe_paper_sets_the_released_recipe_for_every_command():
     from mmm.config import ConfigError
-    from mmm.pipeline.steps import load_pipeline_config
-    from mmm.training.length import load_length_config
-    from mmm.training.stage1 import load_stage1_config
-    from mmm.training.stage2 import load_stage2_config
+    from mmm.pipeline.configs import load_pipeline_config
+    from mmm.training.configs import load_length_config, load_stage1_config, load_stage2_config
 
     s1 = load_stage1_config(["recipe=paper"])
     assert (

@@ -612,7 +612,8 @@ def test_candidates_are_refused_without_a_judge_or_out_of_range(judged_model, se
 
 
 def test_a_judge_must_read_the_models_features_and_captions(tmp_path):
-    from mmm.evaluation.contrastive import ContrastiveEvaluator, ContrastiveModelConfig
+    from mmm.evaluation.configs import ContrastiveModelConfig
+    from mmm.evaluation.contrastive import ContrastiveEvaluator
     from mmm.fingerprint import tensors_fingerprint
     from mmm.registry.bundle import JudgeMismatch, describe_judge
 

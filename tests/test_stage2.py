@@ -12,10 +12,11 @@ from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
 from mmm.data.humanml3d import Caption, DataError, MotionItem, read_split
 from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
-from mmm.tokenizer.module import TokenizerLossConfig, TokenizerModule
+from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.training.configs import CorruptionConfig, TokenizerLossConfig
 from mmm.training.optim import OptimConfig
-from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, corrupt, sequence_mean
+from mmm.transformer.module import MaskedTransformerModule, corrupt, sequence_mean
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 from tests.helpers import run_ddp_worker, stage2_overrides, train_tiny_stage1
 
@@ -277,7 +278,8 @@ def test_stage2_tokenizes_only_the_splits_it_reads(trained):
 
 
 def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):
-    from mmm.data.datamodule import DataConfig, TokenTextDataModule
+    from mmm.data.config import DataConfig
+    from mmm.data.datamodule import TokenTextDataModule
 
     dm = TokenTextDataModule(
         DataConfig(root=str(walker_dataset), synthesize=None),
@@ -309,7 +311,8 @@ def test_ddp_ranks_agree(tmp_path, variant):
 
 @pytest.mark.slow
 def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_dataset, tmp_path):
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import train_stage2
 
     first = train_tiny_stage1(walker_dataset, tmp_path)
     newest = train_tiny_stage1(walker_dataset, tmp_path)

@@ -498,7 +498,8 @@ def test_a_synthetic_folder_made_with_other_settings_is_refused(tmp_path):
         )
     )
     gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # written before the extra options existed: defaults
-    from mmm.data.datamodule import DataConfig, SynthConfig, TokenizerDataModule
+    from mmm.data.config import DataConfig, SynthConfig
+    from mmm.data.datamodule import TokenizerDataModule
 
     asked = SynthConfig(num_clips=3, seed=0, train_paraphrases=12)
     with pytest.raises(ValueError, match="train_paraphrases 3 \\(asked 12\\)"):  # training refuses it too

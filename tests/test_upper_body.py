@@ -13,7 +13,8 @@ from mmm.cli import main
 from mmm.data.datasets import TokenBatchCollator
 from mmm.generation.sampler import SamplingConfig, sample_tokens
 from mmm.motion.parts import split_parts
-from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, mask_condition
+from mmm.training.configs import CorruptionConfig
+from mmm.transformer.module import MaskedTransformerModule, mask_condition
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 from tests.helpers import stage2_overrides, train_tiny_stage1
 
@@ -175,7 +176,8 @@ def parts_model(parts_trained):
 
 @pytest.mark.slow
 def test_part_aware_training_is_tracked_and_checked(parts_model):
-    from mmm.training.stage2 import load_stage2_config, prepare_stage2_data
+    from mmm.training.configs import load_stage2_config
+    from mmm.training.stage2 import prepare_stage2_data
 
     client = MlflowClient(parts_model["uri"])
     run = client.get_run(parts_model["stage2"].run_id)
@@ -308,7 +310,8 @@ def test_promotion_registers_the_part_aware_bundle_and_editing_defaults_to_it(
     import pandas as pd
 
     from mmm.generation.model import TextToMotion
-    from mmm.registry.promote import load_promote_config, promote
+    from mmm.registry.configs import load_promote_config
+    from mmm.registry.promote import promote
 
     monkeypatch.chdir(tmp_path)
     previous = mlflow.get_tracking_uri()

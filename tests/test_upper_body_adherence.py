@@ -44,8 +44,9 @@ def focused_dataset(root):
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     from mmm.generation.model import TextToMotion
-    from mmm.training.stage1 import load_stage1_config, train_stage1
-    from mmm.training.stage2 import load_stage2_config, train_stage2
+    from mmm.training.configs import load_stage1_config, load_stage2_config
+    from mmm.training.stage1 import train_stage1
+    from mmm.training.stage2 import train_stage2
 
     out = tmp_path_factory.mktemp("upper-body")
     root = focused_dataset(out / "data")

@@ -165,6 +165,8 @@ def compose(
         reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise ConfigError(f"config {name!r} with overrides {list(overrides)}: {reason}") from None
     OmegaConf.set_struct(cfg, True)
+    if schema is not None:
+        to_object(cfg)  # the schema's own checks (__post_init__), now rather than when a command starts
     return cfg
 
 

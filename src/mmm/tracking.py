@@ -12,9 +12,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from mlflow.entities import Dataset, DatasetInput, InputTag
-from mlflow.exceptions import MlflowException
-
 from mmm.kinds import KINDS
 
 DESCRIPTION_TAG = "mlflow.note.content"  # the run's / experiment's / version's markdown description in the UI
@@ -185,6 +182,9 @@ def git_commit(root: Path | None = None) -> str | None:
 def prepare_experiment(client, name: str, artifact_location: str | None = None) -> str:
     """The id of experiment `name`, created when missing (another process creating it at the same
     time is not an error), with its description and the classic-view kind set once."""
+    # MLflow is imported by the functions that talk to a store: configs read TrackingConfig from here
+    from mlflow.exceptions import MlflowException
+
     found = client.get_experiment_by_name(name)
     if found is None:
         try:
@@ -209,6 +209,8 @@ def log_dataset_input(
 ) -> None:
     """Record the dataset a run read as its MLflow dataset input (name, digest = content
     fingerprint, source = the folder)."""
+    from mlflow.entities import Dataset, DatasetInput, InputTag  # see prepare_experiment
+
     dataset = Dataset(
         name=name,
         digest=fingerprint,

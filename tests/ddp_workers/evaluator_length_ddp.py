@@ -18,7 +18,7 @@ from torch.utils.data import Dataset
 from two_ranks import two_process_trainer  # beside this script (its folder is on sys.path)
 
 from mmm.data.resumable import ResumableDataLoader
-from mmm.evaluation.contrastive import ContrastiveModelConfig
+from mmm.evaluation.configs import ContrastiveModelConfig
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule
 from mmm.generation.length import LengthModelConfig
 from mmm.generation.length_module import LengthEstimatorModule

@@ -18,8 +18,9 @@ from two_ranks import two_process_trainer  # beside this script (its folder is o
 
 from mmm.callbacks.adherence import AdherenceCurve
 from mmm.data.resumable import ResumableDataLoader
+from mmm.training.configs import CorruptionConfig
 from mmm.training.optim import OptimConfig
-from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule
+from mmm.transformer.module import MaskedTransformerModule
 from mmm.transformer.network import TransformerConfig
 
 K = 32

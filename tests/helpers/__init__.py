@@ -102,7 +102,7 @@ def tiny_stage1_overrides(root, out, *extra) -> list[str]:
 
 def tiny_stage1_config(root, out, *extra):
     """The config of tiny_stage1_overrides."""
-    from mmm.training.stage1 import load_stage1_config
+    from mmm.training.configs import load_stage1_config
 
     return load_stage1_config(tiny_stage1_overrides(root, out, *extra))
 
@@ -117,7 +117,8 @@ def train_tiny_stage1(root, out, *extra):
 def train_tiny_evaluator(root, out, tracking_uri: str, output_dir: str = "ev"):
     """A contrastive evaluator of a few steps on the dataset at `root` (its TrainResult), runs in
     `tracking_uri`, files under `out`/`output_dir`."""
-    from mmm.training.evaluator import load_evaluator_config, train_evaluator
+    from mmm.training.configs import load_evaluator_config
+    from mmm.training.evaluator import train_evaluator
 
     overrides = {
         "data.root": root,

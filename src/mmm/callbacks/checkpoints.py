@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import random
-from dataclasses import dataclass
 from pathlib import Path
 
 import lightning as L
@@ -17,14 +16,9 @@ from lightning.pytorch.loggers import MLFlowLogger
 
 from mmm.checkpoints import FINGERPRINT_KEY
 from mmm.fingerprint import tensors_fingerprint
+from mmm.training.configs import CheckpointConfig
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class CheckpointConfig:
-    monitor: str = "val/mpjpe_root_aligned_mm"
-    mode: str = "min"
 
 
 def checkpoint_callbacks(directory: Path, cfg: CheckpointConfig) -> tuple[ModelCheckpoint, ModelCheckpoint]:

@@ -69,19 +69,6 @@ class CodebookCollapseError(RuntimeError):
 
 
 @dataclass
-class CollapseConfig:
-    """CollapseMonitor's settings (`callbacks.collapse` of conf/callbacks/stage1.yaml)."""
-
-    action: str = "warn"  # warn | stop | fail
-    warmup_steps: int = 200
-    window_steps: int = 50
-    min_active_fraction: float = 0.02
-    perplexity_drop: float = 0.2
-    smoothing: float = 0.9
-    patience: int = 3
-
-
-@dataclass
 class CollapseEvent:
     step: int
     reason: str

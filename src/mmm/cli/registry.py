@@ -116,9 +116,12 @@ def add_models(sub) -> None:
 
 def cmd_promote(args: argparse.Namespace) -> None:
     # imported here: keeps `mmm --help` fast
-    from mmm.registry.promote import load_promote_config, promote
+    from mmm.registry.configs import load_promote_config
 
-    decision = promote(args.kind, load_promote_config(args.overrides))
+    cfg = load_promote_config(args.overrides)  # checked before the promotion's imports
+    from mmm.registry.promote import promote
+
+    decision = promote(args.kind, cfg)
     name = PROMOTABLE[args.kind].registered
     print(f"{name} version {decision.version} -> {decision.alias}: {decision.reason}")
     for line in decision.comparisons:

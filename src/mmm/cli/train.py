@@ -78,27 +78,34 @@ def add_pipeline(sub) -> None:
 
 def cmd_train(args: argparse.Namespace) -> None:
     kind = KINDS[args.stage]
-    # imported here: keeps `mmm --help` fast
-    if kind.name in ("stage1", "stage1-parts"):
-        from mmm.training.stage1 import load_stage1_config, train_stage1
+    # imported here: keeps `mmm --help` fast. Each config is composed and checked before its trainer
+    # (and Lightning) is imported, so that a bad one is refused in about a second.
+    from mmm.training import configs
 
-        result = train_stage1(load_stage1_config(args.overrides, parts=kind.part_aware), resume=args.resume)
+    if kind.name in ("stage1", "stage1-parts"):
+        cfg = configs.load_stage1_config(args.overrides, parts=kind.part_aware)
+        from mmm.training.stage1 import train_stage1
+
+        result = train_stage1(cfg, resume=args.resume)
     elif kind.name == "length":
         if args.resume:
             raise CLIError("--resume is not supported for the length estimator (it trains in seconds)")
-        from mmm.training.length import load_length_config, train_length
+        cfg = configs.load_length_config(args.overrides)
+        from mmm.training.length import train_length
 
-        result = train_length(load_length_config(args.overrides))
+        result = train_length(cfg)
     elif kind.name == "evaluator":
         if args.resume:
             raise CLIError("--resume is not supported for the evaluator (it trains in a few minutes)")
-        from mmm.training.evaluator import load_evaluator_config, train_evaluator
+        cfg = configs.load_evaluator_config(args.overrides)
+        from mmm.training.evaluator import train_evaluator
 
-        result = train_evaluator(load_evaluator_config(args.overrides))
+        result = train_evaluator(cfg)
     else:
-        from mmm.training.stage2 import load_stage2_config, train_stage2
+        cfg = configs.load_stage2_config(args.overrides, parts=kind.part_aware)
+        from mmm.training.stage2 import train_stage2
 
-        result = train_stage2(load_stage2_config(args.overrides, parts=kind.part_aware), resume=args.resume)
+        result = train_stage2(cfg, resume=args.resume)
     from lightning.pytorch.utilities import rank_zero_only
 
     if rank_zero_only.rank != 0 or (result.run_id is None and not result.best_checkpoint):
@@ -118,18 +125,24 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 
 def cmd_tokenize(args: argparse.Namespace) -> None:
-    from mmm.training.stage2 import load_stage2_config, prepare_stage2_data
+    from mmm.training.configs import load_stage2_config
 
-    datamodule = prepare_stage2_data(load_stage2_config(args.overrides))
+    cfg = load_stage2_config(args.overrides)
+    from mmm.training.stage2 import prepare_stage2_data
+
+    datamodule = prepare_stage2_data(cfg)
     print(f"tokens: {datamodule.tokens.folder} ({len(datamodule.tokens)} motions)")
     encoder = datamodule.text_encoder.identity
     print(f"caption embeddings: {len(datamodule.caption_cache)} captions ({encoder})")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
-    from mmm.evaluation.run import evaluate, load_evaluate_config
+    from mmm.evaluation.configs import load_evaluate_config
 
-    results = evaluate(load_evaluate_config(args.overrides))
+    cfg = load_evaluate_config(args.overrides)
+    from mmm.evaluation.run import evaluate
+
+    results = evaluate(cfg)
     print(results["table"])
     for path in results.get("samples", []):
         print(f"wrote {path}")
@@ -138,18 +151,23 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
 
 
 def cmd_ablate(args: argparse.Namespace) -> None:
-    from mmm.evaluation.ablation import load_ablation_config, run_ablation
+    from mmm.evaluation.configs import load_ablation_config
 
-    result = run_ablation(args.kind, load_ablation_config(args.overrides))
+    cfg = load_ablation_config(args.overrides, args.kind)
+    from mmm.evaluation.ablation import run_ablation
+
+    result = run_ablation(args.kind, cfg)
     print(result["table"])
     for path in result["files"]:
         print(f"wrote {path}")
 
 
 def cmd_pipeline(args: argparse.Namespace) -> None:
-    from mmm.pipeline.steps import load_pipeline_config, run_pipeline
+    from mmm.pipeline.configs import load_pipeline_config
 
     config = load_pipeline_config(args.overrides)
+    from mmm.pipeline.steps import run_pipeline
+
     reports = run_pipeline(args.name, config, force=args.force, overrides=args.overrides)
     for r in reports:
         shown = ", ".join(f"{k}={v}" for k, v in r.outputs.items() if k in ("run_id", "version", "alias"))

@@ -21,7 +21,7 @@ import csv
 import json
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
@@ -29,105 +29,21 @@ from matplotlib.figure import Figure
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
-from mmm.config import ConfigError, compose, to_object
-from mmm.data.datamodule import DataConfig
+from mmm.config import to_object
 from mmm.data.humanml3d import load_stats
+from mmm.evaluation.configs import ABLATIONS, AblationConfig, ProtocolConfig, check_sweep, sweep_settings
 from mmm.evaluation.evaluators import load_evaluator
-from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.evaluation.protocol import METRICS, evaluate_text_to_motion, results_table
 from mmm.evaluation.samples import check_samples, chosen_items, generated, render_sweep
 from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
 from mmm.generation.settings import SamplingConfig
-from mmm.tracking import TrackingConfig, artifact_location, prepare_experiment, resolve_tracking_uri
-from mmm.training.stage1 import load_stage1_config, train_stage1
-from mmm.training.stage2 import load_stage2_config, train_stage2
-from mmm.transformer.schedules import DECODING_SCHEDULES
+from mmm.tracking import artifact_location, prepare_experiment, resolve_tracking_uri
+from mmm.training.configs import load_stage1_config, load_stage2_config
+from mmm.training.stage1 import train_stage1
+from mmm.training.stage2 import train_stage2
 
 log = logging.getLogger(__name__)
-
-KINDS = {
-    "reset": (8, "codebook reset every N iterations"),
-    "cross-layers": (9, "cross-attention layers"),
-    "schedule": (10, "mask schedule and iterations"),
-    "temperature": (11, "temperature"),
-    "topk": (12, "top-k (fraction of the codebook)"),
-    "topp": (13, "top-p"),
-}
-
-
-@dataclass
-class Grids:
-    reset: list[int] = field(default_factory=lambda: [1, 20, 80])
-    cross_layers: list[int] = field(default_factory=lambda: [0, 1, 2, 4])
-    schedules: list[str] = field(default_factory=lambda: list(DECODING_SCHEDULES))
-    iterations: list[int] = field(default_factory=lambda: [5, 10, 15])
-    temperature: list[float] = field(default_factory=lambda: [0.5, 1.0, 1.2, 1.5])
-    topk: list[float] = field(default_factory=lambda: [0.1, 0.5, 0.9, 1.0])
-    topp: list[float] = field(default_factory=lambda: [0.1, 0.5, 0.9, 1.0])
-
-
-@dataclass
-class AblationConfig:
-    output_dir: str = "outputs/ablations"
-    text2motion: str | None = None  # the model the inference sweeps use (default: the newest stage-2 result)
-    stage1: str | None = None  # the tokenizer the cross-layers sweep trains on (default: the newest)
-    evaluator: str | None = None  # see mmm.evaluation.evaluators.load_evaluator
-    stage1_overrides: list[str] = field(default_factory=list)  # applied to the training runs of a sweep
-    stage2_overrides: list[str] = field(default_factory=list)
-    device: str = "cpu"
-    split: str = "test"
-    # Captions drawn at every setting under their real motions (samples.gif/png); 0: none.
-    samples: int = 2
-    grids: Grids = field(default_factory=Grids)
-    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
-    data: DataConfig = field(default_factory=DataConfig)
-    logger: TrackingConfig = field(default_factory=TrackingConfig)
-
-
-def load_ablation_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("ablate", list(overrides), schema=AblationConfig)
-
-
-def settings(kind: str, grids: Grids) -> list[tuple[str, dict]]:
-    """(row label, what changes) for each setting of a sweep."""
-    if kind == "reset":
-        return [(f"reset every {n}", {"stage1": [f"callbacks.reset_every_n_steps={n}"]}) for n in grids.reset]
-    if kind == "cross-layers":
-        return [
-            (f"{n} cross-attention layers", {"stage2": [f"model.transformer.num_cross_layers={n}"]})
-            for n in grids.cross_layers
-        ]
-    if kind == "schedule":
-        return [
-            (f"{s}, {t} iterations", {"sampling": {"schedule": s, "max_iterations": t}})
-            for s in grids.schedules
-            for t in grids.iterations
-        ]
-    if kind == "temperature":
-        return [(f"temperature {t:g}", {"sampling": {"temperature": t}}) for t in grids.temperature]
-    if kind == "topk":
-        return [(f"top-k {round(k * 100)}%", {"sampling": {"top_k": k}}) for k in grids.topk]
-    if kind == "topp":
-        return [(f"top-p {p:g}", {"sampling": {"top_p": p}}) for p in grids.topp]
-    raise ValueError(f"unknown ablation {kind!r}; choose one of {', '.join(KINDS)}")
-
-
-def _check_settings(kind: str, rows_spec: list[tuple[str, dict]], cfg: AblationConfig) -> None:
-    """Refuse a sweep with nothing to run or a setting its rows would refuse, before any run,
-    folder or training exists."""
-    if not rows_spec:
-        raise ConfigError(
-            f"ablation {kind}: its grid is empty (grids.* in conf/ablate.yaml or on the command line), so "
-            "there is nothing to sweep; give at least one value"
-        )
-    if kind == "reset":
-        bad = [n for n in cfg.grids.reset if isinstance(n, bool) or not isinstance(n, int) or n < 0]
-        if bad:
-            raise ConfigError(f"grids.reset={bad}: reset intervals are whole numbers of steps, 0 or more")
-    for _, change in rows_spec:
-        if "sampling" in change:  # refused on construction, naming the setting
-            SamplingConfig(**{**asdict(cfg.protocol.sampling), **change["sampling"]})
-
 
 def _train_models(change: dict, cfg: AblationConfig, parent_run_id: str):
     """Train what a training sweep's setting changes; returns the stage-2 checkpoint."""
@@ -168,9 +84,9 @@ def run_ablation(kind: str, cfg_node: DictConfig) -> dict:
     """Run a sweep; returns {"rows": {label: results}, "table": markdown, "files": [...]}."""
     cfg: AblationConfig = to_object(cfg_node)
     check_device(cfg.device)
-    table_no, title = KINDS[kind] if kind in KINDS else (None, None)
-    rows_spec = settings(kind, cfg.grids)
-    _check_settings(kind, rows_spec, cfg)
+    table_no, title = ABLATIONS[kind] if kind in ABLATIONS else (None, None)
+    rows_spec = sweep_settings(kind, cfg.grids)
+    check_sweep(kind, rows_spec, cfg)
     check_samples(cfg.samples)
     tracking_uri = resolve_tracking_uri(cfg.logger.tracking_uri)
     mlflow.set_tracking_uri(tracking_uri)

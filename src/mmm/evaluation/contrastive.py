@@ -28,7 +28,6 @@ and `EvaluatorEmbedder`, which takes raw features and caption strings. The loss 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -39,36 +38,12 @@ import torch.nn.functional as F
 
 from mmm.checkpoints import CheckpointError, load_checkpoint, load_state, text_encoder_options
 from mmm.config import as_config
+from mmm.evaluation.configs import ContrastiveModelConfig
 from mmm.evaluation.metrics import matching_score, r_precision_hits
 from mmm.text import build_text_encoder
 
 DOWNSAMPLE = 4  # the motion encoder's temporal downsampling (two stride-2 convs)
 MIN_FRAMES = 4  # the shortest motion it accepts
-
-
-@dataclass
-class ContrastiveModelConfig:
-    embed_dim: int = 512  # E: the shared embedding size
-    hidden_dim: int = 256  # H: conv channels and GRU hidden size per direction
-    text_hidden_dim: int = 512  # the text head's hidden layer
-    dropout: float = 0.1
-    normalize: bool = True  # L2-normalize the embeddings embed_* return
-    init_temperature: float = 0.07
-    max_logit_scale: float = 100.0  # 1 / the lowest temperature
-
-    def __post_init__(self):
-        if min(self.embed_dim, self.hidden_dim, self.text_hidden_dim) < 1:
-            raise ValueError(
-                "contrastive evaluator: embed_dim, hidden_dim and text_hidden_dim must be positive, got "
-                f"{self}"
-            )
-        if not 0.0 <= self.dropout < 1.0:
-            raise ValueError(f"contrastive evaluator: dropout must be in [0, 1), got {self.dropout}")
-        if self.init_temperature <= 0 or 1.0 / self.init_temperature > self.max_logit_scale:
-            raise ValueError(
-                "contrastive evaluator: init_temperature must be positive and at least 1 / max_logit_scale, "
-                f"got {self.init_temperature}"
-            )
 
 
 def valid_mask(lengths: torch.Tensor, T: int) -> torch.Tensor:

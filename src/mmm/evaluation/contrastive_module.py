@@ -11,7 +11,7 @@ load with torch.load(weights_only=True); the network sits under `evaluator.`, wh
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 
 import lightning as L
 import numpy as np
@@ -21,20 +21,11 @@ import torch.nn.functional as F
 from torchmetrics import MeanMetric
 
 from mmm.config import as_config
-from mmm.evaluation.contrastive import ContrastiveEvaluator, ContrastiveModelConfig, matching_ranks
+from mmm.evaluation.configs import ContrastiveModelConfig
+from mmm.evaluation.contrastive import ContrastiveEvaluator, matching_ranks
+from mmm.training.configs import ContrastiveLossConfig
 from mmm.training.optim import OptimConfig, build_optimizer
 from mmm.training.step_logging import logged_step
-
-
-@dataclass
-class ContrastiveLossConfig:
-    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
-    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
-    false_negative_threshold: float | None = 0.95
-    # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
-    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
-    # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
-    counterfactuals: list[str] = field(default_factory=list)
 
 
 def false_negative_mask(sentences: torch.Tensor, threshold: float | None) -> torch.Tensor | None:

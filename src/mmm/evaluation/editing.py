@@ -57,70 +57,19 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from mmm.config import check_whole
 from mmm.data.humanml3d import MotionItem
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import item_parts, parts_in_span
-from mmm.evaluation.protocol import METRICS, ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.evaluation.configs import EditingConfig, ProtocolConfig
+from mmm.evaluation.protocol import METRICS, evaluate_text_to_motion, results_table
 from mmm.evaluation.upper_body import lower_body_sources, upper_body_adherence
 from mmm.generation.settings import SamplingConfig
-from mmm.generation.upper_body import UPPER_BODY_GUIDANCE
 from mmm.motion.parts import LOWER_JOINTS
 
 TEMPORAL_TASKS = ("inbetween", "outpaint", "prefix", "suffix")
 EDITING_TASKS = (*TEMPORAL_TASKS, "upper-body", "long")
 TASKS = ("text2motion", *EDITING_TASKS)
 PLOT_FILE = "upper_body_lower_mask.png"
-
-
-@dataclass
-class EditingConfig:
-    """The editing benchmarks' settings (conf/evaluate.yaml `editing:`)."""
-
-    inbetween_keep: float = 0.25  # inbetween: share kept at EACH end; the middle 1 - 2x is generated
-    outpaint_keep: float = 0.5  # outpaint: the middle share kept; (1 - x) / 2 generated at each end
-    prefix_keep: float = 0.5  # prefix: the first share kept, the rest generated
-    suffix_keep: float = 0.5  # suffix: the last share kept, the first 1 - x generated
-    far_frames: int = 32  # exactness "far": kept frames at least this many frames from a generated one
-    with_text: bool = True  # temporal tasks: False generates without the caption (completion without text)
-    lower_mask: float = 0.5  # upper-body: the share of lower-body codes hidden in the main row
-    lower_masks: list[float] = field(
-        default_factory=lambda: [0.0, 0.25, 0.5, 0.75, 1.0]
-    )  # upper-body: the ablation sweep (one row each; [] for the main row only)
-    upper_body_guidance: float | None = UPPER_BODY_GUIDANCE  # upper-body CFG; null: protocol.sampling's
-    upper_body_sources: int = 12  # upper-body adherence: labelled lower-body clips edited (x 3 prompts)
-    long_prompts: int = 4  # long: consecutive captions per long motion
-    transition_codes: int = 2  # long: new codes between two segments
-    context_codes: int = 6  # long: codes of each segment the transition sees
-
-    def validate(self) -> None:
-        """ValueError naming the setting, its value and what it may be."""
-        for name, low, high in (
-            ("inbetween_keep", 0.0, 0.5),
-            ("outpaint_keep", 0.0, 1.0),
-            ("prefix_keep", 0.0, 1.0),
-            ("suffix_keep", 0.0, 1.0),
-        ):
-            value = getattr(self, name)
-            if not low < value < high:
-                raise ValueError(
-                    f"editing.{name}={value}: a share of the motion strictly between {low} and {high}"
-                )
-        for value in [self.lower_mask, *self.lower_masks]:
-            if not 0.0 <= value <= 1.0:
-                raise ValueError(f"editing lower mask {value}: a share of lower-body codes in [0, 1]")
-        if self.long_prompts < 2:
-            raise ValueError(
-                f"editing.long_prompts={self.long_prompts}: at least 2 captions make a long motion"
-            )
-        if self.far_frames < 0:
-            raise ValueError(f"editing.far_frames={self.far_frames}: a number of frames, 0 or more")
-        for name, least, what in (
-            ("transition_codes", 0, "new codes between two segments"),
-            ("context_codes", 1, "codes of each segment a transition sees"),
-            ("upper_body_sources", 1, "labelled clips edited"),
-        ):
-            check_whole(f"editing.{name}", getattr(self, name), least, f" ({what})")
 
 
 def task_label(task: str, cfg: EditingConfig) -> str:

@@ -21,17 +21,15 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from mmm.config import check_whole
 from mmm.data.datasets import TextMotionDataset
 from mmm.data.humanml3d import MotionItem
+from mmm.evaluation.configs import ProtocolConfig
 from mmm.evaluation.metrics import diversity, fid, matching_score, multimodality, r_precision_hits
-from mmm.generation.settings import SamplingConfig
 from mmm.motion.features import pad_motions
 
 log = logging.getLogger(__name__)
@@ -42,28 +40,6 @@ METRICS = ("top1", "top2", "top3", "fid", "matching_score", "diversity", "multim
 # lengths (B,) frames, real (B, T, D) the un-normalized real crops (the mean pose past each length), seed an
 # int; returns (B, T', D) features or B arrays (T_i, D), un-normalized, each at least its length.
 Producer = Callable[[list[str], list[int], torch.Tensor, int], "np.ndarray | list[np.ndarray]"]
-
-
-@dataclass
-class ProtocolConfig:
-    replications: int = 20
-    batch_size: int = 32
-    diversity_times: int = 300
-    mm_texts: int = 100
-    mm_generations: int = 30
-    mm_times: int = 10
-    max_batches: int | None = None  # cap per replication (quick runs on a CPU); None: the whole split
-    seed: int = 0
-    sampling: SamplingConfig = field(default_factory=SamplingConfig)
-
-    def __post_init__(self):
-        least = dict(replications=1, batch_size=1, max_batches=1, diversity_times=0, mm_texts=0)
-        for name, bound in {**least, "mm_generations": 0, "mm_times": 0}.items():
-            value = getattr(self, name)
-            if name != "max_batches":
-                check_whole(f"protocol.{name}", value, bound)
-            elif value is not None:  # None: the whole split
-                check_whole("protocol.max_batches", value, bound, " (or null: the whole split)")
 
 
 def interval(values: list[float]) -> tuple[float, float]:

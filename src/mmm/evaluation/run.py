@@ -31,7 +31,7 @@ import logging
 import math
 import time
 from collections import defaultdict
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -41,15 +41,15 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
-from mmm.config import compose, to_object
-from mmm.data.datamodule import DataConfig
+from mmm.config import to_object
 from mmm.data.humanml3d import load_stats
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
-from mmm.evaluation.editing import TASKS, EditingConfig, check_task_model, evaluate_editing, task_label
+from mmm.evaluation.configs import EvaluateConfig
+from mmm.evaluation.editing import TASKS, check_task_model, evaluate_editing, task_label
 from mmm.evaluation.evaluators import load_evaluator, load_judge
 from mmm.evaluation.metrics import fid
-from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion, results_table
+from mmm.evaluation.protocol import evaluate_text_to_motion, results_table
 from mmm.evaluation.samples import check_samples, render_samples
 from mmm.fingerprint import dataset_fingerprint
 from mmm.generation.model import TextToMotion
@@ -59,7 +59,6 @@ from mmm.motion.features import recover_from_ric
 from mmm.tokenizer.load import load_tokenizer
 from mmm.tracking import (
     DESCRIPTION_TAG,
-    TrackingConfig,
     artifact_location,
     log_dataset_input,
     prepare_experiment,
@@ -71,49 +70,6 @@ from mmm.tracking import (
 )
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class EvaluatorChoice:
-    reference: str | None = None  # own evaluator (path, run id, models:/...; newest when null) or t2m:DIR
-    glove_dir: str | None = None  # standard evaluator only
-    norm_dir: str | None = None  # standard evaluator only: its mean.npy / std.npy
-
-
-@dataclass
-class EvaluateConfig:
-    text2motion: str | None = None  # stage-2 model: path, run id, models:/NAME@ALIAS; newest when null
-    task: str = "text2motion"  # text2motion | inbetween | outpaint | prefix | suffix | upper-body | long
-    tokenizer: str | None = None  # for reconstruction metrics; default: the text2motion model's own
-    # The stage-1 model text2motion was trained with, when the file its checkpoint records lies
-    # outside outputs/ (generate's --stage1); its weights must be the ones the transformer learned.
-    stage1: str | None = None
-    evaluator: EvaluatorChoice = field(default_factory=EvaluatorChoice)
-    split: str = "test"
-    what: list[str] = field(default_factory=lambda: ["text2motion", "reconstruction", "adherence"])
-    adherence_max_items: int | None = None
-    # Best of N for adherence (mmm.generation.best_of): each motion the best of this many draws by
-    # the judge (path, run id, models:/...; null: the evaluator champion, else the newest run).
-    # The text2motion protocol always draws one: its evaluator would be judging its own choice.
-    adherence_candidates: int = 1
-    adherence_judge: str | None = None
-    # A caption in two steps also judged clause by clause, and one with a count or speed word
-    # against its counterfactuals (mmm.generation.best_of.judge_scores).
-    adherence_by_clause: bool = True
-    adherence_counterfactuals: bool = True
-    output_dir: str = "outputs/evaluation"
-    # Captions of the split rendered with their real motions (samples.gif/png; samples.py); 0: none.
-    samples: int = 4
-    device: str = "cpu"
-    precision: str | None = None  # fp32 | bf16 | int8 decoding passes; null: the device's default
-    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
-    editing: EditingConfig = field(default_factory=EditingConfig)
-    data: DataConfig = field(default_factory=DataConfig)
-    logger: TrackingConfig = field(default_factory=TrackingConfig)
-
-
-def load_evaluate_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("evaluate", list(overrides), schema=EvaluateConfig)
 
 
 @torch.no_grad()

@@ -23,7 +23,8 @@ import numpy as np
 from mmm.data.humanml3d import MotionItem
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import item_parts, ordered_pass
-from mmm.evaluation.editing import TEMPORAL_TASKS, EditingConfig, keep_ranges
+from mmm.evaluation.configs import EditingConfig
+from mmm.evaluation.editing import TEMPORAL_TASKS, keep_ranges
 from mmm.generation.settings import SamplingConfig
 from mmm.render import render_frames, render_gif
 

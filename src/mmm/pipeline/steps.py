@@ -19,27 +19,35 @@ from __future__ import annotations
 
 import hashlib
 import subprocess
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
-from mmm.config import compose, config_hash, to_object
-from mmm.data.datamodule import DataConfig, TokenizerDataModule
-from mmm.evaluation.run import evaluate, load_evaluate_config
+from mmm.config import config_hash, to_object
+from mmm.data.datamodule import TokenizerDataModule
+from mmm.evaluation.configs import load_evaluate_config
+from mmm.evaluation.run import evaluate
 from mmm.fingerprint import dataset_fingerprint
 from mmm.kinds import PROMOTABLE
+from mmm.pipeline.configs import PipelineConfig, shared_overrides
 from mmm.pipeline.runner import Context, Step, StepReport, run_steps
 from mmm.registry import versions
-from mmm.registry.promote import load_promote_config, promote
+from mmm.registry.configs import load_promote_config
+from mmm.registry.promote import promote
 from mmm.registry.versions import EVALUATOR, TOKENIZER
-from mmm.tracking import TrackingConfig, resolve_tracking_uri
-from mmm.training.evaluator import load_evaluator_config, train_evaluator
-from mmm.training.length import load_length_config, train_length
-from mmm.training.stage1 import load_stage1_config, train_stage1
-from mmm.training.stage2 import load_stage2_config, prepare_stage2_data, train_stage2
+from mmm.tracking import resolve_tracking_uri
+from mmm.training.configs import (
+    load_evaluator_config,
+    load_length_config,
+    load_stage1_config,
+    load_stage2_config,
+)
+from mmm.training.evaluator import train_evaluator
+from mmm.training.length import train_length
+from mmm.training.stage1 import train_stage1
+from mmm.training.stage2 import prepare_stage2_data, train_stage2
 
 PIPELINES = {
     "full": [
@@ -59,30 +67,6 @@ PIPELINES = {
     "promote": ["promote-evaluator", "promote-tokenizer", "promote-text2motion"],
     "parts": ["stage1-parts", "stage2-parts", "promote-upperbody"],
 }
-
-
-@dataclass
-class StepOverrides:
-    stage1: list[str] = field(default_factory=list)
-    stage2: list[str] = field(default_factory=list)
-    length: list[str] = field(default_factory=list)
-    evaluator: list[str] = field(default_factory=list)
-    evaluate: list[str] = field(default_factory=list)
-    promote: list[str] = field(default_factory=list)
-    stage1_parts: list[str] = field(default_factory=list)
-    stage2_parts: list[str] = field(default_factory=list)
-
-
-@dataclass
-class PipelineConfig:
-    state_file: str = "outputs/pipeline/state.json"
-    overrides: StepOverrides = field(default_factory=StepOverrides)
-    data: DataConfig = field(default_factory=DataConfig)
-    logger: TrackingConfig = field(default_factory=TrackingConfig)
-
-
-def load_pipeline_config(overrides: list[str] = ()) -> DictConfig:
-    return compose("pipeline", list(overrides), schema=PipelineConfig)
 
 
 def _common(ctx: Context) -> list[str]:
@@ -392,11 +376,6 @@ STEPS = {
     "stage2-parts": step_stage2_parts,
     "promote-upperbody": lambda: _promote_step("upperbody", "stage2-parts"),
 }
-
-
-def shared_overrides(overrides: list[str]) -> list[str]:
-    """The command line's data.* and logger.* overrides, which every step's config takes too."""
-    return [o for o in overrides if o.split("=", 1)[0].lstrip("+~").startswith(("data.", "logger."))]
 
 
 def run_pipeline(

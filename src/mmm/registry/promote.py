@@ -16,7 +16,7 @@ number, and links to the model's run and the previous champion.
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
@@ -25,12 +25,12 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
 from mmm.atomic import sha256_file
-from mmm.config import ConfigError, compose, to_object
-from mmm.data.datamodule import DataConfig
+from mmm.config import to_object
+from mmm.data.config import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.evaluation.adherence import adherence_metrics, prompt_adherence
 from mmm.evaluation.evaluators import load_evaluator
-from mmm.evaluation.protocol import ProtocolConfig, evaluate_text_to_motion
+from mmm.evaluation.protocol import evaluate_text_to_motion
 from mmm.evaluation.run import reconstruction_metrics
 from mmm.evaluation.upper_body import upper_body_adherence
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
@@ -38,6 +38,7 @@ from mmm.generation.model import TextToMotion
 from mmm.generation.precision import check_device
 from mmm.kinds import PROMOTABLE
 from mmm.registry.bundle import JudgeMismatch, log_bundle
+from mmm.registry.configs import Criterion, PromoteConfig
 from mmm.registry.versions import (
     CI_SUFFIX,
     EVALUATOR,
@@ -45,9 +46,7 @@ from mmm.registry.versions import (
     TOKENIZER,
     UPPERBODY,
     WEIGHTS_SHA256,
-    Criterion,
     Decision,
-    criteria_errors,
     freeze_weights,
     promote_version,
     register_version,
@@ -57,7 +56,7 @@ from mmm.registry.versions import (
 )
 from mmm.resolve import ModelNotFound, download_artifact
 from mmm.tokenizer.load import load_tokenizer_checkpoint
-from mmm.tracking import TrackingConfig, store_for_reading
+from mmm.tracking import store_for_reading
 
 log = logging.getLogger(__name__)
 
@@ -82,55 +81,6 @@ MODEL_DESCRIPTIONS = {
         "`criteria.upperbody`)."
     ),
 }
-
-
-@dataclass
-class Criteria:
-    tokenizer: list[Criterion] = field(
-        default_factory=lambda: [Criterion("recon/mpjpe_root_aligned_mm", "min", 0.0)]
-    )
-    text2motion: list[Criterion] = field(default_factory=lambda: [Criterion("generated/fid", "min", 0.0)])
-    evaluator: list[Criterion] = field(
-        default_factory=lambda: [Criterion("test/r_precision_top1", "max", 0.0)]
-    )
-    upperbody: list[Criterion] = field(default_factory=lambda: [Criterion("upper_body/both", "max", 0.0)])
-
-
-@dataclass
-class UpperBodyCheck:
-    max_sources: int = 12  # walk/squat clips of the split, each edited with every upper-body prompt
-    lower_mask: float = 0.5
-    seed: int = 0
-
-
-@dataclass
-class PromoteConfig:
-    candidate: str | None = None  # the run to promote; default: the newest finished run of the kind
-    evaluator: str | None = (
-        None  # evaluator for the metrics; default: the champion evaluator, else the newest
-    )
-    split: str = "test"
-    device: str = "cpu"
-    criteria: Criteria = field(default_factory=Criteria)
-    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
-    upper_body: UpperBodyCheck = field(default_factory=UpperBodyCheck)
-    # text2motion on labelled data: prompt adherence (adherence/*, usable as criteria) beside the protocol
-    adherence: bool = True
-    adherence_max_items: int | None = None
-    data: DataConfig = field(default_factory=DataConfig)
-    logger: TrackingConfig = field(default_factory=TrackingConfig)
-
-
-def load_promote_config(overrides: list[str] = ()) -> DictConfig:
-    """conf/promote.yaml with `overrides`; ConfigError naming the key when a criterion is invalid."""
-    cfg_node = compose("promote", list(overrides), schema=PromoteConfig)
-    criteria: Criteria = to_object(cfg_node.criteria)
-    problems = [
-        p for kind in PROMOTABLE for p in criteria_errors(getattr(criteria, kind), f"criteria.{kind}")
-    ]
-    if problems:
-        raise ConfigError("conf/promote.yaml (with the command line's overrides): " + "; ".join(problems))
-    return cfg_node
 
 
 def _length_rules(data: DataConfig) -> dict:

@@ -37,6 +37,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 from mmm import __version__
 from mmm.atomic import sha256_file
 from mmm.kinds import PROMOTABLE
+from mmm.registry.configs import Criterion, criteria_errors
 from mmm.resolve import log_artifact_with_digest
 from mmm.tracking import git_commit, run_link, sqlite_database, version_link
 
@@ -44,39 +45,6 @@ from mmm.tracking import git_commit, run_link, sqlite_database, version_link
 TOKENIZER, TEXT2MOTION, EVALUATOR, UPPERBODY = (
     PROMOTABLE[k].registered for k in ("tokenizer", "text2motion", "evaluator", "upperbody")
 )
-
-
-@dataclass
-class Criterion:
-    metric: str
-    mode: str = "min"  # min: lower is better; max: higher is better
-    margin: float = 0.0  # the candidate must be better by at least this much
-
-
-def criteria_errors(criteria: list[Criterion], key: str) -> list[str]:
-    """What is wrong with `criteria` (configured under `key`, e.g. criteria.text2motion), one
-    line per problem naming the key; empty when they are valid."""
-    errors = []
-    if not criteria:
-        errors.append(
-            f"{key} is empty: a candidate would become champion compared on nothing; name at least one "
-            "metric, e.g. {metric: generated/fid, mode: min, margin: 0.0}"
-        )
-    for i, c in enumerate(criteria):
-        at = f"{key}[{i}]"
-        if not isinstance(c.metric, str) or not c.metric.strip():
-            errors.append(f"{at}.metric is empty; name a metric, e.g. generated/fid")
-        if c.mode not in ("min", "max"):
-            errors.append(f"{at}.mode={c.mode!r} must be min (lower is better) or max (higher is better)")
-        try:
-            margin = float(c.margin)
-        except (TypeError, ValueError):
-            margin = math.nan
-        if not math.isfinite(margin) or margin < 0:
-            errors.append(
-                f"{at}.margin={c.margin!r} must be a finite number >= 0 (how much better a candidate must be)"
-            )
-    return errors
 
 
 @dataclass

@@ -6,7 +6,7 @@ codebook metrics are then logged per codebook (`codebook/lower/perplexity`, ...)
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import lightning as L
 import numpy as np
@@ -21,46 +21,9 @@ from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.parts import PartAwareTokenizer
 from mmm.tokenizer.quantizer import EMAQuantizer, metric_name
 from mmm.tokenizer.search import CodeSearchConfig, search_codes
+from mmm.training.configs import DecoderRefineConfig, TokenizerLossConfig
 from mmm.training.optim import OptimConfig, build_optimizer
 from mmm.training.step_logging import logged_step
-
-
-@dataclass
-class TokenizerLossConfig:
-    position_weight: float = 0.5  # extra SmoothL1 on the root-relative joint positions
-    commit_weight: float = 0.02
-    # Mean distance (m) between the windows' global joint positions, the root path integrated from
-    # the velocities as recover_from_ric does: small velocity errors add up along a clip.
-    global_weight: float = 0.0
-    root_weight: float = (
-        1.0  # the reconstruction loss of the root dims (yaw and x/z velocity, height) times this
-    )
-    # Mean distance (m) between the decoded and the true root path (x/z) of each window, in the
-    # tokenizer's own steps (the refinement has its own, refine.path_weight).
-    path_weight: float = 0.0
-
-
-@dataclass
-class DecoderRefineConfig:
-    """`steps` more optimizer steps after the tokenizer's own train the decoder alone.
-
-    The encoder and codebook are frozen (no EMA update, no reset), so the decoder fits fixed codes
-    instead of chasing a codebook that moves every step; the rate restarts at `lr` and decays to 0
-    along a half cosine, and the root dims' loss is multiplied by `root_weight`. The root
-    velocities' small per-clip bias is what integrates into the drift of the global root path
-    (README, Stage 1); `path_weight` adds the mean distance (m) between the decoded and the true
-    root path (x/z, integrated over each window as recover_from_ric does), which weighs the
-    velocity errors by how far they carry the root; `start_windows` of the refinement's windows
-    are the first frames of a clip (mmm.data.datasets.MotionWindowDataset says why). The module
-    refines in the last `steps` of its fit; `train_stage1` runs trainer.max_steps + steps. 0: no
-    refinement (the released recipe).
-    """
-
-    steps: int = 0
-    lr: float = 3e-4
-    root_weight: float = 25.0
-    path_weight: float = 0.0
-    start_windows: float = 0.0
 
 
 def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

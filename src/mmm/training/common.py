@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mmm.callbacks.checkpoints import RunState, checkpoint_callbacks
 from mmm.checkpoints import load_checkpoint
-from mmm.config import ConfigError, conf_dir, config_hash
+from mmm.config import conf_dir, config_hash
 from mmm.generation.precision import cpu_has_bf16_matmul
 from mmm.kinds import ModelKind
 from mmm.resolve import log_artifact_with_digest
@@ -46,7 +46,7 @@ from mmm.tracking import (
     timestamp,
 )
 from mmm.training.checkpoint_io import AtomicCheckpointIO
-from mmm.training.configs import TrainerConfig
+from mmm.training.configs import TrainerConfig, check_first_validation
 from mmm.training.runs import (
     claim_run_directory,
     discard_unused_run_directory,
@@ -312,11 +312,7 @@ def check_schedule(trainer: TrainerConfig) -> None:
     """Checkpoints are written at validations: refuse a fit that ends before its first one (it
     would finish with no model), and warn when its last steps come after the last one."""
     steps, every = trainer.max_steps, trainer.val_check_interval
-    if every > steps:
-        raise ConfigError(
-            f"the fit's {steps} steps end before its first validation (trainer.val_check_interval={every}), "
-            f"so no checkpoint would be written: set trainer.val_check_interval to at most {steps}"
-        )
+    check_first_validation(steps, every)
     if steps % every:
         log.warning(
             "the last %d of the fit's %d steps come after its last validation (step %d): no checkpoint "

@@ -1,15 +1,31 @@
-"""The config sections every trainer shares: the model sizes of both stages and the trainer
-(conf/model/*.yaml, conf/trainer/*.yaml). Each stage's own config (Stage1Config, ...) lives with
-its trainer; the callback configs live with their callbacks (mmm.callbacks)."""
+"""What each training command reads: `mmm train stage1|stage1-parts|stage2|stage2-parts|length|
+evaluator` (conf/train_*.yaml), from the sections every trainer shares (model sizes, the trainer)
+to each stage's own losses, callbacks and the whole Stage1Config, Stage2Config, ...
+
+Kept apart from the LightningModules and trainers so that a config is composed and checked without
+loading Lightning or MLflow: a misspelt key or an out-of-range value is refused in about a second,
+not after the several seconds those imports take."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Any
 
-from mmm.config import check_whole
+from omegaconf import DictConfig
+
+from mmm.config import ConfigError, check_whole, compose
+from mmm.data.config import DataConfig
+from mmm.data.normalization import NormalizationConfig
+from mmm.evaluation.configs import ContrastiveModelConfig
+from mmm.generation.length import LengthModelConfig
+from mmm.kinds import EVALUATOR, LENGTH, STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS
+from mmm.text.encoders import TextConfig
 from mmm.tokenizer.network import TokenizerConfig
+from mmm.tokenizer.search import CodeSearchConfig
+from mmm.tracking import TrackingConfig
+from mmm.training.optim import OptimConfig
 from mmm.transformer.network import TransformerConfig
+from mmm.transformer.schedules import TRAINING_SCHEDULES, check_schedule
 
 
 @dataclass
@@ -46,3 +62,278 @@ class TrainerConfig:
         for name in ("max_steps", "val_check_interval", "log_every_n_steps"):
             example = ", e.g. trainer.max_steps=1000" if name == "max_steps" else ""
             check_whole(f"trainer.{name}", getattr(self, name), 1, f" (steps{example})")
+
+
+@dataclass
+class TokenizerLossConfig:
+    position_weight: float = 0.5  # extra SmoothL1 on the root-relative joint positions
+    commit_weight: float = 0.02
+    # Mean distance (m) between the windows' global joint positions, the root path integrated from
+    # the velocities as recover_from_ric does: small velocity errors add up along a clip.
+    global_weight: float = 0.0
+    root_weight: float = (
+        1.0  # the reconstruction loss of the root dims (yaw and x/z velocity, height) times this
+    )
+    # Mean distance (m) between the decoded and the true root path (x/z) of each window, in the
+    # tokenizer's own steps (the refinement has its own, refine.path_weight).
+    path_weight: float = 0.0
+
+
+@dataclass
+class DecoderRefineConfig:
+    """`steps` more optimizer steps after the tokenizer's own train the decoder alone.
+
+    The encoder and codebook are frozen (no EMA update, no reset), so the decoder fits fixed codes
+    instead of chasing a codebook that moves every step; the rate restarts at `lr` and decays to 0
+    along a half cosine, and the root dims' loss is multiplied by `root_weight`. The root
+    velocities' small per-clip bias is what integrates into the drift of the global root path
+    (README, Stage 1); `path_weight` adds the mean distance (m) between the decoded and the true
+    root path (x/z, integrated over each window as recover_from_ric does), which weighs the
+    velocity errors by how far they carry the root; `start_windows` of the refinement's windows
+    are the first frames of a clip (mmm.data.datasets.MotionWindowDataset says why). The module
+    refines in the last `steps` of its fit; `train_stage1` runs trainer.max_steps + steps. 0: no
+    refinement (the released recipe).
+    """
+
+    steps: int = 0
+    lr: float = 3e-4
+    root_weight: float = 25.0
+    path_weight: float = 0.0
+    start_windows: float = 0.0
+
+    def __post_init__(self):
+        if self.steps < 0:  # (trainer.max_steps >= 1 is TrainerConfig's own check)
+            raise ConfigError(
+                f"refine.steps={self.steps}: the decoder refinement's steps after trainer.max_steps steps "
+                "of the whole tokenizer must be 0 or more (0: no refinement)"
+            )
+
+
+@dataclass
+class CorruptionConfig:
+    mask_schedule: str = (
+        "uniform"  # a name of transformer/schedules.py TRAINING_SCHEDULES (uniform: as released)
+    )
+    pkeep: float = 0.5  # real tokens replaced by random codes with probability 1 - pkeep
+    loss_on: str = "all"  # all real positions (released) | masked
+    cond_drop: float = 0.0  # probability of dropping the text (0.1 enables classifier-free guidance)
+    lower_mask: float = (
+        1.0  # part-aware model: a share ~ U(0, lower_mask) of the lower-body condition codes is masked
+    )
+
+    def __post_init__(self):
+        check_schedule(self.mask_schedule, TRAINING_SCHEDULES, "corruption.mask_schedule")
+        if self.loss_on not in ("all", "masked"):
+            raise ValueError(f"corruption.loss_on must be all or masked, got {self.loss_on!r}")
+        if not 0.0 <= self.cond_drop < 1.0:
+            raise ValueError(
+                "corruption.cond_drop is the probability of dropping the text, in [0, 1) (1 would never "
+                f"show the model a caption; 0.1 enables classifier-free guidance), got {self.cond_drop}"
+            )
+        if not 0.0 <= self.pkeep <= 1.0:
+            raise ValueError(
+                f"corruption.pkeep is the share of real tokens kept, in [0, 1], got {self.pkeep}"
+            )
+        if not 0.0 <= self.lower_mask <= 1.0:
+            raise ValueError(f"corruption.lower_mask is a share in [0, 1], got {self.lower_mask}")
+
+
+@dataclass
+class ContrastiveLossConfig:
+    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
+    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
+    false_negative_threshold: float | None = 0.95
+    # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
+    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
+    # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
+    counterfactuals: list[str] = field(default_factory=list)
+
+
+@dataclass
+class CheckpointConfig:
+    monitor: str = "val/mpjpe_root_aligned_mm"
+    mode: str = "min"
+
+
+@dataclass
+class CollapseConfig:
+    """CollapseMonitor's settings (`callbacks.collapse` of conf/callbacks/stage1.yaml)."""
+
+    action: str = "warn"  # warn | stop | fail
+    warmup_steps: int = 200
+    window_steps: int = 50
+    min_active_fraction: float = 0.02
+    perplexity_drop: float = 0.2
+    smoothing: float = 0.9
+    patience: int = 3
+
+
+@dataclass
+class Stage1Callbacks:
+    reset_every_n_steps: int = 20  # CodebookReset every N steps; 0 disables codebook reset
+    collapse: CollapseConfig = field(default_factory=CollapseConfig)
+    preview_clips: int = 3  # ReconstructionPreview: validation clips rendered at each validation (0: none)
+    usage_plot: bool = True  # CodebookUsagePlot at each validation
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+
+    def __post_init__(self):
+        for name in ("reset_every_n_steps", "preview_clips"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ConfigError(f"callbacks.{name}={value!r}: must be a whole number, 0 or more (0: off)")
+
+
+@dataclass
+class Stage1Config:
+    seed: int = 0
+    output_dir: str = STAGE1.output_dir
+    data: DataConfig = field(default_factory=DataConfig)
+    normalization: NormalizationConfig = field(default_factory=NormalizationConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    loss: TokenizerLossConfig = field(default_factory=TokenizerLossConfig)
+    refine: DecoderRefineConfig = field(default_factory=DecoderRefineConfig)
+    encode: CodeSearchConfig = field(default_factory=CodeSearchConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+    callbacks: Stage1Callbacks = field(default_factory=Stage1Callbacks)
+
+
+def check_first_validation(steps: int, every: int) -> None:
+    """Checkpoints are written at validations: refuse a fit of `steps` steps that ends before its
+    first one (trainer.val_check_interval=`every`), which would finish with no model."""
+    if every > steps:
+        raise ConfigError(
+            f"the fit's {steps} steps end before its first validation (trainer.val_check_interval={every}), "
+            f"so no checkpoint would be written: set trainer.val_check_interval to at most {steps}"
+        )
+
+
+def _checked(cfg_node: DictConfig, extra_steps: int = 0) -> DictConfig:
+    trainer = cfg_node.trainer
+    check_first_validation(trainer.max_steps + extra_steps, trainer.val_check_interval)
+    return cfg_node
+
+
+def load_stage1_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:
+    """conf/train_stage1.yaml, or with parts=True conf/train_stage1_parts.yaml (the part-aware tokenizer)."""
+    cfg = compose((STAGE1_PARTS if parts else STAGE1).config, list(overrides), schema=Stage1Config)
+    return _checked(cfg, cfg.refine.steps)  # the fit: the whole tokenizer, then the decoder alone
+
+
+@dataclass
+class Stage2Callbacks:
+    checkpoint: CheckpointConfig = field(
+        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
+    )
+    # GenerationPreview: validation captions generated and rendered at each validation (0: none)
+    preview_captions: int = 3
+    # AdherenceCurve: labelled validation captions generated and checked at each validation, logged
+    # as val_adherence/* (0: none; only on a dataset with labels/, whole-body models)
+    adherence_captions: int = 64
+
+
+@dataclass
+class Stage2Config:
+    seed: int = 0
+    output_dir: str = STAGE2.output_dir
+    stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
+    stage1_output_dir: str = STAGE1.output_dir
+    stage1_experiment: str = (
+        STAGE1.experiment
+    )  # where the newest stage-1 run is looked for (mmm-stage1-parts: part-aware)
+    part_aware: bool = (
+        False  # the part-aware transformer (upper body given lower body); needs a part-aware stage-1 model
+    )
+    token_cache_dir: str = "outputs/cache/tokens"
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
+    text: TextConfig = field(default_factory=TextConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=TrackingConfig)
+    callbacks: Stage2Callbacks = field(default_factory=Stage2Callbacks)
+
+
+def load_stage2_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:
+    """conf/train_stage2.yaml, or with parts=True conf/train_stage2_parts.yaml (the part-aware
+    transformer)."""
+    return _checked(compose((STAGE2_PARTS if parts else STAGE2).config, list(overrides), schema=Stage2Config))
+
+
+@dataclass
+class LengthCallbacks:
+    checkpoint: CheckpointConfig = field(
+        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
+    )
+
+
+@dataclass
+class LengthConfig:
+    seed: int = 0
+    output_dir: str = LENGTH.output_dir
+    stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
+    stage1_output_dir: str = STAGE1.output_dir
+    token_cache_dir: str = "outputs/cache/tokens"
+    data: DataConfig = field(default_factory=DataConfig)
+    text: TextConfig = field(default_factory=TextConfig)
+    model: LengthModelConfig = field(default_factory=LengthModelConfig)
+    optim: OptimConfig = field(
+        default_factory=lambda: OptimConfig(
+            lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=20, milestones=[1_000_000]
+        )
+    )
+    label_smoothing: float = 0.0
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=LENGTH.experiment))
+    callbacks: LengthCallbacks = field(default_factory=LengthCallbacks)
+
+
+def load_length_config(overrides: list[str] = ()) -> DictConfig:
+    return _checked(compose(LENGTH.config, list(overrides), schema=LengthConfig))
+
+
+@dataclass
+class EvaluatorCallbacks:
+    checkpoint: CheckpointConfig = field(
+        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
+    )
+
+
+@dataclass
+class RetrievalConfig:
+    """Validation and test retrieval: pairs in batches of batch_size (32 by the protocol)."""
+
+    batch_size: int = 32
+    seed: int = 0  # the test split's order and its caption/crop draws
+
+
+@dataclass
+class RegistryConfig:
+    register: bool = True
+    name: str = EVALUATOR.registered
+
+
+@dataclass
+class EvaluatorTrainConfig:
+    seed: int = 0
+    output_dir: str = EVALUATOR.output_dir
+    data: DataConfig = field(default_factory=lambda: DataConfig(batch_size=128))
+    text: TextConfig = field(default_factory=TextConfig)
+    model: ContrastiveModelConfig = field(default_factory=ContrastiveModelConfig)
+    loss: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
+    optim: OptimConfig = field(
+        default_factory=lambda: OptimConfig(
+            lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=50, milestones=[1_000_000]
+        )
+    )
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=EVALUATOR.experiment))
+    callbacks: EvaluatorCallbacks = field(default_factory=EvaluatorCallbacks)
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    registry: RegistryConfig = field(default_factory=RegistryConfig)
+
+
+def load_evaluator_config(overrides: list[str] = ()) -> DictConfig:
+    return _checked(compose(EVALUATOR.config, list(overrides), schema=EvaluatorTrainConfig))

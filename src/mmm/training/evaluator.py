@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import lightning as L
@@ -31,25 +31,24 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 from torch.utils.data import Dataset
 
-from mmm.callbacks.checkpoints import CheckpointConfig
-from mmm.config import compose, to_object
-from mmm.data.datamodule import DataConfig, TextMotionDataModule
+from mmm.config import to_object
+from mmm.data.config import DataConfig
+from mmm.data.datamodule import TextMotionDataModule
 from mmm.data.datasets import TextMotionDataset, collate_motions
 from mmm.data.resumable import ResumableDataLoader
 from mmm.evaluation.contrastive import (
     ContrastiveEvaluator,
-    ContrastiveModelConfig,
     EvaluatorEmbedder,
     load_contrastive_evaluator,
     retrieval_metrics,
 )
-from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule, ContrastiveLossConfig
+from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule
 from mmm.evaluation.counterfactuals import KINDS, counterfactual_captions, counterfactual_ranking
 from mmm.fingerprint import dataset_fingerprint
 from mmm.kinds import EVALUATOR
 from mmm.registry.versions import WEIGHTS_SHA256, freeze_weights
-from mmm.text.encoders import TextConfig, build_text
-from mmm.tracking import TrackingConfig, resolve_tracking_uri
+from mmm.text.encoders import build_text
+from mmm.tracking import resolve_tracking_uri
 from mmm.training.common import (
     TrackedRun,
     TrainResult,
@@ -59,55 +58,9 @@ from mmm.training.common import (
     text_record,
     tracked_fit,
 )
-from mmm.training.configs import TrainerConfig
-from mmm.training.optim import OptimConfig
+from mmm.training.configs import EvaluatorTrainConfig
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class EvaluatorCallbacks:
-    checkpoint: CheckpointConfig = field(
-        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
-    )
-
-
-@dataclass
-class RetrievalConfig:
-    """Validation and test retrieval: pairs in batches of batch_size (32 by the protocol)."""
-
-    batch_size: int = 32
-    seed: int = 0  # the test split's order and its caption/crop draws
-
-
-@dataclass
-class RegistryConfig:
-    register: bool = True
-    name: str = EVALUATOR.registered
-
-
-@dataclass
-class EvaluatorTrainConfig:
-    seed: int = 0
-    output_dir: str = EVALUATOR.output_dir
-    data: DataConfig = field(default_factory=lambda: DataConfig(batch_size=128))
-    text: TextConfig = field(default_factory=TextConfig)
-    model: ContrastiveModelConfig = field(default_factory=ContrastiveModelConfig)
-    loss: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
-    optim: OptimConfig = field(
-        default_factory=lambda: OptimConfig(
-            lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=50, milestones=[1_000_000]
-        )
-    )
-    trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=EVALUATOR.experiment))
-    callbacks: EvaluatorCallbacks = field(default_factory=EvaluatorCallbacks)
-    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
-    registry: RegistryConfig = field(default_factory=RegistryConfig)
-
-
-def load_evaluator_config(overrides: list[str] = ()) -> DictConfig:
-    return compose(EVALUATOR.config, list(overrides), schema=EvaluatorTrainConfig)
 
 
 @dataclass

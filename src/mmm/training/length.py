@@ -15,24 +15,19 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from dataclasses import dataclass, field
 
 import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset
 
-from mmm.callbacks.checkpoints import CheckpointConfig
-from mmm.config import compose, to_object
-from mmm.data.datamodule import DataConfig
+from mmm.config import to_object
 from mmm.data.datasets import TokenTextDataset
 from mmm.data.resumable import ResumableDataLoader
 from mmm.data.tokens import TokenCache
-from mmm.generation.length import LengthModelConfig, length_metrics
+from mmm.generation.length import length_metrics
 from mmm.generation.length_module import LengthEstimatorModule
-from mmm.kinds import LENGTH, STAGE1
-from mmm.text.encoders import TextConfig
-from mmm.tracking import TrackingConfig
+from mmm.kinds import LENGTH
 from mmm.training.common import (
     TrackedRun,
     TrainResult,
@@ -41,43 +36,10 @@ from mmm.training.common import (
     text_record,
     tracked_fit,
 )
-from mmm.training.configs import TrainerConfig
-from mmm.training.optim import OptimConfig
-from mmm.training.stage2 import Stage2Config, prepare_stage2_data, stage1_record, stage1_tags
+from mmm.training.configs import LengthConfig, Stage2Config
+from mmm.training.stage2 import prepare_stage2_data, stage1_record, stage1_tags
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class LengthCallbacks:
-    checkpoint: CheckpointConfig = field(
-        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
-    )
-
-
-@dataclass
-class LengthConfig:
-    seed: int = 0
-    output_dir: str = LENGTH.output_dir
-    stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
-    stage1_output_dir: str = STAGE1.output_dir
-    token_cache_dir: str = "outputs/cache/tokens"
-    data: DataConfig = field(default_factory=DataConfig)
-    text: TextConfig = field(default_factory=TextConfig)
-    model: LengthModelConfig = field(default_factory=LengthModelConfig)
-    optim: OptimConfig = field(
-        default_factory=lambda: OptimConfig(
-            lr=1e-3, betas=[0.9, 0.999], weight_decay=1e-2, warmup_steps=20, milestones=[1_000_000]
-        )
-    )
-    label_smoothing: float = 0.0
-    trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=LENGTH.experiment))
-    callbacks: LengthCallbacks = field(default_factory=LengthCallbacks)
-
-
-def load_length_config(overrides: list[str] = ()) -> DictConfig:
-    return compose(LENGTH.config, list(overrides), schema=LengthConfig)
 
 
 def stage2_view(cfg_node: DictConfig) -> DictConfig:

@@ -7,7 +7,6 @@ the newest finished stage-1 run when none is named.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import lightning as L
@@ -16,15 +15,14 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
 from mmm.callbacks.adherence import AdherenceCurve
-from mmm.callbacks.checkpoints import CheckpointConfig
 from mmm.callbacks.previews import GenerationPreview
-from mmm.config import ConfigError, compose, to_object
-from mmm.data.datamodule import DataConfig, TokenTextDataModule
-from mmm.kinds import STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS
+from mmm.config import ConfigError, to_object
+from mmm.data.datamodule import TokenTextDataModule
+from mmm.kinds import STAGE1_PARTS, STAGE2, STAGE2_PARTS
 from mmm.resolve import registered_version
-from mmm.text.encoders import TextConfig, build_text
+from mmm.text.encoders import build_text
 from mmm.tokenizer.load import load_tokenizer
-from mmm.tracking import TrackingConfig, resolve_tracking_uri, run_link, version_link
+from mmm.tracking import resolve_tracking_uri, run_link, version_link
 from mmm.training.common import (
     TrackedRun,
     TrainResult,
@@ -33,52 +31,10 @@ from mmm.training.common import (
     text_record,
     tracked_fit,
 )
-from mmm.training.configs import ModelConfig, TrainerConfig
-from mmm.training.optim import OptimConfig
-from mmm.transformer.module import CorruptionConfig, MaskedTransformerModule, stage2_codebooks
+from mmm.training.configs import Stage2Config
+from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class Stage2Callbacks:
-    checkpoint: CheckpointConfig = field(
-        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
-    )
-    # GenerationPreview: validation captions generated and rendered at each validation (0: none)
-    preview_captions: int = 3
-    # AdherenceCurve: labelled validation captions generated and checked at each validation, logged
-    # as val_adherence/* (0: none; only on a dataset with labels/, whole-body models)
-    adherence_captions: int = 64
-
-
-@dataclass
-class Stage2Config:
-    seed: int = 0
-    output_dir: str = STAGE2.output_dir
-    stage1: str | None = None  # checkpoint path, MLflow run id, models:/NAME@ALIAS; None: the newest
-    stage1_output_dir: str = STAGE1.output_dir
-    stage1_experiment: str = (
-        STAGE1.experiment
-    )  # where the newest stage-1 run is looked for (mmm-stage1-parts: part-aware)
-    part_aware: bool = (
-        False  # the part-aware transformer (upper body given lower body); needs a part-aware stage-1 model
-    )
-    token_cache_dir: str = "outputs/cache/tokens"
-    data: DataConfig = field(default_factory=DataConfig)
-    model: ModelConfig = field(default_factory=ModelConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
-    text: TextConfig = field(default_factory=TextConfig)
-    trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    logger: TrackingConfig = field(default_factory=TrackingConfig)
-    callbacks: Stage2Callbacks = field(default_factory=Stage2Callbacks)
-
-
-def load_stage2_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:
-    """conf/train_stage2.yaml, or with parts=True conf/train_stage2_parts.yaml (the part-aware
-    transformer)."""
-    return compose((STAGE2_PARTS if parts else STAGE2).config, list(overrides), schema=Stage2Config)
 
 
 def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:
