@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from mmm.cli.common import DEFAULT_TRACKING_URI
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.data.synthetic.adherence import check_in_order, check_motion
 from mmm.evaluation.adherence import item_parts
 from mmm.generation.model import TextToMotion

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.evaluation.adherence import item_groups, labelled_captions, ordered_pass
 from mmm.evaluation.evaluators import load_judge
 from mmm.generation.best_of import check_candidates, check_judge, judge_scores

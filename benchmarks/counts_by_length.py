@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.data.synthetic.adherence import check_motion
 from mmm.evaluation.adherence import labelled_captions
 from mmm.generation.model import TextToMotion

@@ -106,7 +106,7 @@ def _memory(anon: AnonPeak) -> dict:
 
 
 def _data_cfg(data: Path, clips: int, workers: int = 0):
-    from mmm.data.config import DataConfig, SynthConfig
+    from mmm.data.configs import DataConfig, SynthConfig
 
     return DataConfig(root=str(data), num_workers=workers, synthesize=SynthConfig(num_clips=clips))
 

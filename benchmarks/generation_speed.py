@@ -45,9 +45,9 @@ def build_model(size: str, device: str, precision: str | None, compiled: bool = 
     from mmm.config import compose
     from mmm.generation.model import TextToMotion
     from mmm.text import build_text_encoder
+    from mmm.tokenizer.configs import TokenizerLossConfig
     from mmm.tokenizer.module import TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
-    from mmm.training.configs import TokenizerLossConfig
     from mmm.training.optim import OptimConfig
     from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 

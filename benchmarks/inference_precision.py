@@ -74,9 +74,9 @@ class FakeTextEncoder:
 def build_model(size: str):
     from mmm.config import compose
     from mmm.generation.model import TextToMotion
+    from mmm.tokenizer.configs import TokenizerLossConfig
     from mmm.tokenizer.module import TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
-    from mmm.training.configs import TokenizerLossConfig
     from mmm.training.optim import OptimConfig
     from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 

@@ -15,7 +15,7 @@ import argparse
 import numpy as np
 import torch
 
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.evaluation.counterfactuals import counterfactual_ranking
 from mmm.evaluation.evaluators import load_judge
 

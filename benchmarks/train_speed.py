@@ -46,9 +46,9 @@ def _stage1(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
+    from mmm.tokenizer.configs import TokenizerLossConfig
     from mmm.tokenizer.module import TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
-    from mmm.training.configs import TokenizerLossConfig
     from mmm.training.optim import OptimConfig
 
     cfg = compose("train_stage1", [f"model={size}", *overrides]).model.tokenizer
@@ -69,8 +69,8 @@ def _stage2(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
-    from mmm.training.configs import CorruptionConfig
     from mmm.training.optim import OptimConfig
+    from mmm.transformer.configs import CorruptionConfig
     from mmm.transformer.module import MaskedTransformerModule, corrupt
     from mmm.transformer.network import TransformerConfig
 

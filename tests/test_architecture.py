@@ -145,6 +145,17 @@ def test_config_commands_refuse_a_bad_config_before_loading_lightning_or_mlflow(
     assert out.stderr.startswith("error: ") and named in out.stderr and list(tmp_path.iterdir()) == []
 
 
+def test_every_configs_module_leaves_lightning_mlflow_and_torchmetrics_unimported():
+    names = sorted(n for n in _modules() if n.endswith(".configs"))
+    assert len(names) >= 8, names  # callbacks, data, evaluation, pipeline, registry, tokenizer, ...
+    code = (
+        f"import sys; [__import__(m) for m in {names!r}]; "
+        "print(sorted(m for m in ('mlflow', 'lightning', 'torchmetrics') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stderr
+
+
 def test_model_kind_names_have_one_home():
     """Experiment, folder and registered names of the model kinds are string constants only in
     kinds.py (docstrings and messages may mention them)."""
@@ -163,7 +174,7 @@ def test_model_kind_names_have_one_home():
 
 @pytest.mark.parametrize("name", ["uniform", "cosine"])
 def test_training_schedule_names_reach_the_config_check(name):
-    from mmm.training.configs import CorruptionConfig
+    from mmm.transformer.configs import CorruptionConfig
     from mmm.transformer.schedules import TRAINING_SCHEDULES
 
     assert CorruptionConfig(mask_schedule=name).mask_schedule in TRAINING_SCHEDULES

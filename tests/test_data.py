@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from mmm.config import ConfigError, compose, conf_dir, to_object
-from mmm.data.config import DataConfig, OversampleConfig
+from mmm.data.configs import DataConfig, OversampleConfig
 from mmm.data.datamodule import TextMotionDataModule, TokenizerDataModule, oversample_items
 from mmm.data.datasets import MotionWindowDataset, TextMotionDataset, collate_motions
 from mmm.data.humanml3d import (

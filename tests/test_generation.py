@@ -22,9 +22,9 @@ from mmm.generation.sampler import (
 )
 from mmm.motion.skeleton import T2M_SKELETON
 from mmm.text import TextEmbedding
+from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.configs import TokenizerLossConfig
 from mmm.training.optim import OptimConfig
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 

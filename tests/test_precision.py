@@ -8,9 +8,9 @@ from mmm.generation.model import TextToMotion
 from mmm.generation.precision import Int8Linear, check_device, default_precision, inference_copy
 from mmm.generation.sampler import frames_to_codes, sample_tokens
 from mmm.generation.settings import PRECISIONS, SamplingConfig, check_precision
+from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.configs import TokenizerLossConfig
 from mmm.training.optim import OptimConfig
 from tests.test_decoding_speedups import K, text, tiny_transformer
 

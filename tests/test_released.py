@@ -831,7 +831,7 @@ def test_data_stats_evaluator_style_writes_a_stats_folder(walker_dataset, tmp_pa
 
 @pytest.mark.parametrize("statistics", ["evaluator_style", "dataset", "files"])
 def test_stage1_normalizes_with_the_configured_statistics(walker_dataset, tmp_path, statistics):
-    from mmm.data.config import DataConfig
+    from mmm.data.configs import DataConfig
     from mmm.data.datamodule import TokenizerDataModule
     from mmm.data.normalization import NormalizationConfig
 

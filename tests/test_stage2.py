@@ -12,10 +12,11 @@ from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
 from mmm.data.humanml3d import Caption, DataError, MotionItem, read_split
 from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
+from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.configs import CorruptionConfig, TokenizerLossConfig
 from mmm.training.optim import OptimConfig
+from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.module import MaskedTransformerModule, corrupt, sequence_mean
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 from tests.helpers import run_ddp_worker, stage2_overrides, train_tiny_stage1
@@ -278,7 +279,7 @@ def test_stage2_tokenizes_only_the_splits_it_reads(trained):
 
 
 def test_a_stage1_model_for_other_features_is_refused(walker_dataset, tmp_path):
-    from mmm.data.config import DataConfig
+    from mmm.data.configs import DataConfig
     from mmm.data.datamodule import TokenTextDataModule
 
     dm = TokenTextDataModule(

@@ -498,7 +498,7 @@ def test_a_synthetic_folder_made_with_other_settings_is_refused(tmp_path):
         )
     )
     gen.check_synthesis(tmp_path / "ds", 3, 0, 3)  # written before the extra options existed: defaults
-    from mmm.data.config import DataConfig, SynthConfig
+    from mmm.data.configs import DataConfig, SynthConfig
     from mmm.data.datamodule import TokenizerDataModule
 
     asked = SynthConfig(num_clips=3, seed=0, train_paraphrases=12)

@@ -13,7 +13,7 @@ from mmm.cli import main
 from mmm.data.datasets import TokenBatchCollator
 from mmm.generation.sampler import SamplingConfig, sample_tokens
 from mmm.motion.parts import split_parts
-from mmm.training.configs import CorruptionConfig
+from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.module import MaskedTransformerModule, mask_condition
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 from tests.helpers import stage2_overrides, train_tiny_stage1

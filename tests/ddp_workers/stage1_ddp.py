@@ -16,11 +16,11 @@ import torch
 from two_ranks import two_process_trainer  # beside this script (its folder is on sys.path)
 
 from mmm.callbacks.codebook import CodebookReset, CollapseMonitor
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.data.datamodule import TokenizerDataModule
+from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.configs import TokenizerLossConfig
 from mmm.training.optim import OptimConfig
 
 

@@ -14,9 +14,9 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import MLFlowLogger
 
+from mmm.callbacks.configs import CheckpointConfig
 from mmm.checkpoints import FINGERPRINT_KEY
 from mmm.fingerprint import tensors_fingerprint
-from mmm.training.configs import CheckpointConfig
 
 log = logging.getLogger(__name__)
 

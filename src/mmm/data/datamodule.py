@@ -10,7 +10,7 @@ import lightning as L
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch.utils.data import DataLoader, Dataset
 
-from mmm.data.config import DataConfig, OversampleConfig
+from mmm.data.configs import DataConfig, OversampleConfig
 from mmm.data.datasets import (
     MotionClipDataset,
     MotionWindowDataset,

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 from omegaconf import DictConfig
 
 from mmm.config import ConfigError, check_whole, compose, to_object
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.generation.precision import check_device
 from mmm.generation.settings import SamplingConfig
 from mmm.generation.upper_body import UPPER_BODY_GUIDANCE
@@ -65,6 +65,17 @@ class ContrastiveModelConfig:
                 "contrastive evaluator: init_temperature must be positive and at least 1 / max_logit_scale, "
                 f"got {self.init_temperature}"
             )
+
+
+@dataclass
+class ContrastiveLossConfig:
+    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
+    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
+    false_negative_threshold: float | None = 0.95
+    # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
+    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
+    # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
+    counterfactuals: list[str] = field(default_factory=list)
 
 
 @dataclass

@@ -11,7 +11,7 @@ from functools import partial
 from omegaconf import DictConfig
 
 from mmm.config import ConfigError, compose
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.evaluation.configs import load_evaluate_config
 from mmm.registry.configs import load_promote_config
 from mmm.tracking import TrackingConfig

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from omegaconf import DictConfig
 
 from mmm.config import ConfigError, compose, to_object
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.evaluation.configs import ProtocolConfig
 from mmm.generation.precision import check_device
 from mmm.kinds import PROMOTABLE

@@ -26,7 +26,7 @@ from omegaconf import DictConfig
 
 from mmm.atomic import sha256_file
 from mmm.config import to_object
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.evaluation.adherence import adherence_metrics, prompt_adherence
 from mmm.evaluation.evaluators import load_evaluator

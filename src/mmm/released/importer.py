@@ -44,11 +44,12 @@ from mmm.released.keys import (
 from mmm.resolve import log_artifact_with_digest
 from mmm.text import build_text_encoder
 from mmm.text.clip import find_vocab
+from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.search import CodeSearchConfig
 from mmm.tracking import artifact_location, prepare_experiment, resolve_tracking_uri
-from mmm.training.configs import CorruptionConfig, TokenizerLossConfig
 from mmm.training.optim import OptimConfig
+from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.module import MaskedTransformerModule
 
 log = logging.getLogger(__name__)

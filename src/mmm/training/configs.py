@@ -1,6 +1,7 @@
 """What each training command reads: `mmm train stage1|stage1-parts|stage2|stage2-parts|length|
 evaluator` (conf/train_*.yaml), from the sections every trainer shares (model sizes, the trainer)
-to each stage's own losses, callbacks and the whole Stage1Config, Stage2Config, ...
+to each kind's callbacks and its whole config (Stage1Config, Stage2Config, ...), made of the
+sections the other packages define in their own configs.py.
 
 Kept apart from the LightningModules and trainers so that a config is composed and checked without
 loading Lightning or MLflow: a misspelt key or an out-of-range value is refused in about a second,
@@ -13,19 +14,21 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from mmm.callbacks.configs import CheckpointConfig, CollapseConfig
 from mmm.config import ConfigError, check_whole, compose
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.data.normalization import NormalizationConfig
-from mmm.evaluation.configs import ContrastiveModelConfig
+from mmm.evaluation.configs import ContrastiveLossConfig, ContrastiveModelConfig
 from mmm.generation.length import LengthModelConfig
 from mmm.kinds import EVALUATOR, LENGTH, STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS
 from mmm.text.encoders import TextConfig
+from mmm.tokenizer.configs import DecoderRefineConfig, TokenizerLossConfig
 from mmm.tokenizer.network import TokenizerConfig
 from mmm.tokenizer.search import CodeSearchConfig
 from mmm.tracking import TrackingConfig
 from mmm.training.optim import OptimConfig
+from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.network import TransformerConfig
-from mmm.transformer.schedules import TRAINING_SCHEDULES, check_schedule
 
 
 @dataclass
@@ -62,110 +65,6 @@ class TrainerConfig:
         for name in ("max_steps", "val_check_interval", "log_every_n_steps"):
             example = ", e.g. trainer.max_steps=1000" if name == "max_steps" else ""
             check_whole(f"trainer.{name}", getattr(self, name), 1, f" (steps{example})")
-
-
-@dataclass
-class TokenizerLossConfig:
-    position_weight: float = 0.5  # extra SmoothL1 on the root-relative joint positions
-    commit_weight: float = 0.02
-    # Mean distance (m) between the windows' global joint positions, the root path integrated from
-    # the velocities as recover_from_ric does: small velocity errors add up along a clip.
-    global_weight: float = 0.0
-    root_weight: float = (
-        1.0  # the reconstruction loss of the root dims (yaw and x/z velocity, height) times this
-    )
-    # Mean distance (m) between the decoded and the true root path (x/z) of each window, in the
-    # tokenizer's own steps (the refinement has its own, refine.path_weight).
-    path_weight: float = 0.0
-
-
-@dataclass
-class DecoderRefineConfig:
-    """`steps` more optimizer steps after the tokenizer's own train the decoder alone.
-
-    The encoder and codebook are frozen (no EMA update, no reset), so the decoder fits fixed codes
-    instead of chasing a codebook that moves every step; the rate restarts at `lr` and decays to 0
-    along a half cosine, and the root dims' loss is multiplied by `root_weight`. The root
-    velocities' small per-clip bias is what integrates into the drift of the global root path
-    (README, Stage 1); `path_weight` adds the mean distance (m) between the decoded and the true
-    root path (x/z, integrated over each window as recover_from_ric does), which weighs the
-    velocity errors by how far they carry the root; `start_windows` of the refinement's windows
-    are the first frames of a clip (mmm.data.datasets.MotionWindowDataset says why). The module
-    refines in the last `steps` of its fit; `train_stage1` runs trainer.max_steps + steps. 0: no
-    refinement (the released recipe).
-    """
-
-    steps: int = 0
-    lr: float = 3e-4
-    root_weight: float = 25.0
-    path_weight: float = 0.0
-    start_windows: float = 0.0
-
-    def __post_init__(self):
-        if self.steps < 0:  # (trainer.max_steps >= 1 is TrainerConfig's own check)
-            raise ConfigError(
-                f"refine.steps={self.steps}: the decoder refinement's steps after trainer.max_steps steps "
-                "of the whole tokenizer must be 0 or more (0: no refinement)"
-            )
-
-
-@dataclass
-class CorruptionConfig:
-    mask_schedule: str = (
-        "uniform"  # a name of transformer/schedules.py TRAINING_SCHEDULES (uniform: as released)
-    )
-    pkeep: float = 0.5  # real tokens replaced by random codes with probability 1 - pkeep
-    loss_on: str = "all"  # all real positions (released) | masked
-    cond_drop: float = 0.0  # probability of dropping the text (0.1 enables classifier-free guidance)
-    lower_mask: float = (
-        1.0  # part-aware model: a share ~ U(0, lower_mask) of the lower-body condition codes is masked
-    )
-
-    def __post_init__(self):
-        check_schedule(self.mask_schedule, TRAINING_SCHEDULES, "corruption.mask_schedule")
-        if self.loss_on not in ("all", "masked"):
-            raise ValueError(f"corruption.loss_on must be all or masked, got {self.loss_on!r}")
-        if not 0.0 <= self.cond_drop < 1.0:
-            raise ValueError(
-                "corruption.cond_drop is the probability of dropping the text, in [0, 1) (1 would never "
-                f"show the model a caption; 0.1 enables classifier-free guidance), got {self.cond_drop}"
-            )
-        if not 0.0 <= self.pkeep <= 1.0:
-            raise ValueError(
-                f"corruption.pkeep is the share of real tokens kept, in [0, 1], got {self.pkeep}"
-            )
-        if not 0.0 <= self.lower_mask <= 1.0:
-            raise ValueError(f"corruption.lower_mask is a share in [0, 1], got {self.lower_mask}")
-
-
-@dataclass
-class ContrastiveLossConfig:
-    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
-    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
-    false_negative_threshold: float | None = 0.95
-    # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
-    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
-    # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
-    counterfactuals: list[str] = field(default_factory=list)
-
-
-@dataclass
-class CheckpointConfig:
-    monitor: str = "val/mpjpe_root_aligned_mm"
-    mode: str = "min"
-
-
-@dataclass
-class CollapseConfig:
-    """CollapseMonitor's settings (`callbacks.collapse` of conf/callbacks/stage1.yaml)."""
-
-    action: str = "warn"  # warn | stop | fail
-    warmup_steps: int = 200
-    window_steps: int = 50
-    min_active_fraction: float = 0.02
-    perplexity_drop: float = 0.2
-    smoothing: float = 0.9
-    patience: int = 3
 
 
 @dataclass

@@ -32,7 +32,7 @@ from omegaconf import DictConfig
 from torch.utils.data import Dataset
 
 from mmm.config import to_object
-from mmm.data.config import DataConfig
+from mmm.data.configs import DataConfig
 from mmm.data.datamodule import TextMotionDataModule
 from mmm.data.datasets import TextMotionDataset, collate_motions
 from mmm.data.resumable import ResumableDataLoader
