@@ -223,6 +223,7 @@ def test_long_task_scores_segments_and_transitions(model, walker_items, trained,
 @pytest.mark.slow
 def test_mmm_evaluate_runs_an_editing_task_and_refuses_the_wrong_model(trained, tmp_path, monkeypatch):
     from mmm.evaluation import run as evaluation_run
+    from mmm.evaluation.configs import load_evaluate_config
 
     monkeypatch.setattr(evaluation_run, "load_evaluator", lambda *args: MeanEvaluator())
     common = [
@@ -238,14 +239,14 @@ def test_mmm_evaluate_runs_an_editing_task_and_refuses_the_wrong_model(trained, 
         "protocol.batch_size=8",
         "protocol.diversity_times=5",
     ]
-    results = evaluation_run.evaluate(evaluation_run.load_evaluate_config([*common, "task=outpaint"]))
+    results = evaluation_run.evaluate(load_evaluate_config([*common, "task=outpaint"]))
     run = MlflowClient(trained["uri"]).get_run(results["run_id"])
     assert run.info.run_name.startswith("evaluate-outpaint-") and run.data.params["task"] == "outpaint"
     assert math.isfinite(run.data.metrics["edit/outpaint/fid"])
     assert "edit/outpaint/kept_mean_mm_vs_reconstruction" in run.data.metrics
     assert "| Edited (outpaint) |" in (tmp_path / "eval/evaluation.md").read_text()
     results = evaluation_run.evaluate(
-        evaluation_run.load_evaluate_config([*common, "task=prefix", "editing.with_text=false"])
+        load_evaluate_config([*common, "task=prefix", "editing.with_text=false"])
     )
     run = MlflowClient(trained["uri"]).get_run(results["run_id"])
     assert run.info.run_name.startswith("evaluate-prefix-without-text-")
@@ -255,7 +256,7 @@ def test_mmm_evaluate_runs_an_editing_task_and_refuses_the_wrong_model(trained, 
         ValueError, match=r"part-aware model; .* whole-body model\. Pass text2motion=models:/mmm-upperbody"
     ):
         evaluation_run.evaluate(
-            evaluation_run.load_evaluate_config([*common, "task=upper-body", "logger.enabled=false"])
+            load_evaluate_config([*common, "task=upper-body", "logger.enabled=false"])
         )
 
 

@@ -159,14 +159,22 @@ def test_rerun_skips_unchanged_steps_and_force_reruns_what_depends(workdir, monk
 @pytest.mark.slow
 def test_a_failing_step_fails_the_parent_and_keeps_the_good_state(workdir, monkeypatch, capsys):
     client = MlflowClient(f"sqlite:///{workdir}/mlflow.db")
-    # An evaluation override that cannot be applied: the step fails, the steps before it are skipped.
-    assert (
-        pipeline(
-            workdir, monkeypatch, f"overrides.evaluate=[{','.join(TINY['evaluate'])},protocol.no_such_key=1]"
-        )
-        == 2
-    )
-    assert "no_such_key" in capsys.readouterr().err
+    # An evaluation override that cannot be applied is refused before the first step runs: no new
+    # pipeline run, the state file as it was.
+    parents = len(client.search_runs([newest_parent(client).info.experiment_id]))
+    state_before = (workdir / "state.json").read_bytes()
+    evaluate = ",".join(TINY["evaluate"])
+    assert pipeline(workdir, monkeypatch, f"overrides.evaluate=[{evaluate},protocol.no_such_key=1]") == 2
+    err = capsys.readouterr().err
+    assert "overrides.evaluate" in err and "no_such_key" in err
+    assert len(client.search_runs([newest_parent(client).info.experiment_id])) == parents
+    assert (workdir / "state.json").read_bytes() == state_before
+    # A step that fails while it runs (the evaluator it is given is not there): the step fails, the
+    # steps before it are skipped.
+    missing = workdir / "no-such-evaluator.ckpt"
+    missing_evaluator = f"overrides.evaluate=[{evaluate},evaluator.reference={missing}]"
+    assert pipeline(workdir, monkeypatch, missing_evaluator) == 2
+    assert "no-such-evaluator.ckpt" in capsys.readouterr().err
     parent = newest_parent(client)
     assert parent.info.status == "FAILED"
     steps = steps_of(client, parent)
@@ -174,7 +182,7 @@ def test_a_failing_step_fails_the_parent_and_keeps_the_good_state(workdir, monke
         steps["evaluate"].info.status == "FAILED" and steps["evaluate"].data.tags["step.status"] == "failed"
     )
     assert (
-        "no_such_key"
+        "no-such-evaluator.ckpt"
         in open(client.download_artifacts(steps["evaluate"].info.run_id, "error.txt", str(workdir))).read()
     )
     before = PIPELINES["full"][: PIPELINES["full"].index("evaluate")]

@@ -526,7 +526,9 @@ def test_dataset_fingerprint_is_the_hash_of_its_files_in_order(tmp_path):
 
 
 def test_step_keys_include_the_resolved_config_and_the_code_version(walker_dataset, tmp_path, monkeypatch):
+    from mmm.config import to_object
     from mmm.pipeline import steps
+    from mmm.pipeline.configs import load_pipeline_config
     from mmm.pipeline.runner import Context, step_key
     from mmm.registry import versions as promotion
 
@@ -535,8 +537,8 @@ def test_step_keys_include_the_resolved_config_and_the_code_version(walker_datas
     monkeypatch.setenv("MMM_CONF_DIR", str(conf))
 
     def key() -> str:
-        cfg = steps.to_object(
-            steps.load_pipeline_config(
+        cfg = to_object(
+            load_pipeline_config(
                 [f"data.root={walker_dataset}", "data.synthesize=null", f"state_file={tmp_path}/s.json"]
             )
         )
