@@ -93,6 +93,22 @@ def test_cli_help_does_not_load_torch_or_mlflow():
     assert out == "[]"
 
 
+def _refusal_loads(argv: list[str], cwd: Path, libraries: tuple[str, ...], named: str = "") -> list[str]:
+    """Run `mmm ARGV` in the empty folder `cwd`; it must exit 2 with an `error:` message naming
+    `named` and write nothing. Returns which of `libraries` it imported."""
+    code = (
+        "import sys; from mmm.cli.app import main; rc = main(sys.argv[1:]); "
+        f"print(rc, ','.join(sorted(m for m in {libraries!r} if m in sys.modules)))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=cwd, check=True
+    )
+    rc, _, loaded = out.stdout.strip().partition(" ")
+    assert rc == "2", out.stderr
+    assert out.stderr.startswith("error: ") and named in out.stderr and list(cwd.iterdir()) == []
+    return loaded.split(",") if loaded else []
+
+
 @pytest.mark.parametrize(
     "argv",
     [
@@ -106,15 +122,7 @@ def test_cli_help_does_not_load_torch_or_mlflow():
 def test_generation_commands_refuse_bad_input_before_loading_model_libraries(argv, tmp_path):
     """A refusal costs the interpreter, numpy and the checks (about 0.3 s), not the 2 s of importing
     torch nor the 6-10 s of Lightning and MLflow for a model that is never loaded."""
-    code = (
-        "import sys; from mmm.cli.app import main; rc = main(sys.argv[1:]); "
-        "print(rc, sorted(m for m in ('torch', 'mlflow', 'lightning') if m in sys.modules))"
-    )
-    out = subprocess.run(
-        [sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=tmp_path, check=True
-    )
-    assert out.stdout.strip() == "2 []", out.stderr
-    assert out.stderr.startswith("error: ") and list(tmp_path.iterdir()) == []
+    assert _refusal_loads(argv, tmp_path, ("torch", "mlflow", "lightning")) == []
 
 
 @pytest.mark.parametrize(
@@ -134,15 +142,7 @@ def test_config_commands_refuse_a_bad_config_before_loading_lightning_or_mlflow(
     """The schemas (training/configs.py, evaluation/configs.py, ...) import torch at most: a bad
     config costs about 1.5 s, not the 7 s (13 s on a slow 2.6 GHz Xeon) of Lightning and MLflow; a
     pipeline refuses a later step's overrides before its first step trains."""
-    code = (
-        "import sys; from mmm.cli.app import main; rc = main(sys.argv[1:]); "
-        "print(rc, sorted(m for m in ('mlflow', 'lightning', 'torchmetrics') if m in sys.modules))"
-    )
-    out = subprocess.run(
-        [sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=tmp_path, check=True
-    )
-    assert out.stdout.strip() == "2 []", out.stderr
-    assert out.stderr.startswith("error: ") and named in out.stderr and list(tmp_path.iterdir()) == []
+    assert _refusal_loads(argv, tmp_path, ("mlflow", "lightning", "torchmetrics"), named) == []
 
 
 def test_every_configs_module_leaves_lightning_mlflow_and_torchmetrics_unimported():

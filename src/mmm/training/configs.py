@@ -162,7 +162,9 @@ def load_stage2_config(overrides: list[str] = (), parts: bool = False) -> DictCo
 
 
 @dataclass
-class LengthCallbacks:
+class ValLossCallbacks:
+    """The length estimator's and the evaluator's callbacks: best.ckpt by the validation loss."""
+
     checkpoint: CheckpointConfig = field(
         default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
     )
@@ -186,18 +188,11 @@ class LengthConfig:
     label_smoothing: float = 0.0
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=LENGTH.experiment))
-    callbacks: LengthCallbacks = field(default_factory=LengthCallbacks)
+    callbacks: ValLossCallbacks = field(default_factory=ValLossCallbacks)
 
 
 def load_length_config(overrides: list[str] = ()) -> DictConfig:
     return _checked(compose(LENGTH.config, list(overrides), schema=LengthConfig))
-
-
-@dataclass
-class EvaluatorCallbacks:
-    checkpoint: CheckpointConfig = field(
-        default_factory=lambda: CheckpointConfig(monitor="val/loss", mode="min")
-    )
 
 
 @dataclass
@@ -229,7 +224,7 @@ class EvaluatorTrainConfig:
     )
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     logger: TrackingConfig = field(default_factory=lambda: TrackingConfig(experiment=EVALUATOR.experiment))
-    callbacks: EvaluatorCallbacks = field(default_factory=EvaluatorCallbacks)
+    callbacks: ValLossCallbacks = field(default_factory=ValLossCallbacks)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
     registry: RegistryConfig = field(default_factory=RegistryConfig)
 
