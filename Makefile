@@ -11,7 +11,7 @@ DATA ?= data/synthetic
 ARGS ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help setup lint test test-fast data demo train-quality train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-data bench-precision bench-precision-model bench-compile bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
+.PHONY: help setup lint test test-fast test-long data demo train-quality train-stage1 train-stage2 train-stage1-parts train-stage2-parts train-length tokenize bench-train bench-generate bench-data bench-precision bench-precision-model bench-compile bench evaluate train-evaluator pipeline promote models mlflow-ui serve stress clean
 
 help: ## list the targets
 	@grep -E '^[a-zA-Z0-9_%-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-20s %s\n", $$1, $$2}'
@@ -36,6 +36,9 @@ test: $(STAMP) ## lint, then the whole test suite (sets up first when needed)
 
 test-fast: $(STAMP) ## the fast loop: every test not marked slow (a few minutes)
 	$(BIN)/python -m pytest -q -m "not slow"
+
+test-long: $(STAMP) ## the tests left out of `make test`: they train a model for minutes to check what it learns (upper-body edits; about 5 min on 2 CPU cores)
+	$(BIN)/python -m pytest -q -m long
 
 $(DATA)/all.txt: | $(STAMP)
 	$(BIN)/mmm data synth --out $(DATA) $(ARGS)
