@@ -196,6 +196,14 @@ BEFORE_MODEL = {
     "ablation with an empty grid": (["ablate", "temperature", "grids.temperature=[]"], ["grid is empty"]),
     "ablation of a negative reset": (["ablate", "reset", "grids.reset=[20,-5]"], ["grids.reset=[-5]"]),
     "ablation of top-k 0": (["ablate", "topk", "grids.topk=[0.5,0]"], ["top_k", "(0, 1]"]),
+    "ablation training override misspelt": (
+        ["ablate", "cross-layers", "stage2_overrides=[trainer.max_stepz=3]"],
+        ["setting '0 cross-attention layers'", "stage2 training", "max_stepz", "Did you mean: 'max_steps'"],
+    ),
+    "ablation of more cross layers than layers": (
+        ["ablate", "cross-layers", "grids.cross_layers=[0,9]"],
+        ["setting '9 cross-attention layers'", "num_cross_layers=9", "num_layers=4"],
+    ),
     "no training steps": (["train", "stage1", "trainer.max_steps=0"], ["trainer.max_steps=0", "at least 1"]),
     "fit ends before its first validation": (
         ["train", "stage1", "trainer.max_steps=5", "refine.steps=0"],

@@ -11,7 +11,6 @@ import pytest
 import torch
 from mlflow.tracking import MlflowClient
 
-from mmm.evaluation.configs import ContrastiveModelConfig
 from mmm.evaluation.contrastive import (
     ContrastiveEvaluator,
     EvaluatorEmbedder,
@@ -21,6 +20,7 @@ from mmm.evaluation.contrastive import (
 )
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule, false_negative_mask, info_nce_loss
 from mmm.text import TextEmbedding
+from mmm.training.configs import ContrastiveModelConfig
 
 D, DS = 16, 24  # toy feature and sentence dims
 

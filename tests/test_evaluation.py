@@ -388,8 +388,6 @@ def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
         "model.transformer.embed_dim=32",
         "model.transformer.num_heads=2",
         "model.transformer.num_layers=2",
-        f"data.root={trained['walker']}",
-        "data.synthesize=null",
         f"output_dir={out}/abl_s2",
         f"stage1_output_dir={out}/s1",
         f"token_cache_dir={out}/tokens",
@@ -414,6 +412,8 @@ def test_ablation_sweeps_run_as_nested_runs(trained, own_evaluator, tmp_path):
         f"attributes.run_name = 'ablation-{sweep.info.run_id[:8]}'",
     )
     assert sorted(r.data.params["model.transformer.num_cross_layers"] for r in stage2_runs) == ["0", "2"]
+    # The runs trained on the sweep's data (data.root of the sweep, not given to the runs themselves).
+    assert {r.data.params["data.root"] for r in stage2_runs} == {str(trained["walker"])}
 
 
 @pytest.mark.slow

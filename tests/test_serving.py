@@ -612,10 +612,10 @@ def test_candidates_are_refused_without_a_judge_or_out_of_range(judged_model, se
 
 
 def test_a_judge_must_read_the_models_features_and_captions(tmp_path):
-    from mmm.evaluation.configs import ContrastiveModelConfig
     from mmm.evaluation.contrastive import ContrastiveEvaluator
     from mmm.fingerprint import tensors_fingerprint
     from mmm.registry.bundle import JudgeMismatch, describe_judge
+    from mmm.training.configs import ContrastiveModelConfig
 
     cfg = ContrastiveModelConfig(hidden_dim=8, embed_dim=8, text_hidden_dim=8)
     evaluator = ContrastiveEvaluator(263, 16, cfg)

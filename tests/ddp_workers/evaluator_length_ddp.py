@@ -18,10 +18,10 @@ from torch.utils.data import Dataset
 from two_ranks import two_process_trainer  # beside this script (its folder is on sys.path)
 
 from mmm.data.resumable import ResumableDataLoader
-from mmm.evaluation.configs import ContrastiveModelConfig
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule
 from mmm.generation.length import LengthModelConfig
 from mmm.generation.length_module import LengthEstimatorModule
+from mmm.training.configs import ContrastiveModelConfig
 from mmm.training.optim import OptimConfig
 
 D, T, DS, DW, WORDS = 12, 24, 16, 8, 5

@@ -31,7 +31,15 @@ from omegaconf import DictConfig
 
 from mmm.config import to_object
 from mmm.data.humanml3d import load_stats
-from mmm.evaluation.configs import ABLATIONS, AblationConfig, ProtocolConfig, check_sweep, sweep_settings
+from mmm.evaluation.configs import (
+    ABLATIONS,
+    AblationConfig,
+    ProtocolConfig,
+    check_sweep,
+    sweep_settings,
+    sweep_stage1_overrides,
+    sweep_stage2_overrides,
+)
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, evaluate_text_to_motion, results_table
 from mmm.evaluation.samples import check_samples, chosen_items, generated, render_sweep
@@ -47,36 +55,12 @@ log = logging.getLogger(__name__)
 
 def _train_models(change: dict, cfg: AblationConfig, parent_run_id: str):
     """Train what a training sweep's setting changes; returns the stage-2 checkpoint."""
-    tracking = [
-        f"logger.tracking_uri={cfg.logger.tracking_uri}",
-        f"logger.artifact_root={cfg.logger.artifact_root}",
-        "trainer.enable_progress_bar=false",
-    ]
+    run_name = f"ablation-{parent_run_id[:8]}"
     stage1 = cfg.stage1
-    if "stage1" in change:
-        result = train_stage1(
-            load_stage1_config(
-                [
-                    *tracking,
-                    *cfg.stage1_overrides,
-                    *change["stage1"],
-                    f"logger.run_name=ablation-{parent_run_id[:8]}",
-                ]
-            )
-        )
-        stage1 = result.best_checkpoint
-    stage1_option = [f"stage1={stage1}"] if stage1 else []
-    result = train_stage2(
-        load_stage2_config(
-            [
-                *tracking,
-                *cfg.stage2_overrides,
-                *stage1_option,
-                *change.get("stage2", []),
-                f"logger.run_name=ablation-{parent_run_id[:8]}",
-            ]
-        )
-    )
+    overrides = sweep_stage1_overrides(cfg, change, run_name)
+    if overrides is not None:
+        stage1 = train_stage1(load_stage1_config(overrides)).best_checkpoint
+    result = train_stage2(load_stage2_config(sweep_stage2_overrides(cfg, change, run_name, stage1)))
     return result.best_checkpoint
 
 

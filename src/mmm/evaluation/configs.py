@@ -1,5 +1,5 @@
 """What `mmm evaluate` and `mmm ablate` read (conf/evaluate.yaml, conf/ablate.yaml): the protocol,
-the editing benchmarks' settings, the evaluator's sizes and the sweeps' grids.
+the editing benchmarks' settings, the sweeps' grids and the training runs a sweep makes.
 
 Kept apart from the code that runs them so that a config is composed and checked without loading
 Lightning, torchmetrics or MLflow: a misspelt key or an out-of-range value is refused in about a
@@ -17,6 +17,7 @@ from mmm.generation.precision import check_device
 from mmm.generation.settings import SamplingConfig
 from mmm.generation.upper_body import UPPER_BODY_GUIDANCE
 from mmm.tracking import TrackingConfig
+from mmm.training.configs import load_stage1_config, load_stage2_config
 from mmm.transformer.schedules import DECODING_SCHEDULES
 
 
@@ -40,42 +41,6 @@ class ProtocolConfig:
                 check_whole(f"protocol.{name}", value, bound)
             elif value is not None:  # None: the whole split
                 check_whole("protocol.max_batches", value, bound, " (or null: the whole split)")
-
-
-@dataclass
-class ContrastiveModelConfig:
-    embed_dim: int = 512  # E: the shared embedding size
-    hidden_dim: int = 256  # H: conv channels and GRU hidden size per direction
-    text_hidden_dim: int = 512  # the text head's hidden layer
-    dropout: float = 0.1
-    normalize: bool = True  # L2-normalize the embeddings embed_* return
-    init_temperature: float = 0.07
-    max_logit_scale: float = 100.0  # 1 / the lowest temperature
-
-    def __post_init__(self):
-        if min(self.embed_dim, self.hidden_dim, self.text_hidden_dim) < 1:
-            raise ValueError(
-                "contrastive evaluator: embed_dim, hidden_dim and text_hidden_dim must be positive, got "
-                f"{self}"
-            )
-        if not 0.0 <= self.dropout < 1.0:
-            raise ValueError(f"contrastive evaluator: dropout must be in [0, 1), got {self.dropout}")
-        if self.init_temperature <= 0 or 1.0 / self.init_temperature > self.max_logit_scale:
-            raise ValueError(
-                "contrastive evaluator: init_temperature must be positive and at least 1 / max_logit_scale, "
-                f"got {self.init_temperature}"
-            )
-
-
-@dataclass
-class ContrastiveLossConfig:
-    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
-    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
-    false_negative_threshold: float | None = 0.95
-    # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
-    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
-    # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
-    counterfactuals: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -236,9 +201,41 @@ def sweep_settings(kind: str, grids: Grids) -> list[tuple[str, dict]]:
     raise ValueError(f"unknown ablation {kind!r}; choose one of {', '.join(ABLATIONS)}")
 
 
+def _sweep_shared(cfg: AblationConfig) -> list[str]:
+    """What every training run of a sweep takes from the sweep: its data (the runs train on what the
+    sweep evaluates on) and its tracking store."""
+    return [
+        f"data={cfg.data.name}",
+        f"data.root={cfg.data.root}",
+        f"logger.tracking_uri={cfg.logger.tracking_uri}",
+        f"logger.artifact_root={cfg.logger.artifact_root}",
+        "trainer.enable_progress_bar=false",
+    ]
+
+
+def sweep_stage1_overrides(cfg: AblationConfig, change: dict, run_name: str) -> list[str] | None:
+    """The `mmm train stage1` overrides of a training setting; None when it trains no tokenizer."""
+    if "stage1" not in change:
+        return None
+    return [*_sweep_shared(cfg), *cfg.stage1_overrides, *change["stage1"], f"logger.run_name={run_name}"]
+
+
+def sweep_stage2_overrides(cfg: AblationConfig, change: dict, run_name: str, stage1: str | None) -> list[str]:
+    """The `mmm train stage2` overrides of a training setting, on tokenizer `stage1` (None: the newest)."""
+    return [
+        *_sweep_shared(cfg),
+        *cfg.stage2_overrides,
+        *([f"stage1={stage1}"] if stage1 else []),
+        *change.get("stage2", []),
+        f"logger.run_name={run_name}",
+    ]
+
+
 def check_sweep(kind: str, rows_spec: list[tuple[str, dict]], cfg: AblationConfig) -> None:
     """Refuse a sweep with nothing to run or a setting its rows would refuse, before any run,
-    folder or training exists."""
+    folder or training exists: a training setting's stage configs are composed and checked here,
+    so a misspelt `stage2_overrides` key or a grid value the transformer refuses stops the sweep
+    before its first setting trains."""
     if not rows_spec:
         raise ConfigError(
             f"ablation {kind}: its grid is empty (grids.* in conf/ablate.yaml or on the command line), so "
@@ -248,9 +245,23 @@ def check_sweep(kind: str, rows_spec: list[tuple[str, dict]], cfg: AblationConfi
         bad = [n for n in cfg.grids.reset if isinstance(n, bool) or not isinstance(n, int) or n < 0]
         if bad:
             raise ConfigError(f"grids.reset={bad}: reset intervals are whole numbers of steps, 0 or more")
-    for _, change in rows_spec:
+    for label, change in rows_spec:
         if "sampling" in change:  # refused on construction, naming the setting
             SamplingConfig(**{**asdict(cfg.protocol.sampling), **change["sampling"]})
+            continue
+        runs = {
+            "stage1": (sweep_stage1_overrides(cfg, change, "ablation-check"), load_stage1_config),
+            "stage2": (sweep_stage2_overrides(cfg, change, "ablation-check", cfg.stage1), load_stage2_config),
+        }
+        for stage, (overrides, load) in runs.items():
+            try:
+                if overrides is not None:
+                    load(overrides)
+            except (ConfigError, ValueError) as e:
+                raise ConfigError(
+                    f"ablation {kind}, setting {label!r}: its {stage} training would be refused "
+                    f"(stage1_overrides, stage2_overrides, grids.*): {e}"
+                ) from None
 
 
 def load_ablation_config(overrides: list[str] = (), kind: str | None = None) -> DictConfig:

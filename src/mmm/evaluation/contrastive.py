@@ -38,9 +38,9 @@ import torch.nn.functional as F
 
 from mmm.checkpoints import CheckpointError, load_checkpoint, load_state, text_encoder_options
 from mmm.config import as_config
-from mmm.evaluation.configs import ContrastiveModelConfig
 from mmm.evaluation.metrics import matching_score, r_precision_hits
 from mmm.text import build_text_encoder
+from mmm.training.configs import ContrastiveModelConfig
 
 DOWNSAMPLE = 4  # the motion encoder's temporal downsampling (two stride-2 convs)
 MIN_FRAMES = 4  # the shortest motion it accepts

@@ -21,8 +21,8 @@ import torch.nn.functional as F
 from torchmetrics import MeanMetric
 
 from mmm.config import as_config
-from mmm.evaluation.configs import ContrastiveLossConfig, ContrastiveModelConfig
 from mmm.evaluation.contrastive import ContrastiveEvaluator, matching_ranks
+from mmm.training.configs import ContrastiveLossConfig, ContrastiveModelConfig
 from mmm.training.optim import OptimConfig, build_optimizer
 from mmm.training.step_logging import logged_step
 

@@ -18,7 +18,6 @@ from mmm.callbacks.configs import CheckpointConfig, CollapseConfig
 from mmm.config import ConfigError, check_whole, compose
 from mmm.data.configs import DataConfig
 from mmm.data.normalization import NormalizationConfig
-from mmm.evaluation.configs import ContrastiveLossConfig, ContrastiveModelConfig
 from mmm.generation.length import LengthModelConfig
 from mmm.kinds import EVALUATOR, LENGTH, STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS
 from mmm.text.encoders import TextConfig
@@ -193,6 +192,42 @@ class LengthConfig:
 
 def load_length_config(overrides: list[str] = ()) -> DictConfig:
     return _checked(compose(LENGTH.config, list(overrides), schema=LengthConfig))
+
+
+@dataclass
+class ContrastiveModelConfig:
+    embed_dim: int = 512  # E: the shared embedding size
+    hidden_dim: int = 256  # H: conv channels and GRU hidden size per direction
+    text_hidden_dim: int = 512  # the text head's hidden layer
+    dropout: float = 0.1
+    normalize: bool = True  # L2-normalize the embeddings embed_* return
+    init_temperature: float = 0.07
+    max_logit_scale: float = 100.0  # 1 / the lowest temperature
+
+    def __post_init__(self):
+        if min(self.embed_dim, self.hidden_dim, self.text_hidden_dim) < 1:
+            raise ValueError(
+                "contrastive evaluator: embed_dim, hidden_dim and text_hidden_dim must be positive, got "
+                f"{self}"
+            )
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"contrastive evaluator: dropout must be in [0, 1), got {self.dropout}")
+        if self.init_temperature <= 0 or 1.0 / self.init_temperature > self.max_logit_scale:
+            raise ValueError(
+                "contrastive evaluator: init_temperature must be positive and at least 1 / max_logit_scale, "
+                f"got {self.init_temperature}"
+            )
+
+
+@dataclass
+class ContrastiveLossConfig:
+    # Pairs (i, j) whose frozen sentence embeddings have cosine >= this are not negatives of each
+    # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
+    false_negative_threshold: float | None = 0.95
+    # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
+    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
+    # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
+    counterfactuals: list[str] = field(default_factory=list)
 
 
 @dataclass
