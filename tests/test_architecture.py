@@ -135,13 +135,24 @@ def test_generation_commands_refuse_bad_input_before_loading_model_libraries(arg
         (["ablate", "temperature", "grids.temperature=[]"], "grid is empty"),
         (["promote", "tokenizer", "criteria.tokenizer=[]"], "criteria.tokenizer is empty"),
         (["pipeline", "full", "overrides.stage2=[trainer.max_stepz=3]"], "overrides.stage2"),
+        (["ablate", "cross-layers", "stage2_overrides=[trainer.max_stepz=3]"], "stage2 training"),
     ],
-    ids=["train key", "train value", "train schedule", "evaluate", "ablate", "promote", "pipeline step"],
+    ids=[
+        "train key",
+        "train value",
+        "train schedule",
+        "evaluate",
+        "ablate",
+        "promote",
+        "pipeline step",
+        "ablate training",
+    ],
 )
 def test_config_commands_refuse_a_bad_config_before_loading_lightning_or_mlflow(argv, named, tmp_path):
     """The schemas (training/configs.py, evaluation/configs.py, ...) import torch at most: a bad
     config costs about 1.5 s, not the 7 s (13 s on a slow 2.6 GHz Xeon) of Lightning and MLflow; a
-    pipeline refuses a later step's overrides before its first step trains."""
+    pipeline refuses a later step's overrides, and a training sweep a later setting's, before the
+    first trains."""
     assert _refusal_loads(argv, tmp_path, ("mlflow", "lightning", "torchmetrics"), named) == []
 
 
