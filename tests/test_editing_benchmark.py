@@ -289,18 +289,48 @@ def test_samples_render_each_task_beside_the_real_motions(
             assert (gif.width, gif.n_frames) == (2 * 240, frames), task
         with Image.open(files[1]) as sheet:
             assert sheet.size == (6 * 200, 4 * 200), task
-    # none asked for, or a task whose motions `mmm generate-long` renders: nothing written
+    # none asked for: nothing written
     assert (
         render_samples(
             model, "inbetween", walker_items, trained["walker"], tmp_path / "none", 0, EditingConfig()
         )
         == []
     )
-    assert (
-        render_samples(model, "long", walker_items, trained["walker"], tmp_path / "long", 2, EditingConfig())
-        == []
+    assert not (tmp_path / "none").exists()
+
+
+@pytest.mark.slow
+def test_long_samples_render_one_long_motion_under_its_captions_real_motions(
+    model, walker_items, trained, tmp_path
+):
+    from PIL import Image
+
+    from mmm.evaluation.samples import chosen_items, render_samples
+
+    editing = EditingConfig(long_prompts=3)
+    chosen = chosen_items(model, walker_items, 3)
+    files = render_samples(model, "long", walker_items, trained["walker"], tmp_path / "long", 1, editing)
+    assert [f.name for f in files] == ["samples.gif", "samples.png"]
+    # the same long motion as the task's generate_long call draws
+    out = model.generate_long(
+        [item.captions[0].text for item, _ in chosen],
+        [frames for _, frames in chosen],
+        None,
+        0,
+        editing.transition_codes,
+        editing.context_codes,
+        check_lengths=False,
     )
-    assert not (tmp_path / "none").exists() and not (tmp_path / "long").exists()
+    long_frames = out.joints[0].shape[0]
+    assert long_frames > max(frames for _, frames in chosen)
+    with Image.open(files[0]) as gif:
+        # three real motions in the top row, the long motion under them: a GIF frame per long frame
+        assert (gif.width, gif.height // 240, gif.n_frames) == (3 * 240, 2, long_frames)
+    with Image.open(files[1]) as sheet:
+        assert sheet.size == (6 * 200, 4 * 200)  # a row per motion: three real, one long
+    # fewer than two captions long enough for a long motion: nothing written
+    one = render_samples(model, "long", walker_items[:1], trained["walker"], tmp_path / "one", 1, editing)
+    assert one == [] and not (tmp_path / "one").exists()
 
 
 @pytest.mark.slow

@@ -20,8 +20,9 @@ paper's editing benchmarks, inbetween|outpaint|prefix|suffix|upper-body|long (ed
 upper-body lower-mask sweep also as `edit/upper-body/sweep/<metric>` by step = mask in percent),
 its tables in evaluation.md/json and the sweep's plot as an artifact.
 
-Every task but `long` also renders `samples` captions of the split, each real motion above what the
-model made of it (samples.py): `samples.gif` and `samples.png` in output_dir and the run's `samples/`.
+Every task also renders `samples` captions of the split, each real motion above what the model made
+of it (`long`: one long motion of `editing.long_prompts` captions under their real motions;
+samples.py): `samples.gif` and `samples.png` in output_dir and the run's `samples/`.
 """
 
 from __future__ import annotations

@@ -6,9 +6,11 @@ and the run's `samples/`.
 The captions are spread evenly over the split. text2motion generates each at its real motion's
 length; the temporal edits (inbetween, outpaint, prefix, suffix) keep the task's frames of the real
 motion and generate the rest from the caption; upper-body gives the real motion a new upper body
-from its caption. `mmm ablate` draws the same captions at every setting of a sweep (render_sweep).
-On labelled data each generated motion says whether it follows its caption (the order-aware check
-of prompt adherence) and, when not, the first condition it fails.
+from its caption; long makes one long motion of `editing.long_prompts` captions (with the task's
+transition and context codes), under their real motions, each prompt named while it plays.
+`mmm ablate` draws the same captions at every setting of a sweep (render_sweep). On labelled data
+each generated motion (each segment of a long one, on its own frames) says whether it follows its
+caption (the order-aware check of prompt adherence) and, when not, the first condition it fails.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from mmm.render import render_frames, render_gif
 
 log = logging.getLogger(__name__)
 
-RENDERED_TASKS = ("text2motion", *TEMPORAL_TASKS, "upper-body")
+RENDERED_TASKS = ("text2motion", *TEMPORAL_TASKS, "upper-body", "long")
 
 
 def check_samples(count: int) -> None:
@@ -141,12 +143,13 @@ def render_samples(
     seed: int = 0,
 ) -> list[Path]:
     """Write out_dir/samples.gif and samples.png for `count` items (see the module); returns the
-    files written ([] when count is 0 or the task is not rendered)."""
+    files written ([] when count is 0). task=long renders one long motion whatever the count."""
     if count <= 0 or not items:
         return []
     if task not in RENDERED_TASKS:
-        log.info("task=%s: no samples rendered (mmm generate-long renders long motions)", task)
-        return []
+        raise ValueError(f"task={task!r}: no samples for it; rendered tasks: {', '.join(RENDERED_TASKS)}")
+    if task == "long":
+        return _render_long(model, items, root, out_dir, editing, sampling, seed)
     chosen = chosen_items(model, items, count)
     if not chosen:
         return []
@@ -158,6 +161,53 @@ def render_samples(
         real_captions.append(f"real {item.name}: {item.captions[0].text}")
         made_captions.append(what + _label(root, item, joints))
     return _write(real + made, real_captions + made_captions, len(real), out_dir, model.fps)
+
+
+def _render_long(
+    model, items: list[MotionItem], root: Path, out_dir: Path, editing: EditingConfig, sampling, seed: int
+) -> list[Path]:
+    """One long motion of `editing.long_prompts` captions spread over the split: their real motions
+    in the top row, the long motion under the first, labelled with the prompt playing."""
+    chosen = chosen_items(model, items, editing.long_prompts)
+    if len(chosen) < 2:
+        log.info("task=long: fewer than 2 captions long enough to render a long motion")
+        return []
+    texts = [item.captions[0].text for item, _ in chosen]
+    out = model.generate_long(
+        texts,
+        [frames for _, frames in chosen],
+        sampling,
+        seed,
+        editing.transition_codes,
+        editing.context_codes,
+        check_lengths=False,
+    )
+    joints = np.asarray(out.joints[0])
+    labels = [_label(root, item, joints[a:b]) for (item, _), (a, b) in zip(chosen, out.segments)]
+    motions = [model.to_joints(item.features[:frames]) for item, frames in chosen] + [joints]
+    captions = [f"real {item.name}: {text}" for (item, _), text in zip(chosen, texts)]
+    head = f"long motion of the {len(chosen)} captions above"
+    # the GIF's panel is one column wide: there a count, on the sheet's full row each verdict
+    followed = sum(label == " - follows it" for label in labels)
+    judged = sum(bool(label) for label in labels)
+    summary = f"{head}: {followed} of {judged} segments follow theirs" if judged else head
+    verdicts = "; ".join(f"{i}{label}" for i, label in enumerate(labels, 1) if label)
+    spans = [None] * len(chosen) + [
+        [(a, b, f"{i}. {t}") for i, (t, (a, b)) in enumerate(zip(texts, out.segments), 1)]
+    ]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    gif = render_gif(
+        motions,
+        out_dir / "samples.gif",
+        captions=[*captions, summary],
+        fps=model.fps,
+        size=(240, 240),
+        columns=len(chosen),
+        spans=spans,
+    )
+    sheet_captions = [*captions, f"{head}; {verdicts}" if verdicts else head]
+    sheet = render_frames(motions, out_dir / "samples.png", sheet_captions, num_frames=6, size=(200, 200))
+    return [gif, sheet]
 
 
 def render_sweep(
