@@ -454,3 +454,24 @@ def test_an_evaluator_run_embeds_the_counterfactuals_it_uses():
     assert set(captions_to_embed(items, [])) == set(got[:4]) | {
         v for v in variants if v.startswith("a person squats")
     }
+
+
+@pytest.mark.slow
+@pytest.mark.ddp
+def test_ddp_loss_contrasts_every_ranks_pairs_as_one_process_on_the_whole_batch(tmp_path):
+    """Two ranks with unequal shares of one batch (5 and 3 pairs; counterfactuals on one rank
+    only; a paraphrase split across them): each rank's loss, and the gradients DDP averages, are
+    those of one process on the whole batch; without global negatives they are not."""
+    from tests.ddp_workers.contrastive_ddp import make_batch, make_module
+    from tests.helpers import run_ddp_worker
+
+    r0, r1 = run_ddp_worker("contrastive_ddp.py", tmp_path, out_dir=tmp_path, timeout=120)
+    module = make_module()
+    loss, _, _ = module._loss(make_batch())
+    loss.backward()
+    for rank in (r0, r1):
+        assert rank["loss"].item() == pytest.approx(loss.item(), rel=1e-9)
+        for name, p in module.named_parameters():
+            torch.testing.assert_close(rank["grads"][name], p.grad, rtol=1e-7, atol=1e-10, msg=name)
+    # each rank alone sees a smaller batch: a lower loss (fewer negatives), different on each rank
+    assert r0["local_loss"].item() < loss.item() - 0.1 and r1["local_loss"].item() < loss.item() - 0.1

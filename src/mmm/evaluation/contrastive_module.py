@@ -3,7 +3,9 @@
 
 A symmetric InfoNCE loss over the batch with the evaluator's learnable temperature; pairs whose
 frozen sentence embeddings are nearly identical (cosine >= `false_negative_threshold`) can be left
-out of each other's negatives. The module validates with the loss and text->motion /
+out of each other's negatives. Under DDP the training loss contrasts the pairs of every rank
+(`global_batch`, `loss.global_negatives`), so its value and gradient are those of one process on
+the whole batch, not of each rank's share of it. The module validates with the loss and text->motion /
 motion->text top-1/top-5 within batches, and keeps plain-dict hyper-parameters, so checkpoints
 load with torch.load(weights_only=True); the network sits under `evaluator.`, what
 `load_contrastive_evaluator(path)` reads back.
@@ -16,6 +18,7 @@ from dataclasses import asdict
 import lightning as L
 import numpy as np
 import torch
+import torch.distributed as dist
 import torch.nn as nn
 import torch.nn.functional as F
 from torchmetrics import MeanMetric
@@ -68,6 +71,66 @@ def info_nce_loss(
     return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(motion_to_text, target))
 
 
+class _GatherRows(torch.autograd.Function):
+    """Every rank's (n, ...) rows, concatenated in rank order; all ranks pass the same shape. The
+    gradient of the result is summed over the ranks (gloo has no reduce-scatter) and each rank
+    keeps its own rows' part."""
+
+    @staticmethod
+    def forward(ctx, rows: torch.Tensor) -> torch.Tensor:
+        parts = [torch.empty_like(rows) for _ in range(dist.get_world_size())]
+        dist.all_gather(parts, rows.contiguous())
+        ctx.rows = len(rows)
+        return torch.cat(parts)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        grad = grad.contiguous().clone()
+        dist.all_reduce(grad)
+        start = dist.get_rank() * ctx.rows
+        return grad[start : start + ctx.rows]
+
+
+def global_batch(
+    text: torch.Tensor,
+    motion: torch.Tensor,
+    sentence: torch.Tensor,
+    hard: torch.Tensor | None = None,
+    hard_mask: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """The pairs of every rank, in rank order: text, motion (B, E), sentence (B, Ds), the hard
+    negatives (B, K, E) and hard_mask (B, K), with gradients to each rank's own rows. Ranks may
+    hold different B and K (a short last batch, captions with fewer counterfactuals): rows and
+    negatives are padded for the exchange and the padding dropped. Outside DDP: the inputs.
+
+    Everything travels in one tensor, so every rank makes the same collectives in the backward
+    pass too (one all_reduce), whatever its own batch needs a gradient for."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return text, motion, sentence, hard, hard_mask
+    (n, e), k = text.shape, 0 if hard is None else hard.shape[1]
+    sizes = [torch.zeros(2, dtype=torch.long, device=text.device) for _ in range(dist.get_world_size())]
+    dist.all_gather(sizes, torch.tensor([n, k], device=text.device))
+    rows, cols = (int(v) for v in torch.stack(sizes).max(0).values)
+    if hard is None:
+        hard, hard_mask = text.new_zeros(n, 0, e), torch.zeros(n, 0, dtype=torch.bool, device=text.device)
+    packed = torch.cat(
+        [
+            text,
+            motion,
+            sentence.to(text.dtype),
+            F.pad(hard, (0, 0, 0, cols - k)).flatten(1),
+            F.pad(hard_mask.to(text.dtype), (0, cols - k)),
+        ],
+        dim=1,
+    )
+    keep = torch.cat([torch.arange(rows) < int(size[0]) for size in sizes]).to(text.device)
+    packed = _GatherRows.apply(F.pad(packed, (0, 0, 0, rows - n)))[keep]
+    text, motion, sentence, hard, mask = packed.split([e, e, sentence.shape[1], cols * e, cols], dim=1)
+    if cols == 0:
+        return text, motion, sentence, None, None
+    return text, motion, sentence, hard.unflatten(1, (cols, e)), mask > 0.5
+
+
 class ContrastiveEvaluatorModule(L.LightningModule):
     """Trains a ContrastiveEvaluator on {"motion" (B, T, D) normalized, "lengths" (B,), "sentence" (B, Ds)},
     with hard negatives when the batch holds "counterfactual" (B, K, Ds) and "counterfactual_mask" (B, K).
@@ -118,19 +181,25 @@ class ContrastiveEvaluatorModule(L.LightningModule):
             {name: MeanMetric() for name in ("loss", "t2m_top1", "t2m_top5", "m2t_top1", "m2t_top5")}
         )
 
-    def _loss(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _loss(self, batch: dict, global_negatives: bool = False) -> tuple[torch.Tensor, ...]:
+        """(loss, text, motion): the rank's own embeddings (B, E); with `global_negatives`, the loss
+        over the pairs of every rank (global_batch)."""
         ev = self.evaluator
         motion = ev.motion_features(batch["motion"], batch["lengths"])
         text = ev.text_features(batch["sentence"])
-        exclude = false_negative_mask(batch["sentence"], self.loss_cfg.false_negative_threshold)
-        hard = batch.get("counterfactual")
+        hard, hard_mask = batch.get("counterfactual"), batch.get("counterfactual_mask")
         if hard is not None:
             hard = ev.text_features(hard.flatten(0, 1)).unflatten(0, hard.shape[:2])
-        loss = info_nce_loss(text, motion, ev.scale(), exclude, hard, batch.get("counterfactual_mask"))
+        pairs = (text, motion, batch["sentence"], hard, hard_mask)
+        if global_negatives:
+            pairs = global_batch(*pairs)
+        all_text, all_motion, sentence, hard, hard_mask = pairs
+        exclude = false_negative_mask(sentence, self.loss_cfg.false_negative_threshold)
+        loss = info_nce_loss(all_text, all_motion, ev.scale(), exclude, hard, hard_mask)
         return loss, text, motion
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        loss, text, motion = self._loss(batch)
+        loss, text, motion = self._loss(batch, self.loss_cfg.global_negatives)
         if not logged_step(self):  # the retrieval ranks below only go to the loggers
             return loss
         t2m, _ = matching_ranks(F.normalize(text.detach(), dim=-1), F.normalize(motion.detach(), dim=-1))

@@ -228,6 +228,10 @@ class ContrastiveLossConfig:
     # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
     # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
     counterfactuals: list[str] = field(default_factory=list)
+    # Under DDP, every rank's pairs are negatives of every other's: the loss and its gradient are
+    # those of one process on the whole batch (mmm.evaluation.contrastive_module.global_batch);
+    # false: each rank contrasts only its own pairs, as with a per-rank batch.
+    global_negatives: bool = True
 
 
 @dataclass
