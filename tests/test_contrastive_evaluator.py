@@ -3,6 +3,7 @@ learning a toy retrieval problem, weights-only checkpoints, the raw-input embedd
 registered end-to-end training run."""
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import lightning as L
@@ -458,12 +459,14 @@ def test_an_evaluator_run_embeds_the_counterfactuals_it_uses():
 
 @pytest.mark.slow
 @pytest.mark.ddp
-def test_ddp_loss_contrasts_every_ranks_pairs_as_one_process_on_the_whole_batch(tmp_path):
+def test_ddp_loss_contrasts_every_ranks_pairs_as_one_process_on_the_whole_batch(tmp_path, monkeypatch):
     """Two ranks with unequal shares of one batch (5 and 3 pairs; counterfactuals on one rank
     only; a paraphrase split across them): each rank's loss, and the gradients DDP averages, are
     those of one process on the whole batch; without global negatives they are not."""
-    from tests.ddp_workers.contrastive_ddp import make_batch, make_module
     from tests.helpers import run_ddp_worker
+
+    monkeypatch.syspath_prepend(str(Path(__file__).parent / "ddp_workers"))  # as the worker runs
+    from contrastive_ddp import make_batch, make_module
 
     r0, r1 = run_ddp_worker("contrastive_ddp.py", tmp_path, out_dir=tmp_path, timeout=120)
     module = make_module()

@@ -10,17 +10,15 @@ batch (make_batch, make_module).
 """
 
 import os
-import socket
 import sys
 
 import torch
 import torch.distributed as dist
-import torch.multiprocessing as mp
+from gloo import WORLD, spawn_two_ranks  # beside this script (its folder is on sys.path)
 
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule
 from mmm.training.configs import ContrastiveModelConfig
 
-WORLD = 2
 RANK0 = 5  # of 8 pairs
 FEATURES, SENTENCE, FRAMES = 12, 6, 16
 
@@ -56,35 +54,23 @@ def make_module() -> ContrastiveEvaluatorModule:
     return ContrastiveEvaluatorModule(FEATURES, SENTENCE, cfg).double()
 
 
-def worker(rank: int, port: int, out_dir: str) -> None:
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=WORLD)
-    try:
-        module = make_module()
-        part = rank_part(make_batch(), rank)
-        loss, _, _ = module._loss(part, global_negatives=True)
-        loss.backward()
-        grads = {}
-        for name, p in module.named_parameters():
-            grad = p.grad.clone()
-            dist.all_reduce(grad)
-            grads[name] = grad / WORLD  # what DDP's gradient averaging gives every rank
-        with torch.no_grad():
-            local, _, _ = module._loss(part, global_negatives=False)
-        torch.save(
-            {"loss": loss.detach(), "local_loss": local, "grads": grads},
-            os.path.join(out_dir, f"rank{rank}.pt"),
-        )
-        dist.barrier()
-    finally:
-        dist.destroy_process_group()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def work(rank: int, out_dir: str) -> None:
+    module = make_module()
+    part = rank_part(make_batch(), rank)
+    loss, _, _ = module._loss(part, global_negatives=True)
+    loss.backward()
+    grads = {}
+    for name, p in module.named_parameters():
+        grad = p.grad.clone()
+        dist.all_reduce(grad)
+        grads[name] = grad / WORLD  # what DDP's gradient averaging gives every rank
+    with torch.no_grad():
+        local, _, _ = module._loss(part, global_negatives=False)
+    torch.save(
+        {"loss": loss.detach(), "local_loss": local, "grads": grads},
+        os.path.join(out_dir, f"rank{rank}.pt"),
+    )
 
 
 if __name__ == "__main__":
-    mp.spawn(worker, args=(free_port(), sys.argv[1]), nprocs=WORLD, join=True)
+    spawn_two_ranks(work, sys.argv[1])

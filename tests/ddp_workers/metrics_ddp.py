@@ -7,16 +7,13 @@ writes the whole dataset to OUT_DIR/data.pt for the single-process comparison.
 """
 
 import os
-import socket
 import sys
 
 import torch
-import torch.distributed as dist
-import torch.multiprocessing as mp
+from gloo import spawn_two_ranks  # beside this script (its folder is on sys.path)
 
 from mmm.evaluation.metrics import Diversity, FrechetDistance, MultiModality, RPrecision
 
-WORLD = 2
 BATCH = 32
 BATCHES = 10  # 320 pairs: more than Diversity's 300 in total, fewer on each rank
 RANK0_BATCHES = 6
@@ -38,48 +35,36 @@ def make_data() -> dict[str, torch.Tensor]:
     }
 
 
-def worker(rank: int, port: int, out_dir: str) -> None:
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=WORLD)
-    try:
-        data = make_data()
-        if rank == 0:
-            torch.save(data, os.path.join(out_dir, "data.pt"))
-        batches = range(RANK0_BATCHES) if rank == 0 else range(RANK0_BATCHES, BATCHES)
-        texts = slice(0, MM_RANK0) if rank == 0 else slice(MM_RANK0, MM_TEXTS)
-        rprec, frechet, div, mm = (
-            RPrecision(3),
-            FrechetDistance(DIM),
-            Diversity(300, seed=5),
-            MultiModality(10, seed=7),
-        )
-        for b in batches:
-            rows = slice(b * BATCH, (b + 1) * BATCH)
-            rprec.update(data["text"][rows], data["motion"][rows])
-            frechet.update(real=data["real"][rows], generated=data["generated"][rows])
-            div.update(data["generated"][rows])
-        # Two updates on each rank, so that the list state holds several tensors.
-        mm_rank = data["mm"][texts]
-        mm.update(mm_rank[:3])
-        mm.update(mm_rank[3:])
-        values = {
-            **rprec.compute(),
-            "fid": frechet.compute(),
-            "diversity": div.compute(),
-            "multimodality": mm.compute(),
-        }
-        values["local_count"] = rprec.count.clone()  # synced state is restored after compute
-        torch.save({k: v.clone() for k, v in values.items()}, os.path.join(out_dir, f"rank{rank}.pt"))
-        dist.barrier()
-    finally:
-        dist.destroy_process_group()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def work(rank: int, out_dir: str) -> None:
+    data = make_data()
+    if rank == 0:
+        torch.save(data, os.path.join(out_dir, "data.pt"))
+    batches = range(RANK0_BATCHES) if rank == 0 else range(RANK0_BATCHES, BATCHES)
+    texts = slice(0, MM_RANK0) if rank == 0 else slice(MM_RANK0, MM_TEXTS)
+    rprec, frechet, div, mm = (
+        RPrecision(3),
+        FrechetDistance(DIM),
+        Diversity(300, seed=5),
+        MultiModality(10, seed=7),
+    )
+    for b in batches:
+        rows = slice(b * BATCH, (b + 1) * BATCH)
+        rprec.update(data["text"][rows], data["motion"][rows])
+        frechet.update(real=data["real"][rows], generated=data["generated"][rows])
+        div.update(data["generated"][rows])
+    # Two updates on each rank, so that the list state holds several tensors.
+    mm_rank = data["mm"][texts]
+    mm.update(mm_rank[:3])
+    mm.update(mm_rank[3:])
+    values = {
+        **rprec.compute(),
+        "fid": frechet.compute(),
+        "diversity": div.compute(),
+        "multimodality": mm.compute(),
+    }
+    values["local_count"] = rprec.count.clone()  # synced state is restored after compute
+    torch.save({k: v.clone() for k, v in values.items()}, os.path.join(out_dir, f"rank{rank}.pt"))
 
 
 if __name__ == "__main__":
-    mp.spawn(worker, args=(free_port(), sys.argv[1]), nprocs=WORLD, join=True)
+    spawn_two_ranks(work, sys.argv[1])
