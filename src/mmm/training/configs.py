@@ -1,7 +1,8 @@
 """What each training command reads: `mmm train stage1|stage1-parts|stage2|stage2-parts|length|
 evaluator` (conf/train_*.yaml), from the sections every trainer shares (model sizes, the trainer)
 to each kind's callbacks and its whole config (Stage1Config, Stage2Config, ...), made of the
-sections the other packages define in their own configs.py.
+sections the other packages define in their own configs.py; and the contrastive evaluator's
+network and loss settings (its network, mmm.evaluation.contrastive, needs torchmetrics to load).
 
 Kept apart from the LightningModules and trainers so that a config is composed and checked without
 loading Lightning or MLflow: a misspelt key or an out-of-range value is refused in about a second,
