@@ -44,11 +44,11 @@ PAPER = {"aits_s": 0.081, "40_frames_s": 0.018, "long_10.873min_s": 1.65, "devic
 def build_model(size: str, device: str, precision: str | None, compiled: bool = False):
     from mmm.config import compose
     from mmm.generation.model import TextToMotion
+    from mmm.optim import OptimConfig
     from mmm.text import build_text_encoder
     from mmm.tokenizer.configs import TokenizerLossConfig
     from mmm.tokenizer.module import TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
-    from mmm.training.optim import OptimConfig
     from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
     cfg = compose("train_stage2", [f"model={size}"]).model

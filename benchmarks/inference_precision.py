@@ -74,10 +74,10 @@ class FakeTextEncoder:
 def build_model(size: str):
     from mmm.config import compose
     from mmm.generation.model import TextToMotion
+    from mmm.optim import OptimConfig
     from mmm.tokenizer.configs import TokenizerLossConfig
     from mmm.tokenizer.module import TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
-    from mmm.training.optim import OptimConfig
     from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
     cfg = compose("train_stage2", [f"model={size}"]).model

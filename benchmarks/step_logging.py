@@ -6,7 +6,7 @@
 
 The arguments after the kind are `mmm train <kind>`'s. The run's training steps alternate between
 computing and logging their on-step values (what every step did before
-mmm.training.step_logging) and not (what the steps Lightning does not write now do), so a busy
+mmm.step_logging) and not (what the steps Lightning does not write now do), so a busy
 machine slows both alike. Reported: the median `training_step` time of each half after 20
 warm-up steps, and their difference, the time the gating saves on each step it skips; the
 optimizer step and backward, which logging does not touch, are outside the timed part.

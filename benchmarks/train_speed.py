@@ -46,10 +46,10 @@ def _stage1(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
+    from mmm.optim import OptimConfig
     from mmm.tokenizer.configs import TokenizerLossConfig
     from mmm.tokenizer.module import TokenizerModule
     from mmm.tokenizer.network import TokenizerConfig
-    from mmm.training.optim import OptimConfig
 
     cfg = compose("train_stage1", [f"model={size}", *overrides]).model.tokenizer
     module = (
@@ -69,7 +69,7 @@ def _stage2(size: str, batch: int, device: str, overrides: list[str]):
     import torch
 
     from mmm.config import compose
-    from mmm.training.optim import OptimConfig
+    from mmm.optim import OptimConfig
     from mmm.transformer.configs import CorruptionConfig
     from mmm.transformer.module import MaskedTransformerModule, corrupt
     from mmm.transformer.network import TransformerConfig

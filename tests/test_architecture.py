@@ -62,6 +62,35 @@ def test_no_import_cycle_between_modules():
     assert cycles == [], f"modules on an import cycle: {cycles}"
 
 
+# The README's layers (Layout), lowest first; a module may import its own layer and those below.
+# The top-level modules (mmm.config, mmm.device, mmm.optim, ...) import none of these packages.
+LAYERS = {
+    **dict.fromkeys(("motion", "data", "text"), 0),
+    **dict.fromkeys(("tokenizer", "transformer"), 1),
+    "generation": 2,
+    **dict.fromkeys(("training", "evaluation", "registry"), 3),
+    "pipeline": 4,
+    "cli": 5,
+}
+
+
+def test_no_module_imports_a_layer_above_it():
+    upward = []
+    for name, path in _modules().items():
+        parts = name.split(".")
+        top_level = len(parts) == 1 or (len(parts) == 2 and path.name != "__init__.py")
+        if not top_level and parts[1] not in LAYERS:
+            continue  # callbacks, render, export, released: outside the README's order
+        mine = -1 if top_level else LAYERS[parts[1]]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for target in _imported(node, _modules()):
+                    layer = LAYERS.get((target.split(".") + [""])[1])
+                    if layer is not None and layer > mine:
+                        upward.append(f"{name}:{node.lineno} imports {target}")
+    assert upward == [], upward
+
+
 def test_imports_inside_functions_say_why():
     """Outside the CLI, an import inside a function carries a comment (on its line, the line above,
     or the `try` that guards it); inside the CLI each module says it once."""

@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from mmm.evaluation.contrastive_module import info_nce_loss
-from mmm.evaluation.counterfactuals import counterfactual_captions, counterfactual_ranking
+from mmm.evaluation.counterfactuals import counterfactual_ranking
 from mmm.text import TextEmbedding
+from mmm.text.counterfactuals import counterfactual_captions
 from mmm.training.evaluator import CaptionedMotionCollator
 
 

@@ -21,11 +21,11 @@ from mmm.generation.sampler import (
     sample_tokens,
 )
 from mmm.motion.skeleton import T2M_SKELETON
+from mmm.optim import OptimConfig
 from mmm.text import TextEmbedding
 from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.optim import OptimConfig
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 
 K = 32

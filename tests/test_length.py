@@ -8,7 +8,7 @@ from mlflow.tracking import MlflowClient
 
 from mmm.generation.length import LengthEstimator, LengthModelConfig, length_metrics, load_length_estimator
 from mmm.generation.length_module import LengthEstimatorModule
-from mmm.training.optim import OptimConfig
+from mmm.optim import OptimConfig
 from tests.helpers import train_tiny_stage1
 
 

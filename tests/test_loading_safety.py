@@ -20,12 +20,12 @@ from mmm.data.arrays import load_array, load_arrays
 from mmm.data.humanml3d import DataError, load_motion
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.model import TextToMotion
+from mmm.optim import OptimConfig
 from mmm.resolve import ModelNotFound, resolve_checkpoint
 from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.load import load_tokenizer_checkpoint
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.optim import OptimConfig
 from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
 from mmm.transformer.network import TransformerConfig

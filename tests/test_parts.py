@@ -9,12 +9,12 @@ from mlflow.tracking import MlflowClient
 
 from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, CollapseMonitor
 from mmm.motion.parts import LOWER_JOINTS, UPPER_JOINTS, merge_parts, part_indices, split_parts
+from mmm.optim import OptimConfig
 from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.load import load_tokenizer_checkpoint
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.parts import PartAwareTokenizer
-from mmm.training.optim import OptimConfig
 
 TINY = TokenizerConfig(width=16, num_codes=32, part_aware=True)
 

@@ -4,14 +4,15 @@ import pytest
 import torch
 
 from mmm.cli.app import build_parser
+from mmm.device import check_device
 from mmm.generation.model import TextToMotion
-from mmm.generation.precision import Int8Linear, check_device, default_precision, inference_copy
+from mmm.generation.precision import Int8Linear, default_precision, inference_copy
 from mmm.generation.sampler import frames_to_codes, sample_tokens
 from mmm.generation.settings import PRECISIONS, SamplingConfig, check_precision
+from mmm.optim import OptimConfig
 from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.optim import OptimConfig
 from tests.test_decoding_speedups import K, text, tiny_transformer
 
 

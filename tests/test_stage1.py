@@ -15,13 +15,13 @@ from mmm.callbacks.codebook import CodebookCollapseError, CodebookReset, Collaps
 from mmm.config import ConfigError
 from mmm.data import datamodule
 from mmm.motion.features import recover_from_ric, recover_root_rot_pos
+from mmm.optim import OptimConfig, cosine_tail, warmup_step_schedule
 from mmm.tokenizer.configs import DecoderRefineConfig, TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.quantizer import EMAQuantizer
 from mmm.training.common import LIGHTNING_ADVERT, LIGHTNING_NOISE_WARNINGS, quiet_lightning
 from mmm.training.configs import load_stage1_config
-from mmm.training.optim import OptimConfig, cosine_tail, warmup_step_schedule
 from mmm.training.stage1 import train_stage1
 from tests.helpers import run_ddp_worker
 

@@ -12,10 +12,10 @@ from mmm.data.datasets import TokenBatchCollator, TokenTextDataset
 from mmm.data.humanml3d import Caption, DataError, MotionItem, read_split
 from mmm.data.tokens import TokenCache, token_cache_folder, tokenize_dataset
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
+from mmm.optim import OptimConfig
 from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.optim import OptimConfig
 from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.module import MaskedTransformerModule, corrupt, sequence_mean
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig

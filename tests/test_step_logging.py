@@ -1,5 +1,5 @@
 """Training steps and callbacks compute and log their on-step values only where Lightning writes
-them (mmm.training.step_logging): the loggers must receive exactly what logging at every step gives."""
+them (mmm.step_logging): the loggers must receive exactly what logging at every step gives."""
 
 import lightning as L
 import pytest
@@ -7,7 +7,7 @@ import torch
 from lightning.pytorch.loggers.logger import Logger
 from torch.utils.data import DataLoader, TensorDataset
 
-from mmm.training.step_logging import logged_batch_end, logged_step
+from mmm.step_logging import logged_batch_end, logged_step
 
 
 class RecordingLogger(Logger):

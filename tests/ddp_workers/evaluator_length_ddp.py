@@ -21,8 +21,8 @@ from mmm.data.resumable import ResumableDataLoader
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule
 from mmm.generation.length import LengthModelConfig
 from mmm.generation.length_module import LengthEstimatorModule
+from mmm.optim import OptimConfig
 from mmm.training.configs import ContrastiveModelConfig
-from mmm.training.optim import OptimConfig
 
 D, T, DS, DW, WORDS = 12, 24, 16, 8, 5
 

@@ -18,10 +18,10 @@ from two_ranks import two_process_trainer  # beside this script (its folder is o
 from mmm.callbacks.codebook import CodebookReset, CollapseMonitor
 from mmm.data.configs import DataConfig
 from mmm.data.datamodule import TokenizerDataModule
+from mmm.optim import OptimConfig
 from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.network import TokenizerConfig
-from mmm.training.optim import OptimConfig
 
 
 class SaveRankState(L.Callback):

@@ -18,7 +18,7 @@ from two_ranks import two_process_trainer  # beside this script (its folder is o
 
 from mmm.callbacks.adherence import AdherenceCurve
 from mmm.data.resumable import ResumableDataLoader
-from mmm.training.optim import OptimConfig
+from mmm.optim import OptimConfig
 from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.module import MaskedTransformerModule
 from mmm.transformer.network import TransformerConfig

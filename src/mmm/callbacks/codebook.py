@@ -18,8 +18,8 @@ import torch
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities import rank_zero_warn
 
+from mmm.step_logging import logged_batch_end
 from mmm.tokenizer.quantizer import metric_name
-from mmm.training.step_logging import logged_batch_end
 
 log = logging.getLogger(__name__)
 

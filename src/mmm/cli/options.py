@@ -161,7 +161,7 @@ def check_device_option(args: argparse.Namespace) -> None:
     """Refuse a --device this machine lacks, by name. The last check before a model loads: it is
     the only one that needs torch."""
     # imported here: keeps `mmm --help` and every other refusal fast (this check needs torch)
-    from mmm.generation.precision import check_device
+    from mmm.device import check_device
 
     try:
         check_device(args.device, "--device")

@@ -31,6 +31,7 @@ from omegaconf import DictConfig
 
 from mmm.config import to_object
 from mmm.data.humanml3d import load_stats
+from mmm.device import check_device
 from mmm.evaluation.configs import (
     ABLATIONS,
     AblationConfig,
@@ -44,7 +45,6 @@ from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, evaluate_text_to_motion, results_table
 from mmm.evaluation.samples import check_samples, chosen_items, generated, render_sweep
 from mmm.generation.model import TextToMotion
-from mmm.generation.precision import check_device
 from mmm.generation.settings import SamplingConfig
 from mmm.tracking import artifact_location, prepare_experiment, resolve_tracking_uri
 from mmm.training.configs import load_stage1_config, load_stage2_config

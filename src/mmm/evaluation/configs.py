@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from mmm.config import ConfigError, check_whole, compose, to_object
 from mmm.data.configs import DataConfig
-from mmm.generation.precision import check_device
+from mmm.device import check_device
 from mmm.generation.settings import SamplingConfig
 from mmm.generation.upper_body import UPPER_BODY_GUIDANCE
 from mmm.tracking import TrackingConfig

@@ -25,9 +25,9 @@ from torchmetrics import MeanMetric
 
 from mmm.config import as_config
 from mmm.evaluation.contrastive import ContrastiveEvaluator, matching_ranks
+from mmm.optim import OptimConfig, build_optimizer
+from mmm.step_logging import logged_step
 from mmm.training.configs import ContrastiveLossConfig, ContrastiveModelConfig
-from mmm.training.optim import OptimConfig, build_optimizer
-from mmm.training.step_logging import logged_step
 
 
 def false_negative_mask(sentences: torch.Tensor, threshold: float | None) -> torch.Tensor | None:

@@ -45,6 +45,7 @@ from omegaconf import DictConfig
 from mmm.config import to_object
 from mmm.data.humanml3d import load_stats
 from mmm.data.synthetic.adherence import check_motion
+from mmm.device import check_device
 from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
 from mmm.evaluation.configs import EvaluateConfig
 from mmm.evaluation.editing import TASKS, check_task_model, evaluate_editing, task_label
@@ -54,7 +55,6 @@ from mmm.evaluation.protocol import evaluate_text_to_motion, results_table
 from mmm.evaluation.samples import check_samples, render_samples
 from mmm.fingerprint import dataset_fingerprint
 from mmm.generation.model import TextToMotion
-from mmm.generation.precision import check_device
 from mmm.generation.settings import check_candidates
 from mmm.motion.features import recover_from_ric
 from mmm.tokenizer.load import load_tokenizer

@@ -35,10 +35,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from mmm.evaluation.counterfactuals import counterfactual_captions
 from mmm.generation.model import Generated, TextToMotion
 from mmm.generation.settings import SamplingConfig, check_candidates
 from mmm.motion.features import pad_motions
+from mmm.text.counterfactuals import counterfactual_captions
 
 
 def check_judge(model: TextToMotion, judge) -> None:
@@ -152,7 +152,7 @@ COUNTERFACTUAL_WEIGHT = 0.25
 def counterfactual_margins(judge, texts: list[str], motions: torch.Tensor, cosines: np.ndarray) -> np.ndarray:
     """(B,) for a caption with a count or speed word: its cosine with the motion (`cosines` (B,),
     of the unit embeddings `motions` (B, E)) minus the highest cosine of its counterfactuals
-    (mmm.evaluation.counterfactuals: "jumps twice" against "jumps once", "... three times", "...
+    (mmm.text.counterfactuals: "jumps twice" against "jumps once", "... three times", "...
     four times"); NaN for other captions. Positive when the judge reads the motion as this caption
     rather than as any of its one-word changes."""
     out = np.full(len(texts), np.nan)

@@ -19,8 +19,8 @@ from torchmetrics import MeanMetric
 
 from mmm.config import as_config
 from mmm.generation.length import LengthEstimator, LengthModelConfig, length_metrics, median_count
-from mmm.training.optim import OptimConfig, build_optimizer
-from mmm.training.step_logging import logged_step
+from mmm.optim import OptimConfig, build_optimizer
+from mmm.step_logging import logged_step
 
 
 class LengthEstimatorModule(L.LightningModule):

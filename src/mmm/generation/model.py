@@ -33,10 +33,11 @@ from mmm.checkpoints import (
     text_encoder_options,
     trusted_recorded_path,
 )
+from mmm.device import check_device
 from mmm.fingerprint import tensors_fingerprint
 from mmm.generation.compiled import CompiledDecoding, default_compile_mode
 from mmm.generation.length import load_length_estimator
-from mmm.generation.precision import check_device, default_precision, inference_copy
+from mmm.generation.precision import default_precision, inference_copy
 from mmm.generation.sampler import SampleResult, frames_to_codes, sample_tokens
 from mmm.generation.settings import SamplingConfig, check_precision
 from mmm.generation.upper_body import UPPER_BODY_GUIDANCE, edit_upper_body

@@ -13,8 +13,8 @@ from omegaconf import DictConfig
 
 from mmm.config import ConfigError, compose, to_object
 from mmm.data.configs import DataConfig
+from mmm.device import check_device
 from mmm.evaluation.configs import ProtocolConfig
-from mmm.generation.precision import check_device
 from mmm.kinds import PROMOTABLE
 from mmm.tracking import TrackingConfig
 

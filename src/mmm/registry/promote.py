@@ -28,6 +28,7 @@ from mmm.atomic import sha256_file
 from mmm.config import to_object
 from mmm.data.configs import DataConfig
 from mmm.data.humanml3d import load_stats
+from mmm.device import check_device
 from mmm.evaluation.adherence import adherence_metrics, prompt_adherence
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import evaluate_text_to_motion
@@ -35,7 +36,6 @@ from mmm.evaluation.run import reconstruction_metrics
 from mmm.evaluation.upper_body import upper_body_adherence
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
 from mmm.generation.model import TextToMotion
-from mmm.generation.precision import check_device
 from mmm.kinds import PROMOTABLE
 from mmm.registry.bundle import JudgeMismatch, log_bundle
 from mmm.registry.configs import Criterion, PromoteConfig

@@ -32,6 +32,7 @@ from mlflow.tracking import MlflowClient
 from mmm.atomic import atomic_write, sha256_file
 from mmm.data.normalization import read_stats_folder
 from mmm.fingerprint import tensors_fingerprint
+from mmm.optim import OptimConfig
 from mmm.registry.bundle import log_bundle
 from mmm.registry.versions import TEXT2MOTION, TOKENIZER, register_version, version_tags
 from mmm.released.keys import (
@@ -48,7 +49,6 @@ from mmm.tokenizer.configs import TokenizerLossConfig
 from mmm.tokenizer.module import TokenizerModule
 from mmm.tokenizer.search import CodeSearchConfig
 from mmm.tracking import artifact_location, prepare_experiment, resolve_tracking_uri
-from mmm.training.optim import OptimConfig
 from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.module import MaskedTransformerModule
 

@@ -17,13 +17,13 @@ from torchmetrics import MeanMetric
 from mmm.config import as_config
 from mmm.motion.features import FeatureLayout, recover_from_ric, recover_root_rot_pos
 from mmm.motion.skeleton import skeleton_for
+from mmm.optim import OptimConfig, build_optimizer
+from mmm.step_logging import logged_step
 from mmm.tokenizer.configs import DecoderRefineConfig, TokenizerLossConfig
 from mmm.tokenizer.network import MotionTokenizer, TokenizerConfig
 from mmm.tokenizer.parts import PartAwareTokenizer
 from mmm.tokenizer.quantizer import EMAQuantizer, metric_name
 from mmm.tokenizer.search import CodeSearchConfig, search_codes
-from mmm.training.optim import OptimConfig, build_optimizer
-from mmm.training.step_logging import logged_step
 
 
 def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from mmm.generation.precision import has_fast_bf16
+from mmm.device import has_fast_bf16
 
 PRECISIONS = ("fp32", "bf16", "auto")
 

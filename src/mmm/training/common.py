@@ -3,7 +3,7 @@ folder (new, or the one a resume continues), MLflow tracking (config, tags, data
 system metrics) and `tracked_fit`, which runs a fit as one tracked MLflow run: each trainer only
 loads its config, builds its data and module and calls it.
 
-The shared config sections are in mmm.training.configs, the optimizer in mmm.training.optim, the
+The shared config sections are in mmm.training.configs, the optimizer in mmm.optim, the
 checkpoint callbacks and the resume state in mmm.callbacks.checkpoints.
 """
 
@@ -32,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from mmm.callbacks.checkpoints import RunState, checkpoint_callbacks
 from mmm.checkpoints import load_checkpoint
 from mmm.config import conf_dir, config_hash
-from mmm.generation.precision import cpu_has_bf16_matmul
+from mmm.device import cpu_has_bf16_matmul
 from mmm.kinds import ModelKind
 from mmm.resolve import log_artifact_with_digest
 from mmm.tracking import (

@@ -21,12 +21,12 @@ from mmm.data.configs import DataConfig
 from mmm.data.normalization import NormalizationConfig
 from mmm.generation.length import LengthModelConfig
 from mmm.kinds import EVALUATOR, LENGTH, STAGE1, STAGE1_PARTS, STAGE2, STAGE2_PARTS
+from mmm.optim import OptimConfig
 from mmm.text.encoders import TextConfig
 from mmm.tokenizer.configs import DecoderRefineConfig, TokenizerLossConfig
 from mmm.tokenizer.network import TokenizerConfig
 from mmm.tokenizer.search import CodeSearchConfig
 from mmm.tracking import TrackingConfig
-from mmm.training.optim import OptimConfig
 from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.network import TransformerConfig
 
@@ -226,7 +226,7 @@ class ContrastiveLossConfig:
     # other (the same caption twice in a batch, or a paraphrase); null: every other pair is one.
     false_negative_threshold: float | None = 0.95
     # Hard negatives: each caption's counterfactuals of these kinds ("count", "speed";
-    # mmm.evaluation.counterfactuals) compete with it for its motion; [] trains on in-batch
+    # mmm.text.counterfactuals) compete with it for its motion; [] trains on in-batch
     # negatives only. conf/train_evaluator.yaml asks for [count]: the better judge for best of N.
     counterfactuals: list[str] = field(default_factory=list)
     # Under DDP, every rank's pairs are negatives of every other's: the loss and its gradient are

@@ -43,10 +43,11 @@ from mmm.evaluation.contrastive import (
     retrieval_metrics,
 )
 from mmm.evaluation.contrastive_module import ContrastiveEvaluatorModule
-from mmm.evaluation.counterfactuals import KINDS, counterfactual_captions, counterfactual_ranking
+from mmm.evaluation.counterfactuals import counterfactual_ranking
 from mmm.fingerprint import dataset_fingerprint
 from mmm.kinds import EVALUATOR
 from mmm.registry.versions import WEIGHTS_SHA256, freeze_weights
+from mmm.text.counterfactuals import KINDS, counterfactual_captions
 from mmm.text.encoders import build_text
 from mmm.tracking import resolve_tracking_uri
 from mmm.training.common import (
@@ -77,7 +78,7 @@ class EvaluatorTrainResult(TrainResult):
 class CaptionedMotionCollator:
     """collate_motions plus the captions' cached sentence embeddings: {"motion" (B, T, D),
     "lengths" (B,), "sentence" (B, Ds), "captions", "names"}. With `counterfactuals` (kinds, see
-    mmm.evaluation.counterfactuals) also each caption's counterfactuals, the hard negatives:
+    mmm.text.counterfactuals) also each caption's counterfactuals, the hard negatives:
     "counterfactual" (B, K, Ds) zero-padded and "counterfactual_mask" (B, K), K the most any caption
     has (0 when none has one). Picklable (loader workers)."""
 

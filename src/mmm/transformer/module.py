@@ -10,8 +10,8 @@ import torch.nn.functional as F
 from torchmetrics import MeanMetric
 
 from mmm.config import as_config
-from mmm.training.optim import OptimConfig, build_optimizer
-from mmm.training.step_logging import logged_step
+from mmm.optim import OptimConfig, build_optimizer
+from mmm.step_logging import logged_step
 from mmm.transformer.configs import CorruptionConfig
 from mmm.transformer.network import MaskedMotionTransformer, TransformerConfig
 from mmm.transformer.schedules import TRAINING_SCHEDULES
