@@ -37,7 +37,7 @@ test: $(STAMP) ## lint, then the whole test suite (sets up first when needed)
 test-fast: $(STAMP) ## the fast loop: every test not marked slow (a few minutes)
 	$(BIN)/python -m pytest -q -m "not slow"
 
-test-long: $(STAMP) ## the tests left out of `make test`: they train a model for minutes to check what it learns (upper-body edits; about 5 min on 2 CPU cores)
+test-long: $(STAMP) ## the tests left out of `make test`: they train a model for minutes to check what it learns (upper-body edits; about 4 min on 2 CPU cores)
 	$(BIN)/python -m pytest -q -m long
 
 $(DATA)/all.txt: | $(STAMP)
