@@ -75,8 +75,8 @@ LAYERS = {
 
 
 def test_no_module_imports_a_layer_above_it():
-    upward = []
-    for name, path in _modules().items():
+    upward, modules = [], _modules()
+    for name, path in modules.items():
         parts = name.split(".")
         top_level = len(parts) == 1 or (len(parts) == 2 and path.name != "__init__.py")
         if not top_level and parts[1] not in LAYERS:
@@ -84,7 +84,7 @@ def test_no_module_imports_a_layer_above_it():
         mine = -1 if top_level else LAYERS[parts[1]]
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.Import, ast.ImportFrom)):
-                for target in _imported(node, _modules()):
+                for target in _imported(node, modules):
                     layer = LAYERS.get((target.split(".") + [""])[1])
                     if layer is not None and layer > mine:
                         upward.append(f"{name}:{node.lineno} imports {target}")
