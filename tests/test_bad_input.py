@@ -288,6 +288,10 @@ BEFORE_MODEL = {
         ["train", "stage2", "corruption.cond_drop=1"],
         ["corruption.cond_drop", "[0, 1)"],
     ),
+    "unknown token encoding": (
+        ["train", "stage2", "token_encoding=search"],
+        ["token_encoding='search'", "tokenizer, nearest"],
+    ),
 }
 
 

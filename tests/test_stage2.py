@@ -241,6 +241,49 @@ def test_tokens_are_cached_per_tokenizer_and_data(walker_dataset, tmp_path):
         cache["nope"]
 
 
+def test_stage2_can_learn_from_the_nearest_codes_of_a_searching_tokenizer(walker_dataset, tmp_path):
+    from dataclasses import replace
+
+    from mmm.data.configs import DataConfig
+    from mmm.data.datamodule import TokenTextDataModule
+    from mmm.training.configs import load_length_config, load_stage2_config
+    from mmm.training.length import stage2_view
+
+    tok = tiny_tokenizer()
+    nearest = replace(tok.encode_cfg, candidates=1)
+    fingerprint = dataset_fingerprint(walker_dataset)
+    data = DataConfig(root=str(walker_dataset), synthesize=None)
+    for encoding, name in ((None, f"tok-search4x1-{fingerprint}"), (nearest, f"tok-{fingerprint}")):
+        dm = TokenTextDataModule(data, 0, tok, "tok", None, None, str(tmp_path), encoding=encoding)
+        assert dm._token_folder().name == name
+    folder = token_cache_folder(tmp_path, "tok", fingerprint, nearest.label)
+    cache = tokenize_dataset(tok, walker_dataset, folder, progress=False, encoding=nearest)
+    assert json.loads((folder / "meta.json").read_text())["encoding"] == "nearest"
+    assert tok.encode_cfg.candidates == 4  # the tokenizer's own setting is left as it was
+    features = np.load(walker_dataset / "new_joint_vecs/000003.npy")
+    usable = features.shape[0] // 4 * 4
+    x = torch.from_numpy(((features[:usable] - tok.mean.numpy()) / tok.std.numpy())[None].astype(np.float32))
+    assert np.array_equal(cache["000003"], tok.tokenizer.encode(x)[0].numpy())  # the nearest code
+    searched = tokenize_dataset(tok, walker_dataset, tmp_path / "searched", progress=False)
+    differ = [m for m in searched.meta["ids"] if not np.array_equal(cache[m], searched[m])]
+    assert differ and all(len(cache[m]) == len(searched[m]) for m in searched.meta["ids"])  # same counts
+    # The demo's stage 2 learns from the nearest codes at 1e-3 (README, Stage 2); the quality recipe
+    # and the part-aware model stay as they were measured; anything else is refused at load time.
+    settings = {
+        name: (cfg.token_encoding, cfg.optim.lr)
+        for name, cfg in (
+            ("demo", load_stage2_config()),
+            ("quality", load_stage2_config(["recipe=quality"])),
+            ("parts", load_stage2_config(parts=True)),
+        )
+    }
+    assert settings == {"demo": ("nearest", 1e-3), "quality": ("tokenizer", 5e-4), "parts": ("nearest", 5e-4)}
+    # The length estimator reads token counts, the same under any encoding: always the nearest codes.
+    assert stage2_view(load_length_config()).token_encoding == "nearest"
+    with pytest.raises(Exception, match="token_encoding='search': must be one of tokenizer, nearest"):
+        load_stage2_config(["token_encoding=search"])
+
+
 def test_the_token_cache_is_one_array_and_caches_of_the_first_format_still_read(walker_dataset, tmp_path):
     tok = tiny_tokenizer()
     folder = tmp_path / "tokens"

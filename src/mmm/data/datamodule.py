@@ -253,9 +253,11 @@ class TokenTextDataModule(_DatasetFolder):
         caption_cache,
         token_cache_dir: str,
         max_tokens: int = 50,
+        encoding=None,
     ):
         super().__init__(cfg, seed)
         self.tokenizer, self.tokenizer_identity = tokenizer, tokenizer_identity
+        self.encoding = encoding  # the CodeSearchConfig of the tokens; None: the tokenizer's own
         self.text_encoder, self.caption_cache = text_encoder, caption_cache
         self.token_cache_dir, self.max_tokens = token_cache_dir, max_tokens
         self.tokens = None
@@ -283,7 +285,7 @@ class TokenTextDataModule(_DatasetFolder):
             self.token_cache_dir,
             self.tokenizer_identity,
             self.data_fingerprint,
-            self.tokenizer.encode_cfg.label,
+            (self.encoding or self.tokenizer.encode_cfg).label,
         )
 
     def prepare_data(self) -> None:
@@ -303,6 +305,7 @@ class TokenTextDataModule(_DatasetFolder):
             self._token_folder(),
             splits=self.TOKEN_SPLITS,
             meta={"tokenizer": self.tokenizer_identity, "data": self.data_fingerprint},
+            encoding=self.encoding,
         )
         captions = set()
         for split in ("train", "val", "test"):

@@ -105,9 +105,11 @@ def tokenize_dataset(
     device: str | torch.device = "cpu",
     meta: dict | None = None,
     progress: bool = True,
+    encoding=None,
 ) -> TokenCache:
     """Encode every motion of `splits` with `tokenizer` (a TokenizerModule: its own mean/std
-    normalize the features) and write the cache atomically; returns it (reused if present)."""
+    normalize the features) as `encoding` says (a CodeSearchConfig; None: the tokenizer's own
+    `encode_cfg`) and write the cache atomically; returns it (reused if present)."""
     folder = Path(folder)
     if (folder / "meta.json").exists() and (folder / "tokens.npz").exists():
         return TokenCache(folder)
@@ -144,7 +146,7 @@ def tokenize_dataset(
         for start in range(0, len(group), batch_size):
             chunk = group[start : start + batch_size]
             x = torch.from_numpy(np.stack([(f - mean) / std for _, f in chunk]).astype(np.float32)).to(device)
-            codes = tokenizer.encode(x).cpu().numpy()
+            codes = tokenizer.encode(x, encoding).cpu().numpy()
             for (motion_id, _), c in zip(chunk, codes):
                 tokens[motion_id] = c.astype(np.int16 if num_codes <= 32767 else np.int32)
             bar.update(len(chunk))
@@ -164,7 +166,7 @@ def tokenize_dataset(
             "left_out_too_short": too_short,
             "num_codes": num_codes,
             "downsample": down,
-            "encoding": tokenizer.encode_cfg.label,
+            "encoding": (encoding or tokenizer.encode_cfg).label,
         }
     )
     info["ids"] = order  # last: the file stays readable above it

@@ -237,12 +237,13 @@ class TokenizerModule(L.LightningModule):
         return self.layout.positions.stop
 
     @torch.no_grad()
-    def encode(self, x: torch.Tensor) -> torch.Tensor:
+    def encode(self, x: torch.Tensor, encoding: CodeSearchConfig | None = None) -> torch.Tensor:
         """Code indices (B, T // 4), or (B, T // 4, 2) part-aware, of normalized features (B, T, D)
-        whose clips all have T frames, as `encode_cfg` says: the nearest codes (candidates 1) or
-        those the code search picks. What tokenizes datasets for stage 2, reconstruction metrics and
-        the kept frames of edits; training and the refinement quantize to the nearest code."""
-        return search_codes(self.tokenizer, x, self.joints, self.encode_cfg, self.joint_features)
+        whose clips all have T frames, as `encoding` (default: `encode_cfg`) says: the nearest codes
+        (candidates 1) or those the code search picks. What tokenizes datasets for stage 2,
+        reconstruction metrics and the kept frames of edits; training and the refinement quantize to
+        the nearest code."""
+        return search_codes(self.tokenizer, x, self.joints, encoding or self.encode_cfg, self.joint_features)
 
     def root_path(self, x: torch.Tensor) -> torch.Tensor:
         """Root x/z path (B, T, 2) in metres of normalized features (B, T, D), from 0 at the first frame."""

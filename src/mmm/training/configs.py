@@ -145,6 +145,10 @@ class Stage2Config:
         False  # the part-aware transformer (upper body given lower body); needs a part-aware stage-1 model
     )
     token_cache_dir: str = "outputs/cache/tokens"
+    # The codes stage 2 learns from: `tokenizer`, the stage-1 model's own `encode` setting (the code
+    # search for this package's tokenizers), or `nearest`, the nearest code (seconds instead of
+    # minutes; what the release trains on).
+    token_encoding: str = "tokenizer"
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -153,6 +157,16 @@ class Stage2Config:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     logger: TrackingConfig = field(default_factory=TrackingConfig)
     callbacks: Stage2Callbacks = field(default_factory=Stage2Callbacks)
+
+    def __post_init__(self):
+        if self.token_encoding not in TOKEN_ENCODINGS:
+            raise ValueError(
+                f"token_encoding={self.token_encoding!r}: must be one of {', '.join(TOKEN_ENCODINGS)} "
+                "(tokenizer: the stage-1 model's own encode setting; nearest: the nearest code)"
+            )
+
+
+TOKEN_ENCODINGS = ("tokenizer", "nearest")
 
 
 def load_stage2_config(overrides: list[str] = (), parts: bool = False) -> DictConfig:

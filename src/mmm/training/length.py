@@ -44,7 +44,9 @@ log = logging.getLogger(__name__)
 
 def stage2_view(cfg_node: DictConfig) -> DictConfig:
     """The stage-2 config that names the same data, stage-1 model, text encoder and store, with
-    sequences of max_codes tokens plus END: what `prepare_stage2_data` reads."""
+    sequences of max_codes tokens plus END: what `prepare_stage2_data` reads. It reads the nearest
+    codes: a clip's token count is the same under any encoding, and they take seconds to compute
+    where the code search takes minutes."""
     cfg: LengthConfig = to_object(cfg_node)
     node = OmegaConf.structured(Stage2Config)
     shared = {key: OmegaConf.to_container(cfg_node[key], resolve=True) for key in ("data", "text", "logger")}
@@ -55,6 +57,7 @@ def stage2_view(cfg_node: DictConfig) -> DictConfig:
             "stage1": cfg.stage1,
             "stage1_output_dir": cfg.stage1_output_dir,
             "token_cache_dir": cfg.token_cache_dir,
+            "token_encoding": "nearest",
             **shared,
             "model": {"transformer": {"max_tokens": cfg.model.max_codes + 1}},
         },

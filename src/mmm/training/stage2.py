@@ -7,6 +7,7 @@ the newest finished stage-1 run when none is named.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
@@ -93,6 +94,7 @@ def prepare_stage2_data(cfg_node: DictConfig) -> TokenTextDataModule:
         caption_cache,
         cfg.token_cache_dir,
         cfg.model.transformer.max_tokens,
+        encoding=replace(tokenizer.encode_cfg, candidates=1) if cfg.token_encoding == "nearest" else None,
     )
     datamodule.source = source
     datamodule.prepare_data()
