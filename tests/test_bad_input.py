@@ -214,6 +214,7 @@ BEFORE_MODEL = {
         ["data.window=30", "data.unit_length=4", "data.window=28"],
     ),
     "empty promotion criteria": (["promote", "tokenizer", "criteria.tokenizer=[]"], ["is empty"]),
+    "negative promotion samples": (["promote", "text2motion", "samples=-1"], ["samples=-1", "0 for none"]),
     # a later step's overrides are checked before the first step trains (it used to train the
     # evaluator and the tokenizer, minutes, before refusing a misspelt stage-2 key)
     "pipeline step override misspelt": (

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
+from PIL import Image
 
 from mmm.cli import main
 from mmm.pipeline.steps import PIPELINES
@@ -80,6 +81,12 @@ def test_full_pipeline_trains_evaluates_promotes_and_generates(workdir, monkeypa
     # Stage 2 was trained on the tokenizer champion's tokens.
     stage2 = client.get_run(champions["mmm-text2motion"].run_id)
     assert stage2.data.tags["stage1.reference"] == "models:/mmm-tokenizer@champion"
+    # Its promotion rendered test captions under their real motions into its run, and says where.
+    logged = {f.path for f in client.list_artifacts(stage2.info.run_id, "promotion")}
+    assert logged == {"promotion/samples.gif", "promotion/samples.png"}
+    gif = Image.open(client.download_artifacts(stage2.info.run_id, "promotion/samples.gif", str(workdir)))
+    assert gif.n_frames > 10 and gif.width > gif.height  # panels side by side, real above generated
+    assert "`promotion/samples.gif` of its run" in champions["mmm-text2motion"].description
 
     # Generation defaults to the champion bundle.
     code = main(

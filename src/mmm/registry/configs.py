@@ -85,8 +85,15 @@ class PromoteConfig:
     # text2motion on labelled data: prompt adherence (adherence/*, usable as criteria) beside the protocol
     adherence: bool = True
     adherence_max_items: int | None = None
+    # text2motion: captions of the split rendered, each real motion above the candidate's, logged to
+    # the candidate's run as promotion/samples.gif and .png (evaluation/samples.py); 0: none
+    samples: int = 4
     data: DataConfig = field(default_factory=DataConfig)
     logger: TrackingConfig = field(default_factory=TrackingConfig)
+
+    def __post_init__(self):
+        if self.samples < 0:
+            raise ValueError(f"samples={self.samples}: give the number of captions to render, 0 for none")
 
 
 def load_promote_config(overrides: list[str] = ()) -> DictConfig:

@@ -16,6 +16,7 @@ number, and links to the model's run and the previous champion.
 from __future__ import annotations
 
 import logging
+import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -30,9 +31,11 @@ from mmm.data.configs import DataConfig
 from mmm.data.humanml3d import load_stats
 from mmm.device import check_device
 from mmm.evaluation.adherence import adherence_metrics, prompt_adherence
+from mmm.evaluation.configs import EditingConfig
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import evaluate_text_to_motion
 from mmm.evaluation.run import reconstruction_metrics
+from mmm.evaluation.samples import render_samples
 from mmm.evaluation.upper_body import upper_body_adherence
 from mmm.fingerprint import dataset_fingerprint, tensors_fingerprint
 from mmm.generation.model import TextToMotion
@@ -382,6 +385,7 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
                 max_items=cfg.adherence_max_items,
             )
             metrics.update(adherence_metrics(adherence))
+        rendered = _log_samples(client, run_id, model, items, root, cfg)
         evaluator_identity, name, description = (
             evaluator.identity,
             TEXT2MOTION,
@@ -408,6 +412,10 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         )
         if adherence is not None:
             measured += f"; prompt adherence (`adherence/*`) of {adherence['count']} labelled captions"
+        if rendered:
+            measured += (
+                f"; {cfg.split} captions beside their real motions: `promotion/samples.gif` of its run"
+            )
     metrics.update({k: v for k, v in run.data.metrics.items() if k.startswith("val/")})
     # The bundle holds copies of both checkpoints (logged with the model); their digests say which files they
     # are. The same weights promoted again keep their version and bundle, measured anew.
@@ -452,6 +460,27 @@ def promote(kind: str, cfg_node: DictConfig) -> Decision:
         about=about,
         measured=measured + _measurements(metrics, intervals),
     )
+
+
+def _log_samples(client, run_id: str, model, items, root: Path, cfg: PromoteConfig) -> bool:
+    """`cfg.samples` captions of the split, each real motion above the candidate's, logged to the
+    candidate's run as promotion/samples.gif and .png: the motions behind the numbers, to look at
+    before an alias moves. Whether anything was rendered."""
+    with tempfile.TemporaryDirectory(prefix="mmm-promote-samples-") as tmp:
+        files = render_samples(
+            model,
+            "text2motion",
+            items,
+            root,
+            Path(tmp),
+            cfg.samples,
+            EditingConfig(),
+            cfg.protocol.sampling,
+            cfg.protocol.seed,
+        )
+        for path in files:
+            client.log_artifact(run_id, str(path), "promotion")
+    return bool(files)
 
 
 def _log_bundle(uri: str, run_id: str, checkpoint: str, tokenizer_checkpoint: str, judge: str | None):
