@@ -36,6 +36,7 @@ from mmm.evaluation.configs import (
     ABLATIONS,
     AblationConfig,
     ProtocolConfig,
+    check_samples,
     check_sweep,
     sweep_settings,
     sweep_stage1_overrides,
@@ -43,7 +44,7 @@ from mmm.evaluation.configs import (
 )
 from mmm.evaluation.evaluators import load_evaluator
 from mmm.evaluation.protocol import METRICS, evaluate_text_to_motion, results_table
-from mmm.evaluation.samples import check_samples, chosen_items, generated, render_sweep
+from mmm.evaluation.samples import chosen_items, generated, render_sweep
 from mmm.generation.model import TextToMotion
 from mmm.generation.settings import SamplingConfig
 from mmm.tracking import artifact_location, prepare_experiment, resolve_tracking_uri
@@ -52,6 +53,7 @@ from mmm.training.stage1 import train_stage1
 from mmm.training.stage2 import train_stage2
 
 log = logging.getLogger(__name__)
+
 
 def _train_models(change: dict, cfg: AblationConfig, parent_run_id: str):
     """Train what a training sweep's setting changes; returns the stage-2 checkpoint."""

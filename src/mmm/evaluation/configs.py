@@ -21,6 +21,11 @@ from mmm.training.configs import load_stage1_config, load_stage2_config
 from mmm.transformer.schedules import DECODING_SCHEDULES
 
 
+def check_samples(count: int) -> None:
+    if count < 0:
+        raise ValueError(f"samples={count}: give the number of captions to render, 0 for none")
+
+
 @dataclass
 class ProtocolConfig:
     replications: int = 20

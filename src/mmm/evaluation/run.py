@@ -47,12 +47,12 @@ from mmm.data.humanml3d import load_stats
 from mmm.data.synthetic.adherence import check_motion
 from mmm.device import check_device
 from mmm.evaluation.adherence import adherence_metrics, parts_in_span, prompt_adherence
-from mmm.evaluation.configs import EvaluateConfig
+from mmm.evaluation.configs import EvaluateConfig, check_samples
 from mmm.evaluation.editing import TASKS, check_task_model, evaluate_editing, task_label
 from mmm.evaluation.evaluators import load_evaluator, load_judge
 from mmm.evaluation.metrics import fid
 from mmm.evaluation.protocol import evaluate_text_to_motion, results_table
-from mmm.evaluation.samples import check_samples, render_samples
+from mmm.evaluation.samples import render_samples
 from mmm.fingerprint import dataset_fingerprint
 from mmm.generation.model import TextToMotion
 from mmm.generation.settings import check_candidates

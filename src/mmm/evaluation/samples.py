@@ -35,11 +35,6 @@ log = logging.getLogger(__name__)
 RENDERED_TASKS = ("text2motion", *TEMPORAL_TASKS, "upper-body", "long")
 
 
-def check_samples(count: int) -> None:
-    if count < 0:
-        raise ValueError(f"samples={count}: give the number of captions to render, 0 for none")
-
-
 def spread(items: list[MotionItem], count: int) -> list[MotionItem]:
     """`count` items evenly spaced over `items`, the first included (all of them when fewer); the
     mirrored copies (ids `M<id>`) only when there are no others, so as not to show a clip twice."""

@@ -14,7 +14,7 @@ from omegaconf import DictConfig
 from mmm.config import ConfigError, compose, to_object
 from mmm.data.configs import DataConfig
 from mmm.device import check_device
-from mmm.evaluation.configs import ProtocolConfig
+from mmm.evaluation.configs import ProtocolConfig, check_samples
 from mmm.kinds import PROMOTABLE
 from mmm.tracking import TrackingConfig
 
@@ -92,8 +92,7 @@ class PromoteConfig:
     logger: TrackingConfig = field(default_factory=TrackingConfig)
 
     def __post_init__(self):
-        if self.samples < 0:
-            raise ValueError(f"samples={self.samples}: give the number of captions to render, 0 for none")
+        check_samples(self.samples)
 
 
 def load_promote_config(overrides: list[str] = ()) -> DictConfig:
