@@ -289,6 +289,10 @@ BEFORE_MODEL = {
         ["train", "stage2", "corruption.cond_drop=1"],
         ["corruption.cond_drop", "[0, 1)"],
     ),
+    "final share of a whole run": (
+        ["train", "stage2", "optim.final_share=1"],
+        ["optim.final_share=1.0", "[0, 1)", "optim.final_share=0.25"],
+    ),
     "unknown token encoding": (
         ["train", "stage2", "token_encoding=search"],
         ["token_encoding='search'", "tokenizer, nearest"],

@@ -122,6 +122,23 @@ def test_cosine_tail_follows_the_schedule_then_decays_from_its_scale_to_zero():
     assert f(90) == pytest.approx(0.3 * 0.5 * (1 + np.cos(np.pi * 0.75)))
 
 
+def test_final_share_places_one_more_milestone_from_the_run_length():
+    demo = OptimConfig(warmup_steps=100, milestones=[], gamma=0.1, final_share=0.25)
+    assert demo.milestones_for(1000) == [750] and demo.milestones_for(3000) == [2250]
+    f = warmup_step_schedule(100, demo.milestones_for(1000), demo.gamma)
+    assert f(749) == 1.0 and f(750) == pytest.approx(0.1) and f(999) == pytest.approx(0.1)
+    # At least one step, rounded before the ceiling (0.3 x 10 is 3.0000000000000004), merged in order.
+    assert OptimConfig(milestones=[], final_share=0.01).milestones_for(6) == [5]
+    assert OptimConfig(milestones=[], final_share=0.3).milestones_for(10) == [7]
+    assert OptimConfig(milestones=[2, 9], final_share=0.5).milestones_for(10) == [2, 5, 9]
+    assert OptimConfig(milestones=[8]).milestones_for(None) == [8]  # unset: the run length is not needed
+    with pytest.raises(ValueError, match=r"optim.final_share=0.25 needs a run of known length, got None"):
+        demo.milestones_for(None)
+    for share in (1.0, -0.1):
+        with pytest.raises(ValueError, match=rf"optim.final_share={share}: .* must be in \[0, 1\)"):
+            OptimConfig(final_share=share)
+
+
 class RecordRefinement(L.Callback):
     """The tokenizer's state and the learning rate when the refinement begins, and every rate."""
 

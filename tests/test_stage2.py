@@ -267,17 +267,22 @@ def test_stage2_can_learn_from_the_nearest_codes_of_a_searching_tokenizer(walker
     searched = tokenize_dataset(tok, walker_dataset, tmp_path / "searched", progress=False)
     differ = [m for m in searched.meta["ids"] if not np.array_equal(cache[m], searched[m])]
     assert differ and all(len(cache[m]) == len(searched[m]) for m in searched.meta["ids"])  # same counts
-    # The demo's stage 2 learns from the nearest codes at 1e-3 (README, Stage 2); the quality recipe
-    # and the part-aware model stay as they were measured; anything else is refused at load time.
+    # The demo's stage 2 learns from the nearest codes at 1e-3, a tenth of it for its last quarter
+    # (README, Stage 2); the quality recipe and the part-aware model stay as they were measured;
+    # anything else is refused at load time.
     settings = {
-        name: (cfg.token_encoding, cfg.optim.lr)
+        name: (cfg.token_encoding, cfg.optim.lr, cfg.optim.final_share)
         for name, cfg in (
             ("demo", load_stage2_config()),
             ("quality", load_stage2_config(["recipe=quality"])),
             ("parts", load_stage2_config(parts=True)),
         )
     }
-    assert settings == {"demo": ("nearest", 1e-3), "quality": ("tokenizer", 5e-4), "parts": ("nearest", 5e-4)}
+    assert settings == {
+        "demo": ("nearest", 1e-3, 0.25),
+        "quality": ("tokenizer", 5e-4, 0.0),
+        "parts": ("nearest", 5e-4, 0.0),
+    }
     # The length estimator reads token counts, the same under any encoding: always the nearest codes.
     assert stage2_view(load_length_config()).token_encoding == "nearest"
     with pytest.raises(Exception, match="token_encoding='search': must be one of tokenizer, nearest"):
@@ -368,6 +373,11 @@ def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_da
     assert len(run.data.tags["data.fingerprint"]) == 16
     assert run.data.params["model.transformer.embed_dim"] == "32"
     assert {"val/loss", "val/acc_masked", "val/acc_unmasked", "train/loss"} <= set(run.data.metrics)
+    # The demo's schedule: warm-up over 100 steps, then a tenth of the rate for the last quarter of
+    # the run's steps, placed from trainer.max_steps (6 here: the last 2).
+    history = sorted(client.get_metric_history(result.run_id, "train/lr"), key=lambda m: m.step)
+    rates = [m.value for m in history]
+    assert rates == pytest.approx([1e-3 * (s + 1) / 100 * (0.1 if s >= 4 else 1.0) for s in range(6)])
     assert {f.path for f in client.list_artifacts(result.run_id, "checkpoints")} == {
         "checkpoints/best.ckpt",
         "checkpoints/last.ckpt",

@@ -1,9 +1,10 @@
 """The optimizer and learning-rate schedule of every model this package trains.
 
 AdamW with a linear warm-up over `warmup_steps` optimizer steps, then the rate times `gamma` at
-each of `milestones`; the scheduler steps with the optimizer and Lightning's LearningRateMonitor
-charts it as `train/lr`. Each LightningModule's `configure_optimizers` is one call to
-`build_optimizer`. Only torch and dataclasses here: the model packages import this module.
+each of `milestones` and where the run's last `final_share` of steps begins; the scheduler steps
+with the optimizer and Lightning's LearningRateMonitor charts it as `train/lr`. Each
+LightningModule's `configure_optimizers` is one call to `build_optimizer`. Only torch and
+dataclasses here: the model packages import this module.
 """
 
 from __future__ import annotations
@@ -23,6 +24,30 @@ class OptimConfig:
     warmup_steps: int = 1000
     milestones: list[int] = field(default_factory=lambda: [200_000])  # lr *= gamma at each
     gamma: float = 0.05
+    # lr *= gamma once more for the last share of the run's optimizer steps (one more milestone,
+    # placed from the trainer's step count, so it moves with trainer.max_steps); 0: none
+    final_share: float = 0.0
+
+    def __post_init__(self):
+        if not 0.0 <= self.final_share < 1.0:
+            raise ValueError(
+                f"optim.final_share={self.final_share!r}: the share of the run's last steps at the "
+                "rate x gamma must be in [0, 1), e.g. optim.final_share=0.25 (0: none)"
+            )
+
+    def milestones_for(self, total_steps: int | None) -> list[int]:
+        """`milestones`, with the start of the run's last `final_share` of `total_steps` (at least
+        one step) when it is set."""
+        if not self.final_share:
+            return list(self.milestones)
+        if total_steps is None or total_steps <= 0:
+            raise ValueError(
+                f"optim.final_share={self.final_share} needs a run of known length, got {total_steps} "
+                "optimizer steps; set trainer.max_steps, or optim.final_share=0"
+            )
+        # rounded first: 0.3 x 10 is 3.0000000000000004 in floating point, which is 3 steps
+        last = math.ceil(round(total_steps * self.final_share, 6))
+        return sorted([*self.milestones, int(total_steps) - last])
 
 
 def warmup_step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
@@ -55,6 +80,7 @@ def build_optimizer(
     foreach: bool | None = None,
     decay_matrices_only: bool = False,
     tail: tuple[int, int, float] | None = None,
+    total_steps: int | None = None,
 ) -> dict:
     """AdamW over `parameters` with the warm-up/step schedule of `cfg`, as Lightning's
     `configure_optimizers` returns it: {"optimizer", "lr_scheduler": {scheduler, per step, `train/lr`}}.
@@ -64,6 +90,8 @@ def build_optimizer(
     biases, norms and scalars such as a logit scale; otherwise on every parameter.
     tail: (start, steps, scale): from step `start` on, the rate is cfg.lr x scale decaying to 0
     along a half cosine over `steps` (`cosine_tail`; the tokenizer's decoder refinement).
+    total_steps: the run's optimizer steps (`trainer.max_steps`), which place `cfg.final_share`;
+    needed only when that is set.
     """
     if decay_matrices_only:
         trainable = [p for p in parameters if p.requires_grad]
@@ -74,7 +102,7 @@ def build_optimizer(
     optimizer = torch.optim.AdamW(
         parameters, lr=cfg.lr, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, foreach=foreach
     )
-    factor = warmup_step_schedule(cfg.warmup_steps, list(cfg.milestones), cfg.gamma)
+    factor = warmup_step_schedule(cfg.warmup_steps, cfg.milestones_for(total_steps), cfg.gamma)
     if tail is not None:
         factor = cosine_tail(factor, *tail)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)

@@ -233,4 +233,9 @@ class ContrastiveEvaluatorModule(L.LightningModule):
 
     def configure_optimizers(self):
         # Weight decay on the weight matrices only: none on biases, norms and the logit scale.
-        return build_optimizer(self.evaluator.parameters(), self.optim_cfg, decay_matrices_only=True)
+        return build_optimizer(
+            self.evaluator.parameters(),
+            self.optim_cfg,
+            decay_matrices_only=True,
+            total_steps=self.trainer.max_steps,
+        )

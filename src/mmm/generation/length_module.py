@@ -109,4 +109,6 @@ class LengthEstimatorModule(L.LightningModule):
             metric.reset()
 
     def configure_optimizers(self):
-        return build_optimizer(self.estimator.parameters(), self.optim_cfg)
+        return build_optimizer(
+            self.estimator.parameters(), self.optim_cfg, total_steps=self.trainer.max_steps
+        )

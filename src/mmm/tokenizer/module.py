@@ -303,4 +303,10 @@ class TokenizerModule(L.LightningModule):
             )
         start = self.refine_start
         tail = None if start is None else (start, steps, self.refine_cfg.lr / self.optim_cfg.lr)
-        return build_optimizer(self.parameters(), self.optim_cfg, foreach=True, tail=tail)
+        return build_optimizer(
+            self.parameters(),
+            self.optim_cfg,
+            foreach=True,
+            tail=tail,
+            total_steps=self.trainer.max_steps,
+        )

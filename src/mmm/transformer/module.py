@@ -245,4 +245,9 @@ class MaskedTransformerModule(L.LightningModule):
             metric.reset()
 
     def configure_optimizers(self):
-        return build_optimizer(self.transformer.parameters(), self.optim_cfg, foreach=True)
+        return build_optimizer(
+            self.transformer.parameters(),
+            self.optim_cfg,
+            foreach=True,
+            total_steps=self.trainer.max_steps,
+        )
