@@ -12,6 +12,18 @@ REFERENCE = _ref if _ref.is_dir() else None
 os.environ.setdefault("MMM_CONF_DIR", str(REPO / "conf"))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def working_directory_outside_the_checkout(tmp_path_factory):
+    """The whole session runs in a folder of its own. The package's relative defaults would
+    otherwise write into the checkout: sqlite:///mlflow.db, outputs/, the download caches
+    (outputs/cache/models, outputs/cache/bundles). Tests that need a folder of their own still
+    change into it."""
+    checkout = os.getcwd()
+    os.chdir(tmp_path_factory.mktemp("cwd"))
+    yield
+    os.chdir(checkout)
+
+
 @pytest.fixture
 def reference_dir():
     if REFERENCE is None:

@@ -1,10 +1,11 @@
 """Bad input, end to end: every refusal of issue 13 and of the README through the real `mmm`
-command (a subprocess each), which must exit 2 with a one-line message naming the input, print no
+command (a process each), which must exit 2 with a one-line message naming the input, print no
 traceback, leave no output folder and change nothing in the MLflow store; plus the shared range
 checks behind it (SamplingConfig, the served bundle's params) and the caption reader/renderer.
 
-Start-up of a subprocess costs seconds on a small machine, so the commands of a table run a few at
-a time in a thread pool (a module fixture), and each case then checks its own result."""
+Each process is forked from a server that has imported the libraries once (tests/helpers/forked.py):
+starting Python and torch anew costs 2-10 s a command on a small machine. The commands of a table run
+a few at a time (a module fixture), and each case then checks its own result."""
 
 import hashlib
 import math
@@ -19,22 +20,10 @@ import numpy as np
 import pytest
 
 from tests.helpers import D, write_dataset
+from tests.helpers.forked import ForkedCLI
 
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "PYTHONWARNINGS": "ignore"}
 WORKERS = 3
-
-
-def run_mmm(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    """`python -m mmm.cli ARGS` in `cwd` (so relative defaults such as sqlite:///mlflow.db and
-    outputs/ would land there, where the test looks for them)."""
-    return subprocess.run(
-        [sys.executable, "-m", "mmm.cli", *args],
-        cwd=cwd,
-        env=ENV,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
 
 
 def tree(folder: Path) -> dict[str, str]:
@@ -364,10 +353,12 @@ def _run_table(table: dict, files: dict[str, str], base: Path, extra: list[str] 
         cwd.mkdir(parents=True)
         before = tree(cwd)
         argv = [a.format(out=cwd / "out" / "sample", **files) for a in args] + list(extra)
-        result = run_mmm(argv, cwd)
+        # Relative defaults such as sqlite:///mlflow.db and outputs/ would land in `cwd`, where the
+        # tests look for them.
+        result = cli.run(argv, cwd, ENV)
         return name, (result, cwd, before, tree(cwd))
 
-    with ThreadPoolExecutor(WORKERS) as pool:
+    with ForkedCLI(WORKERS) as cli, ThreadPoolExecutor(WORKERS) as pool:
         return dict(pool.map(one, table.items()))
 
 

@@ -5,6 +5,7 @@ registered version)."""
 
 import re
 import subprocess
+from pathlib import Path
 
 import pytest
 from mlflow.tracking import MlflowClient
@@ -98,7 +99,7 @@ def test_run_names_say_the_sizes():
 
 
 @pytest.mark.slow
-def test_the_config_is_logged_once_with_only_the_groups_a_stage_uses(stage1_runs):
+def test_the_config_is_logged_once_with_only_the_groups_a_stage_uses(stage1_runs, tmp_path):
     from mmm.training.common import flatten_config
     from mmm.training.configs import load_stage1_config
 
@@ -115,6 +116,7 @@ def test_the_config_is_logged_once_with_only_the_groups_a_stage_uses(stage1_runs
             run_id=stage1_runs["first"].run_id,
             artifact_path="config.yaml",
             tracking_uri=client._tracking_client.tracking_uri,
+            dst_path=str(tmp_path),  # not a temporary folder of its own, which nothing would remove
         )
     )
     assert params == flatten_config(logged, exclude=("model.transformer",))
@@ -193,7 +195,11 @@ def test_lineage_git_commit_dataset_input_and_stage1_version(stage1_runs):
     from mmm.fingerprint import dataset_fingerprint
 
     client = stage1_runs["client"]
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    checkout = Path(__file__).resolve().parents[1]  # the package's, not the working directory's
+    commit = subprocess.run(
+        ["git", "-C", str(checkout), "rev-parse", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    assert len(commit) == 40
     fingerprint = dataset_fingerprint(stage1_runs["data"])
     for key in ("first", "stage2"):
         run = client.get_run(stage1_runs[key].run_id)

@@ -241,15 +241,6 @@ def import_args(release, tmp, *extra):
     ]
 
 
-@pytest.fixture(autouse=True)
-def working_directory_outside_the_checkout(tmp_path, monkeypatch):
-    """The commands resolve registered bundles into outputs/cache/bundles of the working directory:
-    each test's own folder, not the checkout's outputs/."""
-    work = tmp_path / "cwd"
-    work.mkdir()
-    monkeypatch.chdir(work)
-
-
 @pytest.fixture(scope="module")
 def imported(release, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("imported")

@@ -460,7 +460,12 @@ def test_resetting_every_iteration_churns_the_codebook():
 @pytest.mark.parametrize("variant", ["whole", "parts"])
 def test_ddp_keeps_codebooks_identical_and_stops_together(walker_dataset, tmp_path, variant):
     extra = ["parts"] if variant == "parts" else []
-    r0, r1 = run_ddp_worker("stage1_ddp.py", walker_dataset, tmp_path, *extra, out_dir=tmp_path)
+    # The whole tokenizer through Lightning's own launcher (the script starts rank 1 itself), as
+    # `mmm train stage1 trainer.devices=2` does; the other DDP tests start both ranks forked.
+    launch = "subprocess" if variant == "whole" else "forked"
+    r0, r1 = run_ddp_worker(
+        "stage1_ddp.py", walker_dataset, tmp_path, *extra, out_dir=tmp_path, launch=launch
+    )
     assert r0["first_batch_sum"] != r1["first_batch_sum"]  # the ranks trained on different data
     assert r0["codebooks"] == (2 if variant == "parts" else 1)
     for key in ("codebook", "ema_sum", "ema_count", "window_usage", "weights"):

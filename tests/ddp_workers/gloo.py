@@ -1,7 +1,10 @@
 """Two CPU processes over gloo for the workers that call collectives themselves (no Trainer):
 `spawn_two_ranks(work, out_dir)` runs work(rank, out_dir) in each, inside a process group on a
-free port of 127.0.0.1, and ends the group when both are done."""
+free port of 127.0.0.1, and ends the group when both are done. A script started as one of two ranks
+(LOCAL_RANK and MASTER_PORT set, as tests/helpers/forked.py starts them) runs its own rank instead.
+"""
 
+import os
 import socket
 
 import torch
@@ -28,4 +31,7 @@ def _run(rank: int, work, port: int, out_dir: str) -> None:
 
 
 def spawn_two_ranks(work, out_dir: str) -> None:
-    mp.spawn(_run, args=(work, _free_port(), out_dir), nprocs=WORLD, join=True)
+    if "LOCAL_RANK" in os.environ:  # started as one of the ranks (tests/helpers/forked.py): join the others
+        _run(int(os.environ["LOCAL_RANK"]), work, int(os.environ["MASTER_PORT"]), out_dir)
+    else:
+        mp.spawn(_run, args=(work, _free_port(), out_dir), nprocs=WORLD, join=True)
