@@ -48,6 +48,8 @@ def launch_two_nodes(probe: Path, args: list[str], run_id: str, resume: str | No
         f"--rdzv-endpoint=127.0.0.1:{port}",
         f"--rdzv-id={run_id}",
         "--max-restarts=0",
+        # Its logs beside the probe: by default each torchrun leaves a torchelastic_* folder in /tmp.
+        f"--log-dir={probe.parent / (probe.name + '-torchrun')}",
         str(WORKER),
         str(probe),
         *args,
