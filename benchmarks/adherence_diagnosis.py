@@ -12,6 +12,10 @@ Prints and writes (JSON):
 - walk_codes: how much the code histograms of slow, normal and fast training walks overlap;
 - round_trip: order-aware adherence of the test motions after the tokenizer's encode and decode,
   per action, compositions and counts: the ceiling a transformer over these codes can reach.
+- locomotion_speeds: the mean speed (m/s) and the share passing the checker of the split's single
+  runs and walks (per speed word): the data, after the nearest codes' round trip (what stage 2
+  learns from), and generated at their true lengths under a few sampling settings (sampler seeds
+  0 and 1): whether the codes or the transformer lose a gait's speed.
 The README's "What the `make demo` model follows, and why not the rest" quotes these figures.
 """
 
@@ -20,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections import Counter, defaultdict
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +32,10 @@ import torch
 
 from mmm.cli.common import DEFAULT_TRACKING_URI
 from mmm.data.configs import DataConfig
-from mmm.data.synthetic.adherence import check_in_order, check_motion
+from mmm.data.synthetic.adherence import FPS, check_in_order, check_motion, mean_speed
 from mmm.evaluation.adherence import item_parts
 from mmm.generation.model import TextToMotion
+from mmm.generation.settings import SamplingConfig
 from mmm.tracking import resolve_tracking_uri
 
 MIN_PART_FRAMES = 40  # as prompt_adherence's order-aware check
@@ -173,6 +179,57 @@ def walk_codes(model, root: Path) -> dict:
     return out
 
 
+SPEED_SAMPLING = {  # what locomotion_speeds generates under
+    "guidance 1": SamplingConfig(),
+    "guidance 1.5": SamplingConfig(guidance_scale=1.5),
+    "guidance 3": SamplingConfig(guidance_scale=3.0),
+    "guidance 1.5, temperature 0.5": SamplingConfig(guidance_scale=1.5, temperature=0.5),
+}
+
+
+def locomotion_speeds(model, items, seeds: tuple[int, ...] = (0, 1)) -> dict:
+    """Per gait ("run", "walk-slow", ...): {source: {"speed", "passed", "of", "draws_per_item"}}
+    for the data, its nearest-code round trip and each SPEED_SAMPLING setting; items carry their
+    features."""
+    items = [r for r in items if len(r[2]) == 1 and r[2][0]["action"] in ("run", "walk")]
+    gaits = [
+        parts[0]["action"] + (f"-{parts[0]['params']['speed']}" if parts[0]["action"] == "walk" else "")
+        for _, _, parts, _ in items
+    ]
+    joints: dict[str, list] = {"data": [model.to_joints(r[3]) for r in items]}
+    search = model.tokenizer.encode_cfg
+    # The codes stage 2 learns from (token_encoding: nearest); the model caches codes per encoding.
+    model.tokenizer.encode_cfg = replace(search, candidates=1)
+    try:
+        joints["nearest-code round trip"] = [
+            model.to_joints(f) for f in model.decode(model.encode_motions([r[3] for r in items]))
+        ]
+    finally:
+        model.tokenizer.encode_cfg = search
+    for name, sampling in SPEED_SAMPLING.items():
+        joints[name] = []
+        for seed in seeds:
+            texts, frames = [r[0] for r in items], [r[1] for r in items]
+            out = model.generate(texts, frames, sampling=sampling, seed=seed, check_lengths=False)
+            joints[name] += [np.asarray(j) for j in out.joints]
+    report: dict[str, dict] = defaultdict(dict)
+    for source, motions in joints.items():
+        repeats = len(motions) // len(items)
+        for gait in sorted(set(gaits)):
+            rows = [
+                (mean_speed(np.asarray(m), FPS), check_motion(m, items[i % len(items)][2]).passed)
+                for i, m in enumerate(motions)
+                if gaits[i % len(items)] == gait
+            ]
+            report[gait][source] = {
+                "speed": float(np.mean([v for v, _ in rows])),
+                "passed": int(sum(ok for _, ok in rows)),
+                "of": len(rows),
+                "draws_per_item": repeats,
+            }
+    return dict(report)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="models:/mmm-text2motion@champion")
@@ -192,6 +249,7 @@ def main() -> None:
     training_captions = {
         c.text for item in DataConfig(root=str(root)).items("train", root)[0] for c in item.captions
     }
+    with_features = labelled_items(root, args.split, model, features=True)
     rows = generated_checks(model, test)
     report = {
         "model": args.model,
@@ -202,7 +260,8 @@ def main() -> None:
         "phrasing": phrasing(rows, training_captions),
         "text_probe": text_probe(model, train, test),
         "walk_codes": walk_codes(model, root),
-        "round_trip": round_trip(model, labelled_items(root, args.split, model, features=True)),
+        "round_trip": round_trip(model, with_features),
+        "locomotion_speeds": locomotion_speeds(model, with_features),
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -132,6 +132,13 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
     assert list(pipeline.overrides.stage1) == ["recipe=quality"]
     assert list(pipeline.overrides.stage2) == ["recipe=quality"]
     assert "adherence_max_items" not in str(pipeline.overrides.evaluate)  # every test caption
+    # The recipe's evaluator keeps the 400 steps it was measured with; the demo's trains 300.
+    from mmm.training.configs import load_evaluator_config
+
+    assert load_evaluator_config([]).trainer.max_steps == 300
+    quality_evaluator = load_evaluator_config(list(pipeline.overrides.evaluator))
+    assert (quality_evaluator.trainer.max_steps, quality_evaluator.trainer.val_check_interval) == (400, 200)
+    assert quality_evaluator.output_dir == "outputs/quality/evaluator"
     # Every step trains and measures on the larger synthetic set (the default's val and test clips);
     # a dataset named on the command line replaces it whole.
     assert pipeline.data.name == "synthetic_large" and pipeline.data.root == "data/synthetic-large"
