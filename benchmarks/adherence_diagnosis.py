@@ -244,12 +244,12 @@ def main() -> None:
             f"{root / 'labels'}: no labels; the diagnosis needs labelled data (the synthetic set)"
         )
     model = TextToMotion.load(args.model, resolve_tracking_uri(args.tracking_uri))
-    test = labelled_items(root, args.split, model)
+    with_features = labelled_items(root, args.split, model, features=True)
+    test = [row[:3] for row in with_features]  # the same rows without the features
     train = labelled_items(root, "train", model)
     training_captions = {
         c.text for item in DataConfig(root=str(root)).items("train", root)[0] for c in item.captions
     }
-    with_features = labelled_items(root, args.split, model, features=True)
     rows = generated_checks(model, test)
     report = {
         "model": args.model,

@@ -7,7 +7,13 @@ import pytest
 from omegaconf import OmegaConf
 
 from mmm.config import compose, conf_dir, to_object
-from mmm.training.configs import Stage1Config, Stage2Config, load_stage1_config, load_stage2_config
+from mmm.training.configs import (
+    Stage1Config,
+    Stage2Config,
+    load_evaluator_config,
+    load_stage1_config,
+    load_stage2_config,
+)
 
 STAGES = {
     "train_stage1": (Stage1Config, load_stage1_config),
@@ -133,8 +139,6 @@ def test_recipe_quality_is_the_demo_longer_and_wider_in_folders_of_its_own():
     assert list(pipeline.overrides.stage2) == ["recipe=quality"]
     assert "adherence_max_items" not in str(pipeline.overrides.evaluate)  # every test caption
     # The recipe's evaluator keeps the 400 steps it was measured with; the demo's trains 300.
-    from mmm.training.configs import load_evaluator_config
-
     assert load_evaluator_config([]).trainer.max_steps == 300
     quality_evaluator = load_evaluator_config(list(pipeline.overrides.evaluator))
     assert (quality_evaluator.trainer.max_steps, quality_evaluator.trainer.val_check_interval) == (400, 200)
