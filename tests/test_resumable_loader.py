@@ -48,3 +48,23 @@ def test_loader_resumes_mid_epoch_exactly():
     rest = [b.tolist() for b in resumed]
     assert seen + rest == expected
     assert resumed.state_dict() == {"epoch": 2, "batches": 10}
+
+
+def test_a_position_at_the_end_of_an_epoch_resumes_with_the_whole_next_epoch():
+    """A checkpoint written after an epoch's last batch holds (epoch, all its batches); the trainer
+    then starts the next epoch (set_epoch), which must begin at its first batch, not skip as many."""
+    data = Numbers()
+    full = ResumableDataLoader(data, batch_size=4, shuffle=True, seed=7)
+    full.sampler.set_epoch(3)
+    expected = [b.tolist() for b in full]
+    resumed = ResumableDataLoader(data, batch_size=4, shuffle=True, seed=7)
+    resumed.load_state_dict({"epoch": 2, "batches": 10})
+    resumed.sampler.set_epoch(3)
+    assert [b.tolist() for b in resumed] == expected and len(expected) == 10
+    # Lightning may also finish the restored epoch first: its rest is empty, the next is whole.
+    again = ResumableDataLoader(data, batch_size=4, shuffle=True, seed=7)
+    again.load_state_dict({"epoch": 2, "batches": 10})
+    again.sampler.set_epoch(2)
+    assert [b.tolist() for b in again] == []
+    again.sampler.set_epoch(3)
+    assert [b.tolist() for b in again] == expected

@@ -35,6 +35,11 @@ class ShardedRandomSampler(Sampler[int]):
         self.skip = 0  # indices of this epoch already consumed (set when resuming)
 
     def set_epoch(self, epoch: int) -> None:
+        # A resumed position belongs to its epoch. A checkpoint written after an epoch's last batch
+        # holds (that epoch, all its batches), and the trainer goes on with the next epoch, which
+        # starts at its first index (keeping the skip would drop that whole epoch too).
+        if epoch != self.epoch:
+            self.skip = 0
         self.epoch = epoch
 
     def _indices(self) -> list[int]:
