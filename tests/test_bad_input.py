@@ -282,6 +282,10 @@ BEFORE_MODEL = {
         ["train", "stage2", "optim.final_share=1"],
         ["optim.final_share=1.0", "[0, 1)", "optim.final_share=0.25"],
     ),
+    "weights averaged with decay 1": (
+        ["train", "stage2", "callbacks.weight_ema=1"],
+        ["callbacks.weight_ema=1.0", "[0, 1)", "callbacks.weight_ema=0.99"],
+    ),
     "unknown token encoding": (
         ["train", "stage2", "token_encoding=search"],
         ["token_encoding='search'", "tokenizer, nearest"],

@@ -351,6 +351,8 @@ def test_ddp_ranks_agree(tmp_path, variant):
     r0, r1 = run_ddp_worker("stage2_ddp.py", tmp_path, *extra, out_dir=tmp_path)
     assert not torch.equal(r0["first_batch"], r1["first_batch"])  # different data per rank
     assert torch.equal(r0["weights"], r1["weights"])
+    # The moving average needs no communication: the same weights after every step on every rank.
+    assert torch.equal(r0["average"], r1["average"]) and not torch.equal(r0["average"], r0["weights"])
     assert r0["step"] == r1["step"] == 15
     assert r0["val_loss"] == r1["val_loss"] and r0["val_acc"] == r1["val_acc"]  # reduced across ranks
     # The adherence figures are measured once, on rank 0, and every rank holds rank 0's value.
@@ -429,3 +431,96 @@ def test_stage1_references_resolve_to_the_same_model(walker_dataset, tmp_path):
         resolve_tokenizer("no-such.ckpt", uri)
     with pytest.raises(ModelNotFound, match="run `make train-stage1` first"):
         resolve_tokenizer(None, f"sqlite:///{tmp_path}/empty.db", f"{tmp_path}/none")
+
+
+@pytest.mark.slow
+def test_weight_ema_is_what_validation_and_checkpoints_hold_and_a_resume_continues_it(
+    walker_dataset, tmp_path, monkeypatch
+):
+    """callbacks.weight_ema: after every step e = d e + (1 - d) w (e = w after the
+    first); validation sees e, best/last.ckpt store e under a fingerprint of e and the weights as
+    trained beside it, and a run resumed halfway (at the end of an epoch: 3 batches of 8 of the
+    24 walker items) ends as the uninterrupted one, to the bit."""
+    import lightning as L
+
+    import mmm.training.stage2 as stage2
+    from mmm.checkpoints import load_checkpoint
+    from mmm.generation.model import TextToMotion
+    from mmm.training.configs import load_stage2_config
+
+    decay = 0.9
+    trained, validated = [], []
+
+    class Probe(L.Callback):
+        def on_train_batch_end(self, trainer, pl_module, *args):
+            trained.append({k: v.detach().clone() for k, v in pl_module.named_parameters()})
+
+        def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0):
+            if batch_idx == 0:
+                validated.append({k: v.detach().clone() for k, v in pl_module.named_parameters()})
+
+    fit = stage2.tracked_fit
+    monkeypatch.setattr(
+        stage2,
+        "tracked_fit",
+        lambda run, cfg, module, target, callbacks, **kw: fit(
+            run, cfg, module, target, [*callbacks, Probe()], **kw
+        ),
+    )
+    train_tiny_stage1(walker_dataset, tmp_path)
+
+    def overrides(steps, out="a", **extra):
+        return stage2_overrides(
+            walker_dataset,
+            tmp_path,
+            **{
+                "callbacks.weight_ema": decay,
+                "trainer.max_steps": steps,
+                "output_dir": f"{tmp_path}/{out}",
+                "callbacks.preview_captions": 0,
+                # the last quarter's drop is placed from each leg's max_steps: none, so the legs
+                # train as the uninterrupted run does
+                "optim.final_share": 0,
+                **extra,
+            },
+        )
+
+    straight = stage2.train_stage2(load_stage2_config(overrides(6)))
+    assert len(trained) == 6 and len(validated) == 2  # validations at steps 3 and 6
+    average = dict(trained[0])
+    expected = []
+    for weights in trained[1:]:
+        average = {k: decay * average[k] + (1 - decay) * w for k, w in weights.items()}
+        expected.append(average)
+    for seen, wanted in ((validated[0], expected[1]), (validated[1], expected[4])):
+        for k, v in wanted.items():
+            assert torch.allclose(seen[k], v, rtol=0, atol=1e-6), k
+    last = load_checkpoint(straight.last_checkpoint, "stage2")  # its fingerprint is of the average
+    assert last["weight_ema"] == decay
+    params = dict(trained[-1])
+    for k, v in expected[-1].items():
+        assert torch.allclose(last["state_dict"][k], v, rtol=0, atol=1e-6), k
+        assert torch.equal(last["current_model_state"][k], params[k]), k
+    assert not torch.equal(last["state_dict"]["transformer.head.weight"], params["transformer.head.weight"])
+    # The codebook is the stage-1 model's, to the bit: buffers are not averaged.
+    codebook = last["current_model_state"]["transformer.codebook"]
+    assert torch.equal(last["state_dict"]["transformer.codebook"], codebook)
+    # Generation loads the average.
+    model = TextToMotion.load(straight.last_checkpoint, f"sqlite:///{tmp_path}/mlflow.db")
+    for k, v in model.transformer.state_dict().items():
+        assert torch.equal(v, last["state_dict"][f"transformer.{k}"]), k
+
+    first = stage2.train_stage2(load_stage2_config(overrides(3, "b")))
+    with pytest.raises(
+        ValueError, match=r"averaged its weights with decay 0.9, but callbacks.weight_ema=0.0"
+    ):
+        stage2.train_stage2(
+            load_stage2_config(overrides(6, "b", **{"callbacks.weight_ema": 0})), resume="last"
+        )
+    resumed = stage2.train_stage2(load_stage2_config(overrides(6, "b")), resume="last")
+    assert resumed.run_id == first.run_id
+    a, b = (torch.load(r.last_checkpoint, weights_only=True) for r in (straight, resumed))
+    assert b["global_step"] == 6
+    for part in ("state_dict", "current_model_state"):
+        for k, v in a[part].items():
+            assert torch.equal(v, b[part][k]), (part, k)

@@ -28,6 +28,7 @@ from mmm.fingerprint import tensors_fingerprint
 from mmm.kinds import KINDS
 
 FINGERPRINT_KEY = "weights_fingerprint"  # tensors_fingerprint(state_dict) at save time
+WEIGHT_EMA_KEY = "weight_ema"  # the decay a stage-2 state_dict was averaged with (absent: none)
 OUTPUTS_ROOT = "outputs"  # the package's output folder, relative to the working directory
 
 # checkpoint family (the model kind that writes it; the part-aware kinds write the same families)

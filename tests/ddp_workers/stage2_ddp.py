@@ -4,7 +4,7 @@ Run by tests/test_stage2.py as `python stage2_ddp.py OUT_DIR [parts]`. Random to
 random text embeddings: the point is that ranks see different batches yet end with the same
 weights, that validation metrics are reduced across ranks, and that the adherence curve's
 figures, measured on rank 0 only, reach every rank's callback_metrics (what best.ckpt can be chosen
-by). `parts`: the part-aware
+by), and that the weights' moving average is the same on every rank. `parts`: the part-aware
 transformer on [lower, upper] code pairs (the lower ones its partly masked condition).
 """
 
@@ -17,6 +17,7 @@ from torch.utils.data import Dataset
 from two_ranks import two_process_trainer  # beside this script (its folder is on sys.path)
 
 from mmm.callbacks.adherence import AdherenceCurve
+from mmm.callbacks.weight_ema import WeightEMA
 from mmm.data.resumable import ResumableDataLoader
 from mmm.optim import OptimConfig
 from mmm.transformer.configs import CorruptionConfig
@@ -79,8 +80,8 @@ class RankAdherence(AdherenceCurve):
 
 
 class SaveRankState(L.Callback):
-    def __init__(self, out_dir, curve):
-        self.out_dir, self.first, self.curve = out_dir, None, curve
+    def __init__(self, out_dir, curve, ema):
+        self.out_dir, self.first, self.curve, self.ema = out_dir, None, curve, ema
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         if self.first is None:
@@ -90,6 +91,9 @@ class SaveRankState(L.Callback):
         torch.save(
             {
                 "weights": torch.cat([p.detach().flatten() for p in pl_module.parameters()]),
+                "average": torch.cat(
+                    [p.detach().flatten() for p in self.ema._average_model.module.parameters()]
+                ),
                 "val_loss": float(trainer.callback_metrics["val/loss"]),
                 "val_acc": float(trainer.callback_metrics["val/acc_masked"]),
                 "first_batch": self.first,
@@ -117,7 +121,7 @@ def main(out_dir, parts=False):
     )
     trainer = two_process_trainer(
         15,
-        [curve := RankAdherence(), SaveRankState(out_dir, curve)],
+        [curve := RankAdherence(), SaveRankState(out_dir, curve, ema := WeightEMA(0.9)), ema],
         val_check_interval=15,
         check_val_every_n_epoch=None,
         num_sanity_val_steps=0,

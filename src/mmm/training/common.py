@@ -30,7 +30,7 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from mmm.callbacks.checkpoints import RunState, checkpoint_callbacks
-from mmm.checkpoints import load_checkpoint
+from mmm.checkpoints import WEIGHT_EMA_KEY, load_checkpoint
 from mmm.config import conf_dir, config_hash
 from mmm.device import cpu_has_bf16_matmul
 from mmm.kinds import ModelKind
@@ -176,6 +176,7 @@ def read_checkpoint_meta(path: str | Path) -> dict:
         "mlflow_run_id": ckpt.get("mlflow_run_id"),
         "global_step": ckpt.get("global_step"),
         "hyper_parameters": ckpt.get("hyper_parameters"),
+        "weight_ema": ckpt.get(WEIGHT_EMA_KEY),
     }
 
 

@@ -15,7 +15,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mmm.callbacks.configs import CheckpointConfig, CollapseConfig
+from mmm.callbacks.configs import CheckpointConfig, CollapseConfig, check_weight_ema
 from mmm.config import ConfigError, check_whole, compose
 from mmm.data.configs import DataConfig
 from mmm.data.normalization import NormalizationConfig
@@ -130,6 +130,12 @@ class Stage2Callbacks:
     # AdherenceCurve: labelled validation captions generated and checked at each validation, logged
     # as val_adherence/* (0: none; only on a dataset with labels/, whole-body models)
     adherence_captions: int = 64
+    # WeightEMA: validation, previews, the curve and the checkpoints use an exponential moving average
+    # of the weights with this decay (0: none, the weights as trained)
+    weight_ema: float = 0.0
+
+    def __post_init__(self):
+        check_weight_ema(self.weight_ema)
 
 
 @dataclass

@@ -17,6 +17,7 @@ from omegaconf import DictConfig
 
 from mmm.callbacks.adherence import AdherenceCurve
 from mmm.callbacks.previews import GenerationPreview
+from mmm.callbacks.weight_ema import WeightEMA, check_resume_ema
 from mmm.config import ConfigError, to_object
 from mmm.data.datamodule import TokenTextDataModule
 from mmm.kinds import STAGE1_PARTS, STAGE2, STAGE2_PARTS
@@ -170,6 +171,7 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     def check(checkpoint: Path) -> None:
         check_codebook(checkpoint, list(codebook.shape))
         check_stage1_identity(checkpoint, source)
+        check_resume_ema(checkpoint, read_checkpoint_meta(checkpoint)["weight_ema"], cfg.callbacks.weight_ema)
 
     target = run_target(cfg, resume, check)
     module = MaskedTransformerModule(
@@ -196,6 +198,8 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
                 tokenizer, text_encoder, cfg.data.root, curve_items, cfg.seed, publish=by_adherence
             )
         )
+    if cfg.callbacks.weight_ema:  # last: the previews and the curve above see the average
+        callbacks.append(WeightEMA(cfg.callbacks.weight_ema))
     lineage = (
         stage1_lineage(source, resolve_tracking_uri(cfg.logger.tracking_uri)) if cfg.logger.enabled else {}
     )
