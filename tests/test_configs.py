@@ -68,9 +68,18 @@ def test_defaults_are_the_cpu_demo_and_paper_sizes_differ():
     ) == (1024, 18, [0.5, 0.9], [150000])
     assert s2.text.encoder == "minilm" and s2.stage1 is None
 
+    # The demo's stage 2 trains 1,500 steps from a trainer file of its own, so that another
+    # trainer (the paper's 300k on a GPU) brings its own count; the part-aware one keeps 1,000.
+    def steps(cfg):
+        return cfg.trainer.max_steps, cfg.trainer.val_check_interval
+
+    assert steps(load_stage2_config()) == (1500, 150)
+    assert steps(load_stage2_config(["trainer=gpu"])) == (300000, 5000)
+    assert steps(load_stage2_config(parts=True)) == steps(load_stage1_config()) == (1000, 100)
+
 
 def test_unknown_group_option_lists_the_choices():
-    with pytest.raises(ValueError, match="options: cpu, ddp, ddp_cpu, gpu, multinode"):
+    with pytest.raises(ValueError, match="options: cpu, cpu_stage2, ddp, ddp_cpu, gpu, multinode"):
         compose("train_stage1", ["trainer=tpu"])
     with pytest.raises(ValueError, match="num_cross_layers=7 must be between 0 and num_layers=6"):
         to_object(
