@@ -255,9 +255,7 @@ def test_mmm_evaluate_runs_an_editing_task_and_refuses_the_wrong_model(trained, 
     with pytest.raises(
         ValueError, match=r"part-aware model; .* whole-body model\. Pass text2motion=models:/mmm-upperbody"
     ):
-        evaluation_run.evaluate(
-            load_evaluate_config([*common, "task=upper-body", "logger.enabled=false"])
-        )
+        evaluation_run.evaluate(load_evaluate_config([*common, "task=upper-body", "logger.enabled=false"]))
 
 
 @pytest.fixture(scope="module")

@@ -247,7 +247,8 @@ def test_a_changed_global_batch_is_refused_unless_the_epoch_restarts_and_the_sam
 
 
 @pytest.mark.slow
-def test_stage2_resume_with_another_stage1_model_is_refused_naming_both(trained, tmp_path):
+def test_stage2_resume_with_another_stage1_model_is_refused_naming_both(trained, tmp_path, monkeypatch):
+    import mmm.training.common as common
     from mmm.training.configs import load_stage2_config
     from mmm.training.stage2 import train_stage2
 
@@ -260,8 +261,11 @@ def test_stage2_resume_with_another_stage1_model_is_refused_naming_both(trained,
     copy.parent.mkdir()
     shutil.copyfile(trained["checkpoint"], copy)
     cfg = load_stage2_config(stage2_overrides(walker, tmp_path, stage1=other.best_checkpoint))
+    reads, load = [], common.load_checkpoint  # the resumed checkpoint is read once for all its checks
+    monkeypatch.setattr(common, "load_checkpoint", lambda path, *a: reads.append(path) or load(path, *a))
     with pytest.raises(ValueError, match="trained on stage-1 model") as refused:
         train_stage2(cfg, resume=str(copy))
+    assert [Path(p).resolve() for p in reads] == [copy.resolve()]
     message = str(refused.value)
     from mmm.fingerprint import tensors_fingerprint
     from mmm.tokenizer.load import load_tokenizer_checkpoint

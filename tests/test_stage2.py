@@ -390,12 +390,14 @@ def test_train_stage2_end_to_end_uses_the_newest_stage1_and_records_it(walker_da
     assert ckpt["hyper_parameters"]["codebook_shape"] == [32, 32]
     assert ckpt["hyper_parameters"]["stage1"]["run_id"] == newest.run_id
     # The explicit reference wins, and resuming with a tokenizer of another codebook is refused.
+    from mmm.training.common import read_checkpoint_meta
     from mmm.training.stage2 import check_codebook
 
+    last = Path(result.last_checkpoint)
     with pytest.raises(
         ValueError, match=r"codebook of shape \[32, 32\], but the stage-1 model has \[64, 32\]"
     ):
-        check_codebook(Path(result.last_checkpoint), [64, 32])
+        check_codebook(last, read_checkpoint_meta(last), [64, 32])
 
 
 @pytest.mark.slow

@@ -325,17 +325,21 @@ def check_schedule(trainer: TrainerConfig) -> None:
         )
 
 
-def run_target(cfg, resume: str | None = None, check: Callable[[Path], None] | None = None) -> RunTarget:
+def run_target(
+    cfg, resume: str | None = None, check: Callable[[Path, dict], None] | None = None
+) -> RunTarget:
     """A new run folder under `cfg.output_dir`, or with `resume` ("last" or a checkpoint path) the
-    checkpoint to continue and the folder it continues in (`resume_target`); `check(checkpoint)`
-    refuses a resume that would silently change the run (raises) before anything is written."""
+    checkpoint to continue and the folder it continues in (`resume_target`); `check(checkpoint,
+    meta)` (meta: `read_checkpoint_meta`'s, read once here) refuses a resume that would silently
+    change the run (raises) before anything is written."""
     check_schedule(cfg.trainer)
     if not resume:
         return RunTarget(run_directory(cfg.output_dir))
     ckpt_path, run_dir = resume_target(resume, cfg.output_dir)
+    meta = read_checkpoint_meta(ckpt_path)
     if check is not None:
-        check(ckpt_path)
-    run_id = resumable_run_id(read_checkpoint_meta(ckpt_path)["mlflow_run_id"], cfg.logger)
+        check(ckpt_path, meta)
+    run_id = resumable_run_id(meta["mlflow_run_id"], cfg.logger)
     log.info("resuming %s in %s (MLflow run %s)", ckpt_path, run_dir, run_id)
     return RunTarget(run_dir, ckpt_path, run_id)
 

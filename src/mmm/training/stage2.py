@@ -28,7 +28,6 @@ from mmm.tracking import resolve_tracking_uri, run_link, version_link
 from mmm.training.common import (
     TrackedRun,
     TrainResult,
-    read_checkpoint_meta,
     run_target,
     text_record,
     tracked_fit,
@@ -39,8 +38,10 @@ from mmm.transformer.module import MaskedTransformerModule, stage2_codebooks
 log = logging.getLogger(__name__)
 
 
-def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:
-    hp = read_checkpoint_meta(checkpoint)["hyper_parameters"] or {}
+def check_codebook(checkpoint: Path, meta: dict, codebook_shape: list[int]) -> None:
+    """Refuse to resume a transformer on a codebook of another shape; `meta`: the checkpoint's
+    `read_checkpoint_meta`."""
+    hp = meta["hyper_parameters"] or {}
     if list(hp.get("codebook_shape", codebook_shape)) != list(codebook_shape):
         raise ValueError(
             f"{checkpoint}: this transformer was trained on a codebook of shape {hp['codebook_shape']}, but "
@@ -49,10 +50,10 @@ def check_codebook(checkpoint: Path, codebook_shape: list[int]) -> None:
         )
 
 
-def check_stage1_identity(checkpoint: Path, source) -> None:
+def check_stage1_identity(checkpoint: Path, meta: dict, source) -> None:
     """Refuse to resume a transformer on other stage-1 weights than it was trained on: a codebook
     of the same shape with other codes would silently change what every token means."""
-    recorded = (read_checkpoint_meta(checkpoint)["hyper_parameters"] or {}).get("stage1") or {}
+    recorded = (meta["hyper_parameters"] or {}).get("stage1") or {}
     if recorded.get("identity") and recorded["identity"] != source.identity:
         raise ValueError(
             f"{checkpoint}: this transformer was trained on stage-1 model {recorded.get('reference', '?')} "
@@ -168,10 +169,10 @@ def train_stage2(cfg_node: DictConfig, resume: str | None = None) -> TrainResult
     tokenizer, source, text_encoder = datamodule.tokenizer, datamodule.source, datamodule.text_encoder
     codebook, condition_codebook = stage2_codebooks(tokenizer)
 
-    def check(checkpoint: Path) -> None:
-        check_codebook(checkpoint, list(codebook.shape))
-        check_stage1_identity(checkpoint, source)
-        check_resume_ema(checkpoint, read_checkpoint_meta(checkpoint)["weight_ema"], cfg.callbacks.weight_ema)
+    def check(checkpoint: Path, meta: dict) -> None:
+        check_codebook(checkpoint, meta, list(codebook.shape))
+        check_stage1_identity(checkpoint, meta, source)
+        check_resume_ema(checkpoint, meta["weight_ema"], cfg.callbacks.weight_ema)
 
     target = run_target(cfg, resume, check)
     module = MaskedTransformerModule(
