@@ -61,7 +61,7 @@ demo: $(DATA)/all.txt ## the main job: data, evaluator and both stages (tiny), e
 	@echo "  make mlflow-ui                                 the dashboard: runs (mmm-pipeline: the pipeline run, its steps in order), models and aliases"
 	@$(BIN)/mmm dashboard
 
-train-quality: $(STAMP) ## the quality recipe: the demo's pipeline longer and wider, on 4.75x the training clips (recipe=quality, 43-91 min on 2 CPU cores by machine: 43-59 on a 2.6 GHz Xeon with AMX as its pace varies, 58-60 on a Zen 4; README; outputs/quality)
+train-quality: $(STAMP) ## the quality recipe: the demo's pipeline longer and wider, on 4.75x the training clips (recipe=quality, 43-91 min on 2 CPU cores by machine: 43-59 on a 2.6 GHz Xeon with AMX as its pace varies, 58-67 on a Zen 4; README; outputs/quality)
 	$(BIN)/mmm pipeline full recipe=quality $(ARGS)
 
 train-stage1: $(STAMP) ## train the tokenizer (tiny size on the synthetic data by default); ARGS="key=value ..."

@@ -90,7 +90,7 @@ def test_installed_package_composes_its_configs_from_any_folder(installed):
     assert Path(module_file).is_relative_to(site) and Path(folder) == site / "mmm" / "conf"
     # The paper's 18 layers (conf/model/paper.yaml) and the quality recipe's steps, as the checkout has them.
     checkout = compose("train_stage2", ["model=paper", "recipe=quality"])
-    assert numbers.split() == ["18", str(checkout.trainer.max_steps)] and checkout.trainer.max_steps == 6500
+    assert numbers.split() == ["18", str(checkout.trainer.max_steps)] and checkout.trainer.max_steps == 6300
     # The installed command line: a typo is refused by the installed configs' schema, not for a
     # missing conf/ (exit 2, the key named).
     command = (sys.executable, "-m", "mmm.cli", "train", "stage1", "model.bogus=1")
