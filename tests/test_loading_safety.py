@@ -359,8 +359,10 @@ def test_run_state_records_the_weights_fingerprint():
 
     state = {"a": torch.arange(4.0), "b": torch.ones(2, 2)}
     checkpoint = {"state_dict": state}
-    RunState().on_save_checkpoint(types.SimpleNamespace(loggers=[], world_size=1), None, checkpoint)
+    trainer = types.SimpleNamespace(loggers=[], world_size=1, max_steps=1500)
+    RunState().on_save_checkpoint(trainer, None, checkpoint)
     assert checkpoint[FINGERPRINT_KEY] == tensors_fingerprint(state)
+    assert checkpoint["schedule_steps"] == 1500  # what placed optim.final_share's drop
 
 
 def test_text_encoder_files_are_read_only_inside_outputs_or_when_named(tmp_path, monkeypatch):

@@ -4,6 +4,7 @@ immutable, fingerprinted weights, promotions compare like with like and never le
 two concurrent candidates champion, and pipeline keys notice every change that matters."""
 
 import hashlib
+import logging
 import multiprocessing
 import os
 import shutil
@@ -181,6 +182,15 @@ def test_resume_refuses_another_batch_size_or_learning_rate_and_writes_nothing(s
         train_stage1(
             stage1_config(walker_dataset, out, "trainer.max_steps=8", "optim.lr=0.0005"), resume=str(last)
         )
+    # A final rate drop that would already be behind the checkpoint's step (4): refused.
+    with pytest.raises(
+        ValueError,
+        match=r"no drop in the checkpoint's fit of 6 steps and its drop at step 2 of this fit of 10",
+    ):
+        train_stage1(
+            stage1_config(walker_dataset, out, "trainer.max_steps=8", "optim.final_share=0.75"),
+            resume=str(last),
+        )
     # Another model size: refused before Lightning's load fails halfway and marks the run FAILED.
     with pytest.raises(
         ValueError, match=r"weights do not fit the model this config builds \(.*of another shape \(tokenizer"
@@ -244,6 +254,43 @@ def test_a_changed_global_batch_is_refused_unless_the_epoch_restarts_and_the_sam
         same = checkpoint()
         RunState(batch_size=batch_size).check_resume(SimpleNamespace(world_size=world_size), module, same)
         assert same == checkpoint()
+
+
+def test_a_resume_that_moves_the_final_rate_drop_across_its_step_is_refused(caplog):
+    from mmm.callbacks.checkpoints import RunState
+
+    quarter = {"milestones": [], "final_share": 0.25}
+
+    def resume(step: int, max_steps: int, optim: dict = quarter, recorded: int | None = 1500):
+        checkpoint = {"global_step": step, "hyper_parameters": {"optim": quarter}}
+        if recorded is not None:
+            checkpoint["schedule_steps"] = recorded
+        module = SimpleNamespace(hparams={"optim": optim}, state_dict=dict)
+        RunState().check_resume(SimpleNamespace(world_size=1, max_steps=max_steps), module, checkpoint)
+
+    # 1,500 steps with the last quarter at rate x gamma: the drop at step 1,125. Resumed at 1,400
+    # for 3,000 steps, the drop would move to 2,250 and the rate go back up tenfold.
+    with pytest.raises(ValueError) as refused:
+        resume(1400, 3000)
+    assert str(refused.value) == (
+        "cannot resume at step 1400: optim.final_share places its drop at step 1125 of the checkpoint's "
+        "fit of 1500 steps and its drop at step 2250 of this fit of 3000 steps, so the learning rate "
+        "would change at once; resume with a fit of 1500 steps (trainer.max_steps, with refine.steps "
+        "for a tokenizer), or keep the checkpoint's schedule with optim.milestones=[1125] "
+        "optim.final_share=0 and any trainer.max_steps"
+    )
+    with pytest.raises(ValueError, match="at step 1000: .* drop at step 900 of this fit of 1200"):
+        resume(1000, 1200)  # shortened: the rate would drop at once
+    with pytest.raises(ValueError, match="and no drop in this fit of 3000 steps"):
+        resume(1400, 3000, {"milestones": [], "final_share": 0.0})
+    # The fix the message gives, the same count, a checkpoint from before the count was recorded,
+    # and a drop still to come on both sides (said in the log): resumed.
+    resume(1400, 3000, {"milestones": [1125], "final_share": 0.0})
+    resume(1400, 1500)
+    resume(1400, 3000, recorded=None)
+    with caplog.at_level(logging.INFO, logger="mmm.callbacks.checkpoints"):
+        resume(1000, 3000)
+    assert "resuming at step 1000: optim.final_share places its drop at step 1125 of the" in caplog.text
 
 
 @pytest.mark.slow

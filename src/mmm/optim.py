@@ -45,9 +45,13 @@ class OptimConfig:
                 f"optim.final_share={self.final_share} needs a run of known length, got {total_steps} "
                 "optimizer steps; set trainer.max_steps, or optim.final_share=0"
             )
-        # rounded first: 0.3 x 10 is 3.0000000000000004 in floating point, which is 3 steps
-        last = math.ceil(round(total_steps * self.final_share, 6))
-        return sorted([*self.milestones, int(total_steps) - last])
+        return sorted([*self.milestones, final_drop_step(total_steps, self.final_share)])
+
+
+def final_drop_step(total_steps: int, final_share: float) -> int:
+    """The optimizer step where a run of `total_steps` begins its last `final_share` (at least one step)."""
+    # rounded first: 0.3 x 10 is 3.0000000000000004 in floating point, which is 3 steps
+    return int(total_steps) - math.ceil(round(total_steps * final_share, 6))
 
 
 def warmup_step_schedule(warmup_steps: int, milestones: list[int], gamma: float):

@@ -17,6 +17,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from mmm.callbacks.configs import CheckpointConfig
 from mmm.checkpoints import FINGERPRINT_KEY
 from mmm.fingerprint import tensors_fingerprint
+from mmm.optim import final_drop_step
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +50,9 @@ class RunState(L.Callback):
     logging to the same run), the random generators' states (it goes on drawing the same
     numbers) and the data position's meaning (batch size, world size), in types that load with
     weights_only=True. On resume it refuses what would silently change the run: another global
-    batch (batch size x world size; unless `restart_epoch`), or optimizer settings the restored
-    optimizer state would override. The same global batch split over another number of processes
+    batch (batch size x world size; unless `restart_epoch`), optimizer settings the restored
+    optimizer state would override, or a step count that moves optim.final_share's rate drop
+    across the checkpoint's step. The same global batch split over another number of processes
     resumes exactly where it stopped."""
 
     def __init__(self, batch_size: int | None = None, restart_epoch: bool = False):
@@ -73,6 +75,8 @@ class RunState(L.Callback):
             "python": random.getstate(),
         }
         checkpoint["data_position"] = {"batch_size": self.batch_size, "world_size": trainer.world_size}
+        # What placed optim.final_share's rate drop (a resume with another count would move it).
+        checkpoint["schedule_steps"] = int(trainer.max_steps)
         # The weights' own fingerprint: every load checks it (mmm.checkpoints.load_checkpoint).
         checkpoint[FINGERPRINT_KEY] = tensors_fingerprint(checkpoint.get("state_dict") or {})
 
@@ -81,6 +85,7 @@ class RunState(L.Callback):
         self._check_progress(trainer, checkpoint)
         self._check_weights(pl_module, checkpoint)
         self._check_optimizer(pl_module, checkpoint)
+        self._check_final_drop(trainer, pl_module, checkpoint)
         self._check_data_position(trainer, checkpoint)
 
     def on_load_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
@@ -153,6 +158,42 @@ class RunState(L.Callback):
                 "them silently; resume with the checkpoint's values, or start a new run (without --resume) "
                 "to train with new ones"
             )
+
+    @staticmethod
+    def _check_final_drop(trainer, pl_module, checkpoint: dict) -> None:
+        """Refuse a resume whose trainer.max_steps moves optim.final_share's rate drop across the
+        checkpoint's step (the rate would jump back up, or drop at once); a drop moved within the
+        steps still to come is said in the log."""
+        steps, step = checkpoint.get("schedule_steps"), checkpoint.get("global_step")
+        if steps is None or step is None:
+            return  # a checkpoint from before the step count was recorded
+
+        def schedule(optim: dict, total: int) -> tuple[list[int], int | None]:
+            share = optim.get("final_share") or 0.0
+            drop = final_drop_step(total, share) if share and total > 0 else None
+            return sorted([*optim.get("milestones", []), *([drop] if drop is not None else [])]), drop
+
+        saved_optim = (checkpoint.get("hyper_parameters") or {}).get("optim") or {}
+        saved, saved_drop = schedule(saved_optim, steps)
+        our_optim = (getattr(pl_module, "hparams", None) or {}).get("optim") or {}
+        ours, our_drop = schedule(our_optim, trainer.max_steps)
+        if saved_drop == our_drop:
+            return  # explicit milestones, warm-up and gamma take effect as configured
+
+        def where(drop: int | None, whose: str, total: int) -> str:
+            at = "no drop in" if drop is None else f"its drop at step {drop} of"
+            return f"{at} {whose} fit of {total} steps"
+
+        before, now = where(saved_drop, "the checkpoint's", steps), where(our_drop, "this", trainer.max_steps)
+        change = f"optim.final_share places {before} and {now}"
+        if sum(m <= step for m in saved) != sum(m <= step for m in ours):
+            raise ValueError(
+                f"cannot resume at step {step}: {change}, so the learning rate would change at once; "
+                f"resume with a fit of {steps} steps (trainer.max_steps, with refine.steps for a tokenizer), "
+                f"or keep the checkpoint's schedule with optim.milestones=[{','.join(map(str, saved))}] "
+                "optim.final_share=0 and any trainer.max_steps"
+            )
+        log.info("resuming at step %d: %s", step, change)
 
     def _check_data_position(self, trainer, checkpoint: dict) -> None:
         saved = checkpoint.get("data_position")
