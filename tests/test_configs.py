@@ -43,7 +43,7 @@ def test_every_option_composes(entry, group, option):
     chosen = OmegaConf.load(conf_dir() / group / f"{option}.yaml")
     primary = OmegaConf.load(conf_dir() / f"{entry}.yaml").get(group, {})  # set over the group file
     for key, value in chosen.items():
-        if not OmegaConf.is_dict(value) and key not in primary:
+        if not OmegaConf.is_dict(value) and key not in primary and key != "extends":
             assert cfg[group][key] == value, f"{group}.{key}"
     assert isinstance(to_object(cfg), schema)
 
@@ -129,6 +129,22 @@ def test_extends_is_one_level(tmp_path):
     assert OmegaConf.to_container(compose("b", ["x=5"], directory=tmp_path)) == {"x": 5, "y": 3}
     with pytest.raises(ValueError, match="one level only"):
         compose("c", directory=tmp_path)
+    # A group's option extends another option of its group the same way.
+    (tmp_path / "trainer").mkdir()
+    (tmp_path / "trainer" / "base.yaml").write_text("steps: 10\nevery: 5\ndevice: cpu\n")
+    (tmp_path / "trainer" / "longer.yaml").write_text("extends: base\nsteps: 20\n")
+    (tmp_path / "trainer" / "longest.yaml").write_text("extends: longer\n")
+    (tmp_path / "run.yaml").write_text("defaults:\n  - trainer: longer\n")
+    run = compose("run", ["trainer.every=4"], directory=tmp_path)
+    assert OmegaConf.to_container(run) == {"trainer": {"steps": 20, "every": 4, "device": "cpu"}}
+    with pytest.raises(ValueError, match=r"longest.yaml extends trainer/longer.yaml, which extends another"):
+        compose("run", ["trainer=longest"], directory=tmp_path)
+    # The demo's stage-2 trainer is the CPU one with its own step count.
+    cpu, demo = (
+        OmegaConf.to_container(compose("train_stage1", [f"trainer={t}"]))["trainer"]
+        for t in ("cpu", "cpu_stage2")
+    )
+    assert {k for k in cpu if cpu[k] != demo[k]} == {"max_steps", "val_check_interval"}
 
 
 def _flat(cfg, prefix=""):

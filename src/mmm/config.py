@@ -7,6 +7,9 @@ folders (conf/data/synthetic.yaml is option `synthetic` of group `data`):
       - data: synthetic
       - trainer: cpu
 
+An option may start with `extends: other` (another option of its group, which extends none) and
+change a few of its keys.
+
 Overrides are `group=option` (choose another file of a group) or `dotted.key=value`; the result
 is validated against a dataclass schema when one is given, so a misspelt key is an error.
 
@@ -63,6 +66,19 @@ def _load_yaml(path: Path) -> DictConfig:
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"{path}: expected a mapping at the top level")
     return cfg
+
+
+def _load_option(directory: Path, group: str, option: str) -> DictConfig:
+    """conf/<group>/<option>.yaml, on top of the option it `extends` (one level)."""
+    path = directory / group / f"{option}.yaml"
+    cfg = _load_yaml(path)
+    base_name = cfg.pop("extends", None)
+    if base_name is None:
+        return cfg
+    base = _load_yaml(directory / group / f"{base_name}.yaml")
+    if "extends" in base:
+        raise ConfigError(f"{path} extends {group}/{base_name}.yaml, which extends another: one level only")
+    return OmegaConf.merge(base, cfg)
 
 
 def _options(directory: Path, group: str) -> list[str]:
@@ -153,7 +169,7 @@ def compose(
 
     cfg = OmegaConf.create({})
     for group, option in choices.items():
-        group_cfg = _load_yaml(directory / group / f"{option}.yaml")
+        group_cfg = _load_option(directory, group, option)
         cfg = OmegaConf.merge(cfg, {group: group_cfg})
     try:
         cfg = OmegaConf.merge(cfg, primary, recipe_cfg or {}, OmegaConf.from_dotlist(dotted))
