@@ -16,7 +16,8 @@ Prints and writes (JSON):
   runs and walks (per speed word): the data, after the nearest codes' round trip (what stage 2
   learns from), and generated at their true lengths under a few sampling settings (sampler seeds
   0 and 1): whether the codes or the transformer lose a gait's speed.
-The README's "What the `make demo` model follows, and why not the rest" quotes these figures.
+The README's "What the `make demo` model follows, and why not the rest" quotes these figures;
+tests/test_adherence_diagnosis.py checks the counting with an oracle model (each caption's own motion).
 """
 
 from __future__ import annotations
